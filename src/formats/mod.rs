@@ -1,0 +1,30 @@
+//! Readers and writers of the BigWorld file formats. This is the only part of
+//! the crate that touches the file system; everything below `scene/` and the
+//! bake work on the values these modules return.
+
+pub mod bake_settings;
+pub mod binsection;
+pub mod chunk;
+pub mod model;
+pub mod packed_xml;
+pub mod primitives;
+pub mod resources;
+pub mod section;
+pub mod space_settings;
+pub mod terrain;
+pub mod visual;
+pub mod xml;
+
+pub use section::Section;
+
+use crate::error::FormatError;
+
+/// Parses a data section in either encoding, sniffing the magic: packed
+/// binary XML (`45 4E A1 62`) or text XML.
+pub fn parse_data_section(bytes: &[u8]) -> Result<Section, FormatError> {
+    if bytes.starts_with(&packed_xml::MAGIC) {
+        packed_xml::parse(bytes)
+    } else {
+        xml::parse(bytes)
+    }
+}

@@ -1,0 +1,211 @@
+//! One tree for every BigWorld data section, whichever encoding it came from
+//! (text XML or packed binary XML), so format readers are written once.
+//!
+//! BigWorld's own `DataSection` is the model: an element has a tag, a value
+//! (its own text, trimmed, mixed content allowed) and ordered children with
+//! repeatable tags.
+
+use crate::error::{FormatError, Location};
+use glam::{DMat4, DVec3, DVec4};
+use std::ops::Range;
+
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Section {
+    pub name: String,
+    /// The element's own text with surrounding white space removed. For mixed
+    /// content (`<primitiveGroup>\t0\n<material>…`) this is the text before,
+    /// between and after the children, joined.
+    pub value: String,
+    pub children: Vec<Section>,
+    /// Slash-separated tag path from the root, for error messages.
+    pub path: String,
+    /// Byte range of the whole element (`<tag` … `</tag>`) in a text XML
+    /// source; for packed XML the range of the element's data.
+    pub span: Range<usize>,
+}
+
+impl Section {
+    pub fn child(&self, name: &str) -> Option<&Section> {
+        self.children.iter().find(|c| c.name == name)
+    }
+
+    pub fn children_named<'a>(&'a self, name: &'a str) -> impl Iterator<Item = &'a Section> + 'a {
+        self.children.iter().filter(move |c| c.name == name)
+    }
+
+    /// Where this element is, for an error.
+    pub fn location(&self) -> Location {
+        Location::Element {
+            path: self.path.clone(),
+            offset: self.span.start as u64,
+        }
+    }
+
+    pub fn error(&self, message: impl Into<String>) -> FormatError {
+        FormatError::new(self.location(), message)
+    }
+
+    pub fn text(&self) -> &str {
+        &self.value
+    }
+
+    /// The named child's trimmed text, if the child exists.
+    pub fn child_text(&self, name: &str) -> Option<&str> {
+        self.child(name).map(|c| c.value.as_str())
+    }
+
+    /// The named child, or an error naming this element and the missing tag.
+    pub fn required(&self, name: &str) -> Result<&Section, FormatError> {
+        self.child(name)
+            .ok_or_else(|| self.error(format!("missing required element <{name}>")))
+    }
+
+    pub fn as_bool(&self) -> Result<bool, FormatError> {
+        match self.value.to_ascii_lowercase().as_str() {
+            "true" | "1" => Ok(true),
+            "false" | "0" => Ok(false),
+            other => Err(self.error(format!("expected true or false, found `{other}`"))),
+        }
+    }
+
+    pub fn as_i64(&self) -> Result<i64, FormatError> {
+        let text = self.value.as_str();
+        text.parse::<i64>()
+            .or_else(|_| {
+                // The engine's asInt tolerates a float spelling such as `128.0`.
+                text.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.fract() == 0.0 && v.abs() < 9.0e15)
+                    .map(|v| v as i64)
+                    .ok_or(())
+            })
+            .map_err(|_| self.error(format!("expected an integer, found `{text}`")))
+    }
+
+    pub fn as_f64(&self) -> Result<f64, FormatError> {
+        let text = self.value.as_str();
+        text.parse::<f64>()
+            .map_err(|_| self.error(format!("expected a number, found `{text}`")))
+    }
+
+    /// Every white-space separated number of the value.
+    pub fn as_f64s(&self) -> Result<Vec<f64>, FormatError> {
+        self.value
+            .split_ascii_whitespace()
+            .map(|word| {
+                word.parse::<f64>()
+                    .map_err(|_| self.error(format!("expected numbers, found `{word}`")))
+            })
+            .collect()
+    }
+
+    pub fn as_vec3(&self) -> Result<DVec3, FormatError> {
+        let values = self.as_f64s()?;
+        match values.as_slice() {
+            [x, y, z] => Ok(DVec3::new(*x, *y, *z)),
+            _ => Err(self.error(format!("expected 3 numbers, found {}", values.len()))),
+        }
+    }
+
+    /// A BigWorld matrix: `<row0>`..`<row3>` children (text XML) or twelve
+    /// numbers in the value (packed XML stores it so). Rows are row-vector
+    /// (D3D) convention: rows 0–2 the basis, row 3 the translation.
+    /// Missing rows default to identity rows, as the engine's `readMatrix34`.
+    pub fn as_matrix(&self) -> Result<DMat4, FormatError> {
+        let has_rows = (0..4).any(|i| self.child(&format!("row{i}")).is_some());
+        let mut rows = [DVec3::X, DVec3::Y, DVec3::Z, DVec3::ZERO];
+        if has_rows {
+            for (i, row) in rows.iter_mut().enumerate() {
+                if let Some(section) = self.child(&format!("row{i}")) {
+                    *row = section.as_vec3()?;
+                }
+            }
+        } else {
+            let values = self.as_f64s()?;
+            if values.len() != 12 {
+                return Err(self.error(format!(
+                    "expected <row0>..<row3> or 12 numbers, found {} numbers",
+                    values.len()
+                )));
+            }
+            for (i, row) in rows.iter_mut().enumerate() {
+                *row = DVec3::new(values[3 * i], values[3 * i + 1], values[3 * i + 2]);
+            }
+        }
+        // glam is column-vector; a row-vector matrix M with p' = p·M is the
+        // column-vector matrix Mᵀ, whose columns are M's rows.
+        Ok(DMat4::from_cols(
+            DVec4::from((rows[0], 0.0)),
+            DVec4::from((rows[1], 0.0)),
+            DVec4::from((rows[2], 0.0)),
+            DVec4::from((rows[3], 1.0)),
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn leaf(name: &str, value: &str) -> Section {
+        Section {
+            name: name.into(),
+            value: value.into(),
+            path: name.into(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn matrix_from_rows_is_row_vector_convention() {
+        let m = Section {
+            name: "transform".into(),
+            children: vec![
+                leaf("row0", "0 0 -1"),
+                leaf("row1", "0 1 0"),
+                leaf("row2", "1 0 0"),
+                leaf("row3", "10 20 30"),
+            ],
+            ..Default::default()
+        }
+        .as_matrix()
+        .unwrap();
+        // p·M: local +x maps to row0 = (0,0,-1), then translate.
+        let p = m.transform_point3(DVec3::X);
+        assert_eq!(p, DVec3::new(10.0, 20.0, 29.0));
+    }
+
+    #[test]
+    fn matrix_from_twelve_numbers_matches_rows() {
+        let packed = leaf("transform", "0 0 -1 0 1 0 1 0 0 10 20 30").as_matrix();
+        let rows = Section {
+            name: "transform".into(),
+            children: vec![
+                leaf("row0", "0 0 -1"),
+                leaf("row1", "0 1 0"),
+                leaf("row2", "1 0 0"),
+                leaf("row3", "10 20 30"),
+            ],
+            ..Default::default()
+        }
+        .as_matrix();
+        assert_eq!(packed.unwrap(), rows.unwrap());
+    }
+
+    #[test]
+    fn bad_numbers_name_the_element() {
+        let err = leaf("row3", "1 two 3").as_vec3().unwrap_err();
+        assert!(err.to_string().contains("<row3>"), "{err}");
+        assert!(err.to_string().contains("two"), "{err}");
+    }
+
+    #[test]
+    fn bools_and_ints() {
+        assert!(leaf("b", "TRUE").as_bool().unwrap());
+        assert!(!leaf("b", "false").as_bool().unwrap());
+        assert!(leaf("b", "maybe").as_bool().is_err());
+        assert_eq!(leaf("i", "-48").as_i64().unwrap(), -48);
+        assert_eq!(leaf("i", "128.0").as_i64().unwrap(), 128);
+        assert!(leaf("i", "1.5").as_i64().is_err());
+    }
+}

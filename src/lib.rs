@@ -1,0 +1,8 @@
+//! shadowcull: bakes shadow caster culling flags for BigWorld worlds without a
+//! GPU. See ARCHITECTURE.md for the code map.
+
+pub mod error;
+pub mod formats;
+pub mod scene;
+
+pub use error::{Error, Result};
