@@ -1,0 +1,3 @@
+//! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
+
+mod support;

@@ -1,0 +1,35 @@
+//! Shared helpers of the integration tests.
+
+use std::path::PathBuf;
+
+/// Name of the environment variable that points at `../shared/realdata`.
+pub const REALDATA_VAR: &str = "SHADOWCULL_REALDATA";
+
+/// The real BigWorld data folder, or `None` after printing loudly that the
+/// calling test did not run. `.ci/run` sets the variable, so in CI these
+/// tests always run; `SHADOWCULL_REQUIRE_REALDATA=1` turns a missing folder
+/// into a failure.
+#[allow(dead_code)]
+pub fn realdata(test: &str) -> Option<PathBuf> {
+    match std::env::var_os(REALDATA_VAR) {
+        Some(dir) => {
+            let dir = PathBuf::from(dir);
+            assert!(
+                dir.is_dir(),
+                "{REALDATA_VAR}={} is not a folder",
+                dir.display()
+            );
+            Some(dir)
+        }
+        None => {
+            assert!(
+                std::env::var_os("SHADOWCULL_REQUIRE_REALDATA").is_none(),
+                "{test}: SHADOWCULL_REQUIRE_REALDATA is set but {REALDATA_VAR} is not"
+            );
+            eprintln!(
+                "NOT RUN: {test} needs real BigWorld data; set {REALDATA_VAR}=../shared/realdata"
+            );
+            None
+        }
+    }
+}
