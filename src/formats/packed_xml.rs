@@ -287,7 +287,7 @@ impl Reader<'_> {
                 Ok(v.to_string())
             }
             TYPE_FLOAT => {
-                if data.len() % 4 != 0 {
+                if !data.len().is_multiple_of(4) {
                     return Err(self.error(
                         path,
                         start,
@@ -353,7 +353,7 @@ pub fn base64_encode(data: &[u8]) -> String {
 /// Strict decoding of [`base64_encode`]'s output; `None` for anything else.
 pub fn base64_decode(text: &str) -> Option<Vec<u8>> {
     let bytes = text.as_bytes();
-    if bytes.len() % 4 != 0 {
+    if !bytes.len().is_multiple_of(4) {
         return None;
     }
     let mut out = Vec::with_capacity(bytes.len() / 4 * 3);
