@@ -246,7 +246,7 @@ fn direction(light: &Section) -> Result<DVec3, FormatError> {
     let s = light.required("direction")?;
     let d = s.as_vec3()?;
     let length = d.length();
-    if !d.is_finite() || !(length > 0.0) || !length.is_finite() {
+    if !d.is_finite() || length == 0.0 || !length.is_finite() {
         return Err(s.error(format!(
             "light direction must be a finite, non-zero vector, found {} {} {}",
             d.x, d.y, d.z
