@@ -3,6 +3,7 @@
 
 pub mod error;
 pub mod formats;
+pub mod inspect;
 pub mod scene;
 
 pub use error::{Error, Result};

@@ -1,5 +1,148 @@
 //! The world model the bake consumes: chunks, placed instances, primitive
-//! groups with their flags, terrain blocks. Built from `formats/` values;
-//! does no I/O itself.
+//! groups with their flags, terrain blocks. `load` builds it from the
+//! `formats/` readers; everything else here is plain data.
 
+pub mod load;
 pub mod terrain;
+
+use crate::formats::chunk::InstanceKind;
+use crate::formats::space_settings::SpaceSettings;
+use glam::{DMat4, Vec3};
+use std::ops::Range;
+use std::path::PathBuf;
+
+pub use load::{load_scene, LoadConfig};
+pub use terrain::TerrainBlock;
+
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The space folder and its settings.
+    pub space_dir: PathBuf,
+    pub settings: SpaceSettings,
+    /// Sorted by name.
+    pub chunks: Vec<Chunk>,
+    /// Each distinct model resource, loaded once; sorted by resource name.
+    pub models: Vec<Model>,
+    /// Chunk by chunk, in document order within a chunk.
+    pub instances: Vec<Instance>,
+    pub terrain: Vec<TerrainBlock>,
+    /// What could not be loaded and was left out, in a stable order.
+    pub problems: Vec<Problem>,
+}
+
+/// Something left out of the scene, with the file (and element) it came
+/// from and why.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Problem {
+    pub what: String,
+    pub why: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct Chunk {
+    /// File stem, e.g. `ffff0000o` or `00am0002i`.
+    pub name: String,
+    pub file: PathBuf,
+    /// Outdoor grid coordinates.
+    pub grid: Option<(i32, i32)>,
+    /// Chunk to world.
+    pub transform: DMat4,
+    /// Into `Scene::instances`.
+    pub instances: Range<usize>,
+    /// Into `Scene::terrain`.
+    pub terrain: Option<usize>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Instance {
+    pub chunk: usize,
+    /// Position among the chunk's `<model>`/`<shell>` elements.
+    pub index: usize,
+    pub kind: InstanceKind,
+    pub resources: Vec<String>,
+    /// One entry per `<resource>`: the loaded model, or `None` when that
+    /// resource could not be loaded (see `Scene::problems`).
+    pub parts: Vec<Option<usize>>,
+    /// Model to world, kept in f64 so worlds far from the origin stay exact.
+    pub world: DMat4,
+    /// Negative determinant: the engine flips the cull mode, so the bake
+    /// flips facing.
+    pub mirrored: bool,
+    /// `castsShadow` false: a receiver only.
+    pub casts_shadow: bool,
+}
+
+impl Instance {
+    pub fn is_complete(&self) -> bool {
+        self.parts.iter().all(Option::is_some)
+    }
+}
+
+/// The geometry of one model resource, LOD 0, in model space.
+#[derive(Debug, Clone, Default)]
+pub struct Model {
+    pub resource: String,
+    pub file: PathBuf,
+    /// Model-space positions (node transforms already applied).
+    pub positions: Vec<Vec3>,
+    pub triangles: Vec<[u32; 3]>,
+    /// In output order: renderSet, geometry, group.
+    pub groups: Vec<Group>,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Group {
+    pub render_set: usize,
+    pub geometry: usize,
+    /// Index into the index section's PrimitiveGroup table.
+    pub primitive_group: usize,
+    /// Into `Model::triangles`.
+    pub triangles: Range<usize>,
+    pub alpha_tested: bool,
+    pub double_sided: bool,
+}
+
+/// Counts of what a scene holds (SPEC §8, `inspect --json`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Stats {
+    pub chunks: usize,
+    pub instances: usize,
+    pub models: usize,
+    pub groups: usize,
+    pub triangles: usize,
+    pub terrain_blocks: usize,
+    pub alpha_tested_groups: usize,
+    pub double_sided_groups: usize,
+    pub receiver_only_instances: usize,
+}
+
+impl Scene {
+    /// Counts over placed instances: a model placed twice counts its groups
+    /// and triangles twice; `models` counts distinct resources in use.
+    pub fn stats(&self) -> Stats {
+        let mut stats = Stats {
+            chunks: self.chunks.len(),
+            instances: self.instances.len(),
+            terrain_blocks: self.terrain.len(),
+            ..Stats::default()
+        };
+        let mut used = vec![false; self.models.len()];
+        for instance in &self.instances {
+            if !instance.casts_shadow {
+                stats.receiver_only_instances += 1;
+            }
+            for &part in instance.parts.iter().flatten() {
+                used[part] = true;
+                let model = &self.models[part];
+                stats.groups += model.groups.len();
+                stats.triangles += model.triangles.len();
+                for group in &model.groups {
+                    stats.alpha_tested_groups += usize::from(group.alpha_tested);
+                    stats.double_sided_groups += usize::from(group.double_sided);
+                }
+            }
+        }
+        stats.models = used.iter().filter(|u| **u).count();
+        stats
+    }
+}

@@ -1,0 +1,120 @@
+//! Command-line parsing and the subcommands' glue. Library errors become
+//! messages here; nothing below this module prints.
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use shadowcull::formats::{self, bake_settings::BakeSettings, resources::ResPaths};
+use shadowcull::scene::{self, LoadConfig};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(name = "shadowcull", version, about = "GPU-free shadow caster culling for BigWorld worlds")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// Values of the settings file that every subcommand may override.
+#[derive(Debug, clap::Args)]
+struct SettingsArgs {
+    /// The bake settings file (XML, see README). Paths in it are relative to it.
+    settings: PathBuf,
+    /// Replace the settings file's <resPaths> (repeatable, searched in order).
+    #[arg(long = "res-path", value_name = "DIR")]
+    res_paths: Vec<PathBuf>,
+    /// Replace the settings file's <space> (a resource name, e.g. spaces/arctic).
+    #[arg(long, value_name = "NAME")]
+    space: Option<String>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Print what the world holds, without baking.
+    Inspect {
+        #[command(flatten)]
+        settings: SettingsArgs,
+        /// Print one JSON object instead of the readable summary.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write a synthetic world (BigWorld formats) and its settings file bake.xml.
+    Gen {
+        /// Output folder (created; existing files of the same names are replaced).
+        dir: PathBuf,
+        /// small, village or bench.
+        #[arg(long, default_value = "village")]
+        preset: String,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+}
+
+pub fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(err) => {
+            let _ = err.print();
+            return if err.use_stderr() {
+                ExitCode::from(2)
+            } else {
+                ExitCode::SUCCESS
+            };
+        }
+    };
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Inspect { settings, json } => {
+            let settings = load_settings(&settings)?;
+            let scene = scene::load_scene(&load_config(&settings))?;
+            let inspection = shadowcull::inspect::inspect(&scene);
+            if json {
+                println!("{}", inspection.to_json());
+            } else {
+                print!("{}", inspection.to_text());
+            }
+            Ok(())
+        }
+        Command::Gen { dir, preset, seed } => {
+            let preset = shadowcull::gen::Preset::from_name(&preset).with_context(|| {
+                format!("unknown preset `{preset}`: use small, village or bench")
+            })?;
+            let world = shadowcull::gen::generate(preset, seed);
+            formats::resources::write_tree(&dir, &world.files)?;
+            println!(
+                "wrote {} files to {}; bake it with: shadowcull bake {}",
+                world.files.len(),
+                dir.display(),
+                dir.join("bake.xml").display()
+            );
+            Ok(())
+        }
+    }
+}
+
+fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
+    let mut settings = formats::read_bake_settings(&args.settings)?;
+    if !args.res_paths.is_empty() {
+        settings.res_paths = args.res_paths.clone();
+    }
+    if let Some(space) = &args.space {
+        settings.space = space.clone();
+    }
+    Ok(settings)
+}
+
+fn load_config(settings: &BakeSettings) -> LoadConfig {
+    LoadConfig {
+        res_paths: ResPaths::new(settings.res_paths.clone()),
+        space: settings.space.clone(),
+    }
+}
