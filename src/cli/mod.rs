@@ -9,7 +9,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, Parser)]
-#[command(name = "shadowcull", version, about = "GPU-free shadow caster culling for BigWorld worlds")]
+#[command(
+    name = "shadowcull",
+    version,
+    about = "GPU-free shadow caster culling for BigWorld worlds"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
