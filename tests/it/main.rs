@@ -1,5 +1,7 @@
 //! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
 
+mod generated;
 mod primitives_real;
+mod real_scene;
 mod support;
 mod xml_real;
