@@ -120,9 +120,8 @@ pub fn read_terrain(cdata: &[u8], entry: &str) -> Result<TerrainData, FormatErro
 /// Reads `{entry}/heights` and the optional `{entry}/holes` of a terrain2
 /// `.cdata` ZIP. Byte offsets in errors are relative to the named entry.
 pub fn read_terrain2_zip(cdata: &[u8], entry: &str) -> Result<TerrainData, FormatError> {
-    let mut archive = zip::ZipArchive::new(Cursor::new(cdata)).map_err(|e| {
-        FormatError::whole_file(format!("the .cdata is not a readable ZIP: {e}"))
-    })?;
+    let mut archive = zip::ZipArchive::new(Cursor::new(cdata))
+        .map_err(|e| FormatError::whole_file(format!("the .cdata is not a readable ZIP: {e}")))?;
     let heights_name = format!("{entry}/heights");
     let heights_raw = read_zip_entry(&mut archive, &heights_name)?.ok_or_else(|| {
         FormatError::whole_file(format!(
@@ -279,7 +278,9 @@ pub fn decode_heights(b: &[u8]) -> Result<HeightGrid, FormatError> {
     if magic != HEIGHTS_MAGIC {
         return Err(FormatError::at_byte(
             0,
-            format!("height map magic is {magic:#010x}, expected {HEIGHTS_MAGIC:#010x} (\"hmp\\0\")"),
+            format!(
+                "height map magic is {magic:#010x}, expected {HEIGHTS_MAGIC:#010x} (\"hmp\\0\")"
+            ),
         ));
     }
     let w = field(b, 4)?;
@@ -363,7 +364,10 @@ fn decode_qpng_heights(b: &[u8], w: u32, h: u32, count: usize) -> Result<Vec<f32
     let mut decoder = png::Decoder::new_with_limits(Cursor::new(png_bytes), limits);
     decoder.set_transformations(png::Transformations::IDENTITY);
     let png_err = |e: png::DecodingError| {
-        FormatError::at_byte(png_at, format!("the PNG after \"gnpq\" cannot be decoded: {e}"))
+        FormatError::at_byte(
+            png_at,
+            format!("the PNG after \"gnpq\" cannot be decoded: {e}"),
+        )
     };
     let mut reader = decoder.read_info().map_err(png_err)?;
     let info = reader.info();
@@ -392,7 +396,10 @@ fn decode_qpng_heights(b: &[u8], w: u32, h: u32, count: usize) -> Result<Vec<f32
         .get(..frame.buffer_size())
         .filter(|p| p.len() == rgba_bytes)
         .ok_or_else(|| {
-            FormatError::at_byte(png_at, "the PNG decodes to fewer bytes than width × height × 4")
+            FormatError::at_byte(
+                png_at,
+                "the PNG decodes to fewer bytes than width × height × 4",
+            )
         })?;
     Ok(pixels
         .chunks_exact(4)
@@ -514,7 +521,11 @@ pub fn read_terrain1_block(b: &[u8]) -> Result<TerrainData, FormatError> {
     let blocks = w as usize - 3;
     let holes_end = holes_at + blocks * blocks;
     if b.len() < holes_end {
-        let what = if b.len() < heights_end { "heights" } else { "holes" };
+        let what = if b.len() < heights_end {
+            "heights"
+        } else {
+            "holes"
+        };
         return Err(FormatError::at_byte(
             b.len(),
             format!(
@@ -617,9 +628,8 @@ fn encode_heights(grid: &HeightGrid) -> Result<Vec<u8>, String> {
     let mut rgba = Vec::with_capacity(grid.heights.len() * 4);
     let (mut min, mut max) = (f32::INFINITY, f32::NEG_INFINITY);
     for (i, &v) in grid.heights.iter().enumerate() {
-        let q = quantise_mm(v).ok_or_else(|| {
-            format!("height {v} at sample {i} is not finite or beyond ±2^31 mm")
-        })?;
+        let q = quantise_mm(v)
+            .ok_or_else(|| format!("height {v} at sample {i} is not finite or beyond ±2^31 mm"))?;
         rgba.extend_from_slice(&q.to_le_bytes());
         min = min.min(v);
         max = max.max(v);
@@ -695,4 +705,414 @@ fn encode_holes(map: &HoleMap) -> Result<Vec<u8>, String> {
         out.extend_from_slice(&bytes);
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::Location;
+
+    fn le(words: &[u32]) -> Vec<u8> {
+        words.iter().flat_map(|w| w.to_le_bytes()).collect()
+    }
+
+    fn byte_of(e: &FormatError) -> u64 {
+        match e.at {
+            Location::Byte(b) => b,
+            ref other => panic!("expected a byte location, got {other:?} ({e})"),
+        }
+    }
+
+    /// A version 4 entry for `grid`, through the writer's encoder.
+    fn heights_entry(grid: &HeightGrid) -> Vec<u8> {
+        encode_heights(grid).expect("encodable grid")
+    }
+
+    fn grid(w: usize, h: usize, f: impl Fn(usize, usize) -> i32) -> HeightGrid {
+        let heights = (0..h)
+            .flat_map(|z| (0..w).map(move |x| (x, z)))
+            .map(|(x, z)| f(x, z) as f32 * 0.001f32)
+            .collect();
+        HeightGrid {
+            width: w,
+            height: h,
+            heights,
+        }
+    }
+
+    #[test]
+    fn v4_header_fields_are_written_as_the_engine_lays_them_out() {
+        let g = grid(3, 2, |x, z| (x as i32 - 1) * 1500 + z as i32 * 7);
+        let e = heights_entry(&g);
+        assert_eq!(u32_at(&e, 0), Some(0x0070_6d68));
+        assert_eq!(&e[0..4], b"hmp\0");
+        assert_eq!(u32_at(&e, 4), Some(3));
+        assert_eq!(u32_at(&e, 8), Some(2));
+        assert_eq!(u32_at(&e, 12), Some(0), "COMPRESS_RAW");
+        assert_eq!(u32_at(&e, 16), Some(4));
+        // min is x=0,z=0 (-1.5 m), max is x=2,z=1 (1.5 m + 7 mm).
+        assert_eq!(f32_at(&e, 20), Some(-1500.0 * 0.001f32));
+        assert_eq!(f32_at(&e, 24), Some(1507.0 * 0.001f32));
+        assert_eq!(&e[32..36], b"gnpq");
+        assert_eq!(&e[36..44], b"\x89PNG\r\n\x1a\n");
+        assert_eq!(decode_heights(&e).unwrap(), g);
+    }
+
+    #[test]
+    fn v4_pixel_bytes_are_little_endian_millimetres() {
+        // Hand-made PNG: one pixel whose RGBA bytes are -2 mm as LE i32.
+        let mut png_bytes = Vec::new();
+        {
+            let mut enc = png::Encoder::new(&mut png_bytes, 1, 1);
+            enc.set_color(png::ColorType::Rgba);
+            enc.set_depth(png::BitDepth::Eight);
+            let mut w = enc.write_header().unwrap();
+            w.write_image_data(&[0xFE, 0xFF, 0xFF, 0xFF]).unwrap();
+        }
+        let mut e = le(&[HEIGHTS_MAGIC, 1, 1, 0, 4, 0, 0, 0]);
+        e.extend_from_slice(b"gnpq");
+        e.extend_from_slice(&png_bytes);
+        let g = decode_heights(&e).unwrap();
+        assert_eq!(g.heights, vec![-2.0f32 * 0.001]);
+    }
+
+    #[test]
+    fn v1_raw_floats_are_read_and_checked_for_length() {
+        let mut e = le(&[HEIGHTS_MAGIC, 2, 1, 0, 1, 0, 0, 0]);
+        e.extend_from_slice(&1.25f32.to_le_bytes());
+        e.extend_from_slice(&(-3.5f32).to_le_bytes());
+        let g = decode_heights(&e).unwrap();
+        assert_eq!((g.width, g.height), (2, 1));
+        assert_eq!(g.heights, vec![1.25, -3.5]);
+        let err = decode_heights(&e[..39]).unwrap_err();
+        assert_eq!(byte_of(&err), 39);
+        assert!(err.message.contains("needs 40 bytes"), "{err}");
+    }
+
+    #[test]
+    fn height_header_errors_point_at_the_field() {
+        let good = heights_entry(&grid(2, 2, |x, z| (x + z) as i32));
+        // Shorter than the header.
+        let e = decode_heights(&good[..31]).unwrap_err();
+        assert_eq!(byte_of(&e), 31);
+        // Bad magic.
+        let mut bad = good.clone();
+        bad[0] = b'X';
+        assert_eq!(byte_of(&decode_heights(&bad).unwrap_err()), 0);
+        // Zero width.
+        let mut bad = good.clone();
+        bad[4..8].copy_from_slice(&0u32.to_le_bytes());
+        assert_eq!(byte_of(&decode_heights(&bad).unwrap_err()), 4);
+        // Absurd size: refused before any allocation.
+        let mut bad = good.clone();
+        bad[4..8].copy_from_slice(&u32::MAX.to_le_bytes());
+        bad[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        let e = decode_heights(&bad).unwrap_err();
+        assert_eq!(byte_of(&e), 4);
+        assert!(e.message.contains("implausibly large"), "{e}");
+        // Version 3 and unknown versions.
+        for (version, needle) in [(3u32, "version 3"), (9, "unknown height map version 9")] {
+            let mut bad = good.clone();
+            bad[16..20].copy_from_slice(&version.to_le_bytes());
+            let e = decode_heights(&bad).unwrap_err();
+            assert_eq!(byte_of(&e), 16);
+            assert!(e.message.contains(needle), "{e}");
+        }
+    }
+
+    #[test]
+    fn v4_payload_errors() {
+        let good = heights_entry(&grid(2, 2, |x, z| (x * 3 + z) as i32));
+        // Missing "gnpq".
+        let e = decode_heights(&good[..32]).unwrap_err();
+        assert_eq!(byte_of(&e), 32);
+        let mut bad = good.clone();
+        bad[32] = b'x';
+        assert_eq!(byte_of(&decode_heights(&bad).unwrap_err()), 32);
+        // Header size disagrees with the PNG's IHDR.
+        let mut bad = good.clone();
+        bad[4..8].copy_from_slice(&3u32.to_le_bytes());
+        let e = decode_heights(&bad).unwrap_err();
+        assert_eq!(byte_of(&e), 36 + 16);
+        assert!(
+            e.message.contains("2×2") && e.message.contains("3×2"),
+            "{e}"
+        );
+        // A PNG that is not RGBA8.
+        let mut png_bytes = Vec::new();
+        {
+            let mut enc = png::Encoder::new(&mut png_bytes, 2, 2);
+            enc.set_color(png::ColorType::Grayscale);
+            enc.set_depth(png::BitDepth::Sixteen);
+            let mut w = enc.write_header().unwrap();
+            w.write_image_data(&[0; 8]).unwrap();
+        }
+        let mut bad = good[..36].to_vec();
+        bad.extend_from_slice(&png_bytes);
+        let e = decode_heights(&bad).unwrap_err();
+        assert_eq!(byte_of(&e), 36 + 24);
+        // A truncated PNG.
+        let e = decode_heights(&good[..good.len() - 20]).unwrap_err();
+        assert_eq!(byte_of(&e), 36);
+        assert!(e.message.contains("PNG"), "{e}");
+    }
+
+    #[test]
+    fn engine_hole_stride_reproduces_the_quirk() {
+        // w/8 + ((w & 3) ? 1 : 0), worked out by hand.
+        let expected = [
+            (1, 1),
+            (3, 1),
+            (4, 0), // 0 + 0: the quirk
+            (5, 1),
+            (8, 1),
+            (9, 2),
+            (12, 1), // 1 + 0, ceil would be 2
+            (13, 2),
+            (16, 2),
+            (20, 2), // ceil would be 3
+            (25, 4),
+            (32, 4),
+        ];
+        for (w, stride) in expected {
+            assert_eq!(engine_hole_stride(w), stride, "w = {w}");
+        }
+    }
+
+    #[test]
+    fn holes_use_the_engine_stride_and_drop_columns_past_it() {
+        // w = 12: rows are 1 byte, so only columns 0..8 can be holes.
+        let mut e = le(&[HOLES_MAGIC, 12, 3, 1]);
+        e.extend_from_slice(&[0b0000_0001, 0b1000_0000, 0b0000_0110]);
+        let m = decode_holes(&e).unwrap();
+        assert_eq!((m.width, m.height), (12, 3));
+        let holes: Vec<(usize, usize)> = (0..3)
+            .flat_map(|z| (0..12).map(move |x| (x, z)))
+            .filter(|&(x, z)| m.holes[z * 12 + x])
+            .collect();
+        assert_eq!(holes, vec![(0, 0), (7, 1), (1, 2), (2, 2)]);
+
+        // w = 10: 2-byte rows; bit 1 of byte 1 is column 9.
+        let mut e = le(&[HOLES_MAGIC, 10, 2, 1]);
+        e.extend_from_slice(&[0, 0b10, 0b1, 0]);
+        let m = decode_holes(&e).unwrap();
+        assert!(m.holes[9] && m.holes[10]);
+        assert_eq!(m.holes.iter().filter(|&&h| h).count(), 2);
+    }
+
+    #[test]
+    fn hole_errors() {
+        let e = decode_holes(&le(&[HOLES_MAGIC, 8, 8])).unwrap_err();
+        assert_eq!(byte_of(&e), 12);
+        let e = decode_holes(&le(&[0x1234, 8, 8, 1])).unwrap_err();
+        assert_eq!(byte_of(&e), 0);
+        // 8×3 needs 3 row bytes; give 2.
+        let mut b = le(&[HOLES_MAGIC, 8, 3, 1]);
+        b.extend_from_slice(&[0, 0]);
+        let e = decode_holes(&b).unwrap_err();
+        assert_eq!(byte_of(&e), 18);
+        assert!(e.message.contains("needs 19 bytes"), "{e}");
+        let e = decode_holes(&le(&[HOLES_MAGIC, 1 << 20, 1 << 20, 1])).unwrap_err();
+        assert_eq!(byte_of(&e), 4);
+    }
+
+    fn compressed_block(payload: &[u8], claimed: u32) -> Vec<u8> {
+        use flate2::write::ZlibEncoder;
+        let mut z = ZlibEncoder::new(Vec::new(), flate2::Compression::new(6));
+        z.write_all(payload).unwrap();
+        let mut out = le(&[BLOCK_ZIP_MAGIC1, BLOCK_ZIP_MAGIC2, claimed]);
+        out.extend_from_slice(&z.finish().unwrap());
+        out
+    }
+
+    #[test]
+    fn binary_block_compression_is_undone_and_checked() {
+        let mut holes = le(&[HOLES_MAGIC, 8, 2, 1]);
+        holes.extend_from_slice(&[0b1, 0b1000_0000]);
+        let block = compressed_block(&holes, holes.len() as u32);
+        assert_eq!(&block[..4], b"\0piz");
+        assert_eq!(unwrap_binary_block(&block).unwrap().as_ref(), &holes[..]);
+        let m = decode_entry(&block, "terrain2/holes", decode_holes).unwrap();
+        assert!(m.holes[0] && m.holes[15]);
+        // Plain data passes through untouched.
+        assert!(matches!(
+            unwrap_binary_block(&holes).unwrap(),
+            Cow::Borrowed(_)
+        ));
+        // Wrong claimed size.
+        let bad = compressed_block(&holes, holes.len() as u32 + 1);
+        assert_eq!(byte_of(&unwrap_binary_block(&bad).unwrap_err()), 8);
+        // Broken zlib stream.
+        let mut bad = block.clone();
+        bad.truncate(16);
+        assert_eq!(byte_of(&unwrap_binary_block(&bad).unwrap_err()), 12);
+        // Errors inside an inflated block say so.
+        let short = compressed_block(&holes[..17], 17);
+        let e = decode_entry(&short, "terrain2/holes", decode_holes).unwrap_err();
+        assert!(
+            e.message.contains("`terrain2/holes`") && e.message.contains("inflated"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn write_then_read_round_trips_exactly_and_deterministically() {
+        // Whole millimetres, including negatives and kilometre heights.
+        let g = grid(7, 7, |x, z| {
+            (x as i32 * 1_000_003 - z as i32 * 777_777) % 2_000_000
+        });
+        let holes = HoleMap {
+            width: 9,
+            height: 2,
+            holes: (0..18).map(|i| i % 5 == 0).collect(),
+        };
+        let a = write_terrain2_cdata(&g, Some(&holes));
+        let b = write_terrain2_cdata(&g, Some(&holes));
+        assert_eq!(a, b, "writer must be byte-deterministic");
+        assert_eq!(&a[..2], b"PK");
+        let t = read_terrain(&a, "terrain2").unwrap();
+        assert_eq!(t.version, TerrainVersion::Terrain2);
+        assert_eq!(t.border, 2);
+        assert_eq!(t.heights, g);
+        assert_eq!(t.holes, Some(holes));
+
+        let without = write_terrain2_cdata(&g, None);
+        let t = read_terrain(&without, "terrain2").unwrap();
+        assert_eq!(t.holes, None);
+        assert_eq!(t.heights, g);
+    }
+
+    #[test]
+    fn writer_refuses_what_the_format_cannot_hold() {
+        let g = grid(2, 2, |_, _| 0);
+        let mut bad = g.clone();
+        bad.heights.pop();
+        assert!(try_write_terrain2_cdata(&bad, None).is_err());
+        let mut bad = g.clone();
+        bad.heights[1] = f32::NAN;
+        assert!(try_write_terrain2_cdata(&bad, None).is_err());
+        let mut bad = g.clone();
+        bad.heights[0] = 3.0e6; // 3e9 mm > i32::MAX
+        assert!(try_write_terrain2_cdata(&bad, None).is_err());
+        // Width 12: column 8 cannot be stored, column 7 can.
+        let mut holes = HoleMap {
+            width: 12,
+            height: 1,
+            holes: vec![false; 12],
+        };
+        holes.holes[7] = true;
+        let bytes = try_write_terrain2_cdata(&g, Some(&holes)).unwrap();
+        assert_eq!(
+            read_terrain(&bytes, "terrain2").unwrap().holes,
+            Some(holes.clone())
+        );
+        holes.holes[8] = true;
+        let e = try_write_terrain2_cdata(&g, Some(&holes)).unwrap_err();
+        assert!(e.contains("(8, 0)"), "{e}");
+    }
+
+    #[test]
+    fn read_terrain_errors_name_the_entry() {
+        let e = read_terrain(b"<root/>", "terrain2").unwrap_err();
+        assert_eq!(byte_of(&e), 0);
+        let cdata = write_terrain2_cdata(&grid(2, 2, |_, _| 0), None);
+        let e = read_terrain(&cdata, "terrain").unwrap_err();
+        assert!(e.message.contains("`terrain/heights`"), "{e}");
+
+        // A heights entry with a bad magic: offset within the entry.
+        let mut entry = heights_entry(&grid(2, 2, |_, _| 0));
+        entry[1] = 0;
+        let mut w = zip::ZipWriter::new(Cursor::new(Vec::new()));
+        let o = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Deflated);
+        w.start_file("terrain2/heights", o).unwrap();
+        w.write_all(&entry).unwrap();
+        let cdata = w.finish().unwrap().into_inner();
+        let e = read_terrain(&cdata, "terrain2").unwrap_err();
+        assert_eq!(byte_of(&e), 0);
+        assert!(e.message.contains("ZIP entry `terrain2/heights`"), "{e}");
+        assert!(e.message.contains("magic"), "{e}");
+    }
+
+    /// A terrain1 block: `w`×`w` heights `x + 10 z` metres, 4 texture names
+    /// of 8 bytes, and the given hole cells.
+    fn terrain1_block(w: u32, holes: &[(usize, usize)]) -> Vec<u8> {
+        let mut b = le(&[7, w, w]);
+        b.extend_from_slice(&(100.0f32 / (w - 3) as f32).to_le_bytes());
+        b.extend_from_slice(&le(&[4, 8, 0, 0]));
+        b.resize(256, 0xAA); // padding content is ignored
+        b.extend_from_slice(&[b't'; 32]);
+        let n = (w * w) as usize;
+        for i in 0..n {
+            let (x, z) = (i % w as usize, i / w as usize);
+            b.extend_from_slice(&((x + 10 * z) as f32).to_le_bytes());
+        }
+        b.extend(std::iter::repeat_n(0x55, n * 6)); // blends + shadows
+        let blocks = w as usize - 3;
+        let mut hole_bytes = vec![0u8; blocks * blocks];
+        for &(x, z) in holes {
+            hole_bytes[z * blocks + x] = 1;
+        }
+        b.extend_from_slice(&hole_bytes);
+        b
+    }
+
+    #[test]
+    fn terrain1_block_is_decoded() {
+        let b = terrain1_block(6, &[(2, 0), (0, 1)]);
+        assert_eq!(b.len(), 256 + 32 + 36 * 10 + 9);
+        let t = read_terrain1_block(&b).unwrap();
+        assert_eq!(t.version, TerrainVersion::Terrain1);
+        assert_eq!(t.border, 1);
+        assert_eq!((t.heights.width, t.heights.height), (6, 6));
+        assert_eq!(t.heights.heights[0], 0.0);
+        assert_eq!(t.heights.heights[6 * 4 + 5], 45.0);
+        let holes = t.holes.unwrap();
+        assert_eq!((holes.width, holes.height), (3, 3));
+        let set: Vec<usize> = (0..9).filter(|&i| holes.holes[i]).collect();
+        assert_eq!(set, vec![2, 3]);
+    }
+
+    #[test]
+    fn terrain1_errors() {
+        let b = terrain1_block(5, &[]);
+        let e = read_terrain1_block(&b[..255]).unwrap_err();
+        assert_eq!(byte_of(&e), 255);
+        let mut bad = b.clone();
+        bad[4..8].copy_from_slice(&3u32.to_le_bytes());
+        assert_eq!(byte_of(&read_terrain1_block(&bad).unwrap_err()), 4);
+        let mut bad = b.clone();
+        bad[20..24].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert_eq!(byte_of(&read_terrain1_block(&bad).unwrap_err()), 16);
+        // Ends inside the heights / inside the holes.
+        let heights_end = 256 + 32 + 25 * 4;
+        let e = read_terrain1_block(&b[..heights_end - 1]).unwrap_err();
+        assert_eq!(byte_of(&e), heights_end as u64 - 1);
+        assert!(e.message.contains("heights"), "{e}");
+        let e = read_terrain1_block(&b[..b.len() - 1]).unwrap_err();
+        assert!(e.message.contains("holes"), "{e}");
+    }
+
+    /// Until `formats::binsection::parse` lands (written in parallel), the
+    /// 1.x path cannot run; the container is built here from the documented
+    /// layout so this test needs no change then.
+    #[test]
+    #[ignore = "needs formats::binsection::parse from the binsection branch"]
+    fn terrain1_cdata_is_found_in_its_binsection() {
+        let block = terrain1_block(5, &[(1, 1)]);
+        let mut c = binsection::MAGIC.to_vec();
+        c.extend_from_slice(&block);
+        while !c.len().is_multiple_of(4) {
+            c.push(0);
+        }
+        let mut index = Vec::new();
+        index.extend_from_slice(&(block.len() as i32).to_le_bytes());
+        index.extend_from_slice(&[0; 16]);
+        index.extend_from_slice(&7i32.to_le_bytes());
+        index.extend_from_slice(b"terrain\0");
+        c.extend_from_slice(&index);
+        c.extend_from_slice(&(index.len() as i32).to_le_bytes());
+        let t = read_terrain(&c, "terrain").unwrap();
+        assert_eq!(t, read_terrain1_block(&block).unwrap());
+    }
 }

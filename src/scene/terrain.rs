@@ -300,3 +300,317 @@ fn cell_and_fraction(g: f64, cells: usize) -> (usize, f64) {
     };
     (c, (g - c as f64).clamp(0.0, 1.0))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formats::terrain::{HeightGrid, HoleMap};
+
+    const SENTINEL: f32 = 1000.0;
+
+    /// Visible vertex heights of the hand-worked 2×2 block, `[z][x]`.
+    const VISIBLE: [[f32; 3]; 3] = [[0.0, 1.0, 0.0], [2.0, 0.0, 4.0], [0.0, 8.0, 0.0]];
+
+    /// The 3×3 visible heights wrapped in a border of sentinel samples that
+    /// must never show up in geometry.
+    fn data(version: TerrainVersion, holes: Option<HoleMap>) -> TerrainData {
+        let border = match version {
+            TerrainVersion::Terrain2 => 2,
+            TerrainVersion::Terrain1 => 1,
+        };
+        let w = 3 + 2 * border;
+        let mut heights = vec![SENTINEL; w * w];
+        for (z, row) in VISIBLE.iter().enumerate() {
+            for (x, &h) in row.iter().enumerate() {
+                heights[(z + border) * w + x + border] = h;
+            }
+        }
+        TerrainData {
+            version,
+            heights: HeightGrid {
+                width: w,
+                height: w,
+                heights,
+            },
+            border,
+            holes,
+        }
+    }
+
+    const ORIGIN: DVec3 = DVec3::new(10.0, 5.0, 20.0);
+
+    fn block(version: TerrainVersion, holes: Option<HoleMap>) -> TerrainBlock {
+        TerrainBlock::new(&data(version, holes), ORIGIN, 2.0).unwrap()
+    }
+
+    fn close(a: Option<f64>, b: f64) -> bool {
+        a.is_some_and(|a| (a - b).abs() < 1e-12)
+    }
+
+    #[test]
+    fn terrain2_2x2_heights_worked_by_hand() {
+        let b = block(TerrainVersion::Terrain2, None);
+        assert_eq!(b.cells(), (2, 2));
+        assert_eq!(b.spacing(), (1.0, 1.0));
+        // (local x, local z, expected local height), see the comments.
+        let cases = [
+            // cell (0,0) even, diagonal (0,0)-(1,1). Lower-right triangle is
+            // the plane h = x - z; upper-left is h = -2x + 2z.
+            (0.75, 0.25, 0.5),
+            (0.25, 0.75, 1.0),
+            // cell (1,0) odd, diagonal (1,1)-(2,0). Triangle (1,0),(2,0),(1,1)
+            // has h = 1 - fx - fz; triangle (2,1),(1,1),(2,0) has
+            // h = 4 - 4(1-fx) - 4(1-fz).
+            (1.25, 0.25, 0.5),
+            (1.75, 0.75, 2.0),
+            // Distinguishes the diagonal: an even split would give 0.8.
+            (1.6, 0.1, 0.3),
+            // cell (1,1) even: triangle (1,1),(2,1),(2,2): 4 - 4fx' ... at
+            // (0.5, 0.25): 4 + (0-4)(0.5) + (0-4)(0.25) = 1.
+            (1.5, 1.25, 1.0),
+            // cell (0,1) odd: triangle (0,1),(1,1),(0,2): 2 - 2fx - 2fz.
+            (0.25, 1.5, 0.5),
+            // vertices and the far corner
+            (1.0, 1.0, 0.0),
+            (0.0, 1.0, 2.0),
+            (2.0, 1.0, 4.0),
+            (1.0, 2.0, 8.0),
+            (2.0, 2.0, 0.0),
+        ];
+        for (lx, lz, h) in cases {
+            let got = b.height_at(ORIGIN.x + lx, ORIGIN.z + lz);
+            assert!(
+                close(got, ORIGIN.y + h),
+                "({lx}, {lz}): {got:?}, want {}",
+                ORIGIN.y + h
+            );
+        }
+        for (lx, lz) in [(-0.001, 1.0), (2.001, 1.0), (1.0, -0.001), (1.0, 2.001)] {
+            assert_eq!(b.height_at(ORIGIN.x + lx, ORIGIN.z + lz), None);
+        }
+        let (lo, hi) = b.bounds();
+        assert_eq!(lo, DVec3::new(10.0, 5.0, 20.0));
+        assert_eq!(
+            hi,
+            DVec3::new(12.0, 13.0, 22.0),
+            "border sentinels excluded"
+        );
+    }
+
+    #[test]
+    fn terrain1_never_alternates_the_diagonal() {
+        let b = block(TerrainVersion::Terrain1, None);
+        assert_eq!(b.cells(), (2, 2));
+        // Cell (1,0) even here: triangle (1,0),(2,0),(2,1):
+        // 0 + (1-0)(1-0.6) + (4-0)(0.1) = 0.8.
+        assert!(close(b.height_at(11.6, 20.1), 5.8));
+        assert!(!(0..2).any(|c| b.cell_has_odd_diagonal(c, 0) || b.cell_has_odd_diagonal(c, 1)));
+    }
+
+    #[test]
+    fn triangles_face_up_and_follow_the_diagonals() {
+        let b = block(TerrainVersion::Terrain2, None);
+        let tris = b.triangles();
+        assert_eq!(tris.len(), 8);
+        for t in &tris {
+            let n = (t[1] - t[0]).cross(t[2] - t[0]);
+            assert!(n.y > 0.0, "{t:?} normal {n}");
+            for v in t {
+                assert!(v.y < 5.0 + 9.0, "border sample leaked: {v}");
+            }
+        }
+        // Cell (1,0) is odd: its triangles share the edge (1,1)-(2,0).
+        let p11 = DVec3::new(11.0, 5.0, 21.0);
+        let p20 = DVec3::new(12.0, 5.0, 20.0);
+        let cell10 = &tris[2..4];
+        for t in cell10 {
+            assert!(t.contains(&p11) && t.contains(&p20), "{t:?}");
+        }
+        // Cell (0,0) is even: both triangles hold (0,0) and (1,1).
+        let p00 = DVec3::new(10.0, 5.0, 20.0);
+        for t in &tris[0..2] {
+            assert!(t.contains(&p00) && t.contains(&p11), "{t:?}");
+        }
+    }
+
+    #[test]
+    fn holes_remove_cells_from_both_queries() {
+        // 2×2 hole map over 2×2 cells: hole at hole cell (1,0).
+        let holes = HoleMap {
+            width: 2,
+            height: 2,
+            holes: vec![false, true, false, false],
+        };
+        let b = block(TerrainVersion::Terrain2, Some(holes));
+        assert_eq!(b.height_at(11.5, 20.5), None);
+        assert!(b.is_hole(11.5, 20.5));
+        assert!(!b.is_hole(10.5, 20.5));
+        assert!(!b.is_hole(30.0, 20.5), "outside is not a hole");
+        assert!(b.height_at(10.5, 20.5).is_some());
+        assert_eq!(b.triangles().len(), 6);
+        // A finer hole map: 4×4 hole cells of 0.5 m; cell (0,1) centre
+        // (0.5, 1.5) falls in hole cell (1, 3).
+        let mut fine = vec![false; 16];
+        fine[3 * 4 + 1] = true;
+        fine[0] = true; // hole cell (0,0) holds no cell centre: no effect
+        let b = block(
+            TerrainVersion::Terrain2,
+            Some(HoleMap {
+                width: 4,
+                height: 4,
+                holes: fine,
+            }),
+        );
+        assert_eq!(b.triangles().len(), 6);
+        assert!(b.cell_is_hole(0, 1));
+        assert!(!b.cell_is_hole(0, 0));
+        // An empty hole map means no holes.
+        let b = block(
+            TerrainVersion::Terrain2,
+            Some(HoleMap {
+                width: 0,
+                height: 0,
+                holes: vec![],
+            }),
+        );
+        assert_eq!(b.triangles().len(), 8);
+    }
+
+    #[test]
+    fn hole_index_takes_the_cell_centre() {
+        // 2 cells over 3 hole cells: centres at 0.25 and 0.75 of the block.
+        assert_eq!(hole_index(0, 2, 3), 0);
+        assert_eq!(hole_index(1, 2, 3), 2);
+        // 128 cells over 32 hole cells: 4 cells per hole cell.
+        assert_eq!(hole_index(3, 128, 32), 0);
+        assert_eq!(hole_index(4, 128, 32), 1);
+        assert_eq!(hole_index(127, 128, 32), 31);
+    }
+
+    #[test]
+    fn bad_blocks_are_refused() {
+        let good = data(TerrainVersion::Terrain2, None);
+        let mut d = good.clone();
+        d.heights.heights.pop();
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        let mut d = good.clone();
+        d.heights.heights[2 * 7 + 3] = f32::NAN;
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        // A NaN in the border is harmless.
+        let mut d = good.clone();
+        d.heights.heights[0] = f32::NAN;
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_ok());
+        let mut d = good.clone();
+        d.border = 3; // 7 - 6 = 1 visible sample: no cell
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        assert!(TerrainBlock::new(&good, ORIGIN, 0.0).is_err());
+        assert!(TerrainBlock::new(&good, ORIGIN, f64::NAN).is_err());
+        assert!(TerrainBlock::new(&good, DVec3::new(f64::INFINITY, 0.0, 0.0), 2.0).is_err());
+        let mut d = good;
+        d.holes = Some(HoleMap {
+            width: 2,
+            height: 2,
+            holes: vec![true],
+        });
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+    }
+
+    /// xorshift64*, so the test needs no RNG crate and is reproducible.
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+        }
+        fn unit(&mut self) -> f64 {
+            (self.next() >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// Height at (x, z) of the plane through `t`, if (x, z) is inside `t`'s
+    /// xz projection by a margin (so edge points, which two triangles share,
+    /// are skipped). Independent of the block's own cell logic.
+    fn plane_height(t: &[DVec3; 3], x: f64, z: f64) -> Option<f64> {
+        let (a, b, c) = (t[0], t[1], t[2]);
+        let area = (b.x - a.x) * (c.z - a.z) - (c.x - a.x) * (b.z - a.z);
+        let wa = ((b.x - x) * (c.z - z) - (c.x - x) * (b.z - z)) / area;
+        let wb = ((c.x - x) * (a.z - z) - (a.x - x) * (c.z - z)) / area;
+        let wc = 1.0 - wa - wb;
+        let margin = 1e-9;
+        (wa > margin && wb > margin && wc > margin).then_some(wa * a.y + wb * b.y + wc * c.y)
+    }
+
+    #[test]
+    fn height_at_matches_the_triangles_at_random_points() {
+        for (seed, version) in [
+            (1u64, TerrainVersion::Terrain2),
+            (7, TerrainVersion::Terrain1),
+        ] {
+            let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ seed);
+            let border = if version == TerrainVersion::Terrain2 {
+                2
+            } else {
+                1
+            };
+            let (cx, cz) = (6usize, 5usize);
+            let (w, h) = (cx + 1 + 2 * border, cz + 1 + 2 * border);
+            let heights = (0..w * h)
+                .map(|_| (rng.unit() * 40.0 - 20.0) as f32)
+                .collect();
+            let holes = HoleMap {
+                width: 3,
+                height: 5,
+                holes: (0..15).map(|_| rng.next().is_multiple_of(4)).collect(),
+            };
+            let d = TerrainData {
+                version,
+                heights: HeightGrid {
+                    width: w,
+                    height: h,
+                    heights,
+                },
+                border,
+                holes: Some(holes),
+            };
+            let origin = DVec3::new(-3100.0, 12.5, 4700.0);
+            let b = TerrainBlock::new(&d, origin, 100.0).unwrap();
+            let tris = b.triangles();
+            let (mut solid, mut holed) = (0, 0);
+            for _ in 0..4000 {
+                // Some points fall outside the block on purpose.
+                let x = origin.x - 5.0 + rng.unit() * 110.0;
+                let z = origin.z - 5.0 + rng.unit() * 110.0;
+                let expected = tris.iter().find_map(|t| plane_height(t, x, z));
+                let got = b.height_at(x, z);
+                match (got, expected) {
+                    (Some(g), Some(e)) => {
+                        assert!((g - e).abs() < 1e-9, "({x}, {z}): height_at {g}, plane {e}");
+                        solid += 1;
+                    }
+                    (None, None) => {
+                        let inside = (0.0..=100.0).contains(&(x - origin.x))
+                            && (0.0..=100.0).contains(&(z - origin.z));
+                        if inside {
+                            assert!(b.is_hole(x, z), "({x}, {z})");
+                            holed += 1;
+                        }
+                    }
+                    (g, e) => {
+                        // Only a point within the margin of an edge may
+                        // find no triangle; it must still be solid ground.
+                        assert!(
+                            g.is_some() && e.is_none(),
+                            "({x}, {z}): height_at {g:?}, triangles {e:?}"
+                        );
+                    }
+                }
+            }
+            assert!(
+                solid > 1000 && holed > 100,
+                "{solid} solid, {holed} in holes"
+            );
+        }
+    }
+}
