@@ -446,6 +446,15 @@ pub fn decode_holes(b: &[u8]) -> Result<HoleMap, FormatError> {
     let h = field(b, 8)?;
     let count = sample_count(w, h, 4, "hole map")?;
     let (w, h) = (w as usize, h as usize);
+    if count == 0 {
+        // The engine loads an empty image: no holes. Return before walking
+        // what may be billions of empty rows.
+        return Ok(HoleMap {
+            width: w,
+            height: h,
+            holes: Vec::new(),
+        });
+    }
     let stride = engine_hole_stride(w);
     // stride <= w and h*w <= MAX_SAMPLES, so these cannot overflow.
     let need = HOLES_HEADER_LEN + stride * h;
@@ -914,6 +923,9 @@ mod tests {
         assert!(e.message.contains("needs 19 bytes"), "{e}");
         let e = decode_holes(&le(&[HOLES_MAGIC, 1 << 20, 1 << 20, 1])).unwrap_err();
         assert_eq!(byte_of(&e), 4);
+        // A zero width with a huge height is an empty map, read at once.
+        let m = decode_holes(&le(&[HOLES_MAGIC, 0, u32::MAX, 1])).unwrap();
+        assert_eq!((m.width, m.height, m.holes.len()), (0, u32::MAX as usize, 0));
     }
 
     fn compressed_block(payload: &[u8], claimed: u32) -> Vec<u8> {

@@ -21,7 +21,11 @@
 //! hole column `((2·cx + 1) · holes.width) / (2 · cells_x)`); both of its
 //! triangles are then dropped and `height_at` answers `None` inside it. The
 //! engine instead tests the hole map at the query point itself; the two agree
-//! whenever hole cells are whole multiples of height cells, as in real data.
+//! whenever a hole cell is a whole number of height cells (highlands:
+//! heightMapSize 128, holeMapSize 64). They do not always: fantasydemo's
+//! arctic space has heightMapSize 32 and holeMapSize 25, where hole borders
+//! here follow height cells and may differ from the engine's by up to one
+//! height cell (3.125 m).
 //!
 //! A point on an inner cell edge belongs to the cell on its +x/+z side
 //! (floor); the block's far edges (local x or z = chunk_size) belong to the
