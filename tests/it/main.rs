@@ -4,4 +4,5 @@ mod generated;
 mod primitives_real;
 mod real_scene;
 mod support;
+mod terrain_real;
 mod xml_real;
