@@ -1,1 +1,580 @@
-//! TODO
+//! The bake settings file (SPEC §3): which world to read, how to filter hits
+//! and which lights to bake. Every subcommand reads it, and the command line
+//! may override its values afterwards, so this module only turns the XML tree
+//! into checked values; it reads no file itself.
+//!
+//! Everything a light needs to be baked is validated here, so a bad file
+//! fails before any work, with the element at fault named.
+
+use super::Section;
+use crate::error::FormatError;
+use glam::DVec3;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+/// The shadow-caster mask of an instance is 32 bits, one per light.
+pub const MAX_LIGHTS: usize = 32;
+pub const DEFAULT_HEIGHT_BIAS: f64 = 0.05;
+pub const DEFAULT_TIE_EPSILON: f64 = 1e-4;
+/// Largest shadow map side accepted (a 65536² map is already 4 G rays).
+pub const MAX_RESOLUTION: u32 = 65536;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FaceCulling {
+    /// Hits on back faces are ignored unless the group is double-sided.
+    #[default]
+    Back,
+    Front,
+    None,
+}
+
+impl FaceCulling {
+    /// The settings-file (and command-line) spelling, case-insensitive.
+    pub fn from_name(name: &str) -> Option<FaceCulling> {
+        match name.to_ascii_lowercase().as_str() {
+            "back" => Some(FaceCulling::Back),
+            "front" => Some(FaceCulling::Front),
+            "none" => Some(FaceCulling::None),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            FaceCulling::Back => "back",
+            FaceCulling::Front => "front",
+            FaceCulling::None => "none",
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct BakeSettings {
+    /// Resource roots in search order; relative ones are joined to the
+    /// settings file's folder.
+    pub res_paths: Vec<PathBuf>,
+    /// The space folder as a resource name (e.g. `spaces/arctic`).
+    pub space: String,
+    pub face_culling: FaceCulling,
+    /// Metres; see SPEC §4 (below-ground test).
+    pub height_bias: f64,
+    /// Metres along a ray; see SPEC §4 (front-set tie tolerance).
+    pub tie_epsilon: f64,
+    /// In file order: light `i` is bit `i` of every mask.
+    pub lights: Vec<LightSettings>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightSettings {
+    /// `<name>`, or `light{i}` with `i` the light's index.
+    pub name: String,
+    pub kind: LightKind,
+}
+
+/// Directions are normalised here (the file need not); every value is finite
+/// and in range.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LightKind {
+    Directional {
+        direction: DVec3,
+        /// Metres between ray centres, perpendicular to the direction.
+        texel_size: f64,
+    },
+    Spot {
+        position: DVec3,
+        direction: DVec3,
+        /// Full opening angle, in (0, 180).
+        fov_degrees: f64,
+        near: f64,
+        far: f64,
+        resolution: u32,
+    },
+    Point {
+        position: DVec3,
+        near: f64,
+        far: f64,
+        /// Side of each of the six cube faces.
+        resolution: u32,
+    },
+}
+
+impl LightKind {
+    /// The settings-file spelling of the type, as used in reports.
+    pub fn type_name(&self) -> &'static str {
+        match self {
+            LightKind::Directional { .. } => "directional",
+            LightKind::Spot { .. } => "spot",
+            LightKind::Point { .. } => "point",
+        }
+    }
+}
+
+/// Reads the settings tree of a file in folder `settings_dir`.
+pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, FormatError> {
+    let res_section = root.required("resPaths")?;
+    let mut res_paths = Vec::new();
+    for path in res_section.children_named("path") {
+        if path.value.is_empty() {
+            return Err(path.error("empty resource path; give a folder or remove the element"));
+        }
+        let p = PathBuf::from(&path.value);
+        res_paths.push(if p.is_absolute() {
+            p
+        } else {
+            settings_dir.join(p)
+        });
+    }
+    if res_paths.is_empty() {
+        return Err(
+            res_section.error("no <path> in <resPaths>; give at least one resource root folder")
+        );
+    }
+
+    let space_section = root.required("space")?;
+    if space_section.value.is_empty() {
+        return Err(space_section.error("empty <space>; give the space folder, e.g. spaces/arctic"));
+    }
+    let space = space_section.value.clone();
+
+    let face_culling = match root.child("faceCulling") {
+        None => FaceCulling::default(),
+        Some(s) => FaceCulling::from_name(&s.value).ok_or_else(|| {
+            s.error(format!(
+                "unknown face culling `{}`; expected back, front or none",
+                s.value
+            ))
+        })?,
+    };
+    let height_bias = optional_non_negative(root, "heightBias", DEFAULT_HEIGHT_BIAS)?;
+    let tie_epsilon = optional_non_negative(root, "tieEpsilon", DEFAULT_TIE_EPSILON)?;
+
+    let mut lights = Vec::new();
+    if let Some(lights_section) = root.child("lights") {
+        let count = lights_section.children_named("light").count();
+        if count > MAX_LIGHTS {
+            return Err(lights_section.error(format!(
+                "{count} lights; at most {MAX_LIGHTS} can be baked (the caster mask has 32 bits): \
+                 split them over several settings files"
+            )));
+        }
+        let mut names = HashSet::new();
+        for (i, light) in lights_section.children_named("light").enumerate() {
+            let parsed = parse_light(light, i)?;
+            if !names.insert(parsed.name.clone()) {
+                return Err(light.error(format!(
+                    "duplicate light name `{}`; light names must be unique",
+                    parsed.name
+                )));
+            }
+            lights.push(parsed);
+        }
+    }
+
+    Ok(BakeSettings {
+        res_paths,
+        space,
+        face_culling,
+        height_bias,
+        tie_epsilon,
+        lights,
+    })
+}
+
+fn optional_non_negative(root: &Section, tag: &str, default: f64) -> Result<f64, FormatError> {
+    match root.child(tag) {
+        None => Ok(default),
+        Some(s) => {
+            let v = s.as_f64()?;
+            if v.is_finite() && v >= 0.0 {
+                Ok(v)
+            } else {
+                Err(s.error(format!("<{tag}> must be a finite number >= 0, found {v}")))
+            }
+        }
+    }
+}
+
+fn parse_light(light: &Section, index: usize) -> Result<LightSettings, FormatError> {
+    let name = match light.child("name") {
+        Some(n) if !n.value.is_empty() => n.value.clone(),
+        Some(n) => return Err(n.error("empty light <name>; remove it to get the default")),
+        None => format!("light{index}"),
+    };
+    let type_section = light.required("type")?;
+    let kind = match type_section.value.to_ascii_lowercase().as_str() {
+        "directional" => LightKind::Directional {
+            direction: direction(light)?,
+            texel_size: positive(light, "texelSize")?,
+        },
+        "spot" => {
+            let fov = light.required("fov")?;
+            let fov_degrees = fov.as_f64()?;
+            if !(fov_degrees > 0.0 && fov_degrees < 180.0) {
+                return Err(fov.error(format!(
+                    "spot light fov must be in (0, 180) degrees, found {fov_degrees}"
+                )));
+            }
+            let (near, far) = near_far(light)?;
+            LightKind::Spot {
+                position: position(light)?,
+                direction: direction(light)?,
+                fov_degrees,
+                near,
+                far,
+                resolution: resolution(light)?,
+            }
+        }
+        "point" => {
+            let (near, far) = near_far(light)?;
+            LightKind::Point {
+                position: position(light)?,
+                near,
+                far,
+                resolution: resolution(light)?,
+            }
+        }
+        other => {
+            return Err(type_section.error(format!(
+                "unknown light type `{other}`; expected directional, spot or point"
+            )))
+        }
+    };
+    Ok(LightSettings { name, kind })
+}
+
+fn direction(light: &Section) -> Result<DVec3, FormatError> {
+    let s = light.required("direction")?;
+    let d = s.as_vec3()?;
+    let length = d.length();
+    if !d.is_finite() || length == 0.0 || !length.is_finite() {
+        return Err(s.error(format!(
+            "light direction must be a finite, non-zero vector, found {} {} {}",
+            d.x, d.y, d.z
+        )));
+    }
+    Ok(d / length)
+}
+
+fn position(light: &Section) -> Result<DVec3, FormatError> {
+    let s = light.required("position")?;
+    let p = s.as_vec3()?;
+    if !p.is_finite() {
+        return Err(s.error("light position must be finite"));
+    }
+    Ok(p)
+}
+
+fn positive(light: &Section, tag: &str) -> Result<f64, FormatError> {
+    let s = light.required(tag)?;
+    let v = s.as_f64()?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(s.error(format!("<{tag}> must be a finite number > 0, found {v}")))
+    }
+}
+
+fn near_far(light: &Section) -> Result<(f64, f64), FormatError> {
+    let near = positive(light, "near")?;
+    let far_section = light.required("far")?;
+    let far = far_section.as_f64()?;
+    if !(far.is_finite() && far > near) {
+        return Err(far_section.error(format!(
+            "<far> must be finite and greater than <near> ({near}), found {far}"
+        )));
+    }
+    Ok((near, far))
+}
+
+fn resolution(light: &Section) -> Result<u32, FormatError> {
+    let s = light.required("resolution")?;
+    let v = s.as_i64()?;
+    match u32::try_from(v) {
+        Ok(r) if (1..=MAX_RESOLUTION).contains(&r) => Ok(r),
+        _ => Err(s.error(format!(
+            "<resolution> must be between 1 and {MAX_RESOLUTION} texels, found {v}"
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A tiny tree builder: `el("a", "text", vec![...])`, paths filled in.
+    fn el(name: &str, value: &str, children: Vec<Section>) -> Section {
+        Section {
+            name: name.into(),
+            value: value.into(),
+            children,
+            ..Default::default()
+        }
+    }
+
+    fn with_paths(mut s: Section, parent: &str) -> Section {
+        s.path = if parent.is_empty() {
+            s.name.clone()
+        } else {
+            format!("{parent}/{}", s.name)
+        };
+        let path = s.path.clone();
+        s.children = s
+            .children
+            .into_iter()
+            .map(|c| with_paths(c, &path))
+            .collect();
+        s
+    }
+
+    fn leaf(name: &str, value: &str) -> Section {
+        el(name, value, vec![])
+    }
+
+    fn sun() -> Section {
+        el(
+            "light",
+            "",
+            vec![
+                leaf("name", "sun"),
+                leaf("type", "directional"),
+                leaf("direction", "0 -2 0"),
+                leaf("texelSize", "0.1"),
+            ],
+        )
+    }
+
+    fn spot() -> Section {
+        el(
+            "light",
+            "",
+            vec![
+                leaf("type", "spot"),
+                leaf("position", "10 20 5"),
+                leaf("direction", "0 -1 0"),
+                leaf("fov", "60"),
+                leaf("near", "0.1"),
+                leaf("far", "80"),
+                leaf("resolution", "1024"),
+            ],
+        )
+    }
+
+    fn point() -> Section {
+        el(
+            "light",
+            "",
+            vec![
+                leaf("type", "Point"),
+                leaf("position", "0 5 0"),
+                leaf("near", "0.1"),
+                leaf("far", "30"),
+                leaf("resolution", "512"),
+            ],
+        )
+    }
+
+    fn settings(lights: Vec<Section>, extra: Vec<Section>) -> Section {
+        let mut children = vec![
+            el(
+                "resPaths",
+                "",
+                vec![leaf("path", "res"), leaf("path", "/abs/res")],
+            ),
+            leaf("space", "spaces/arctic"),
+            el("lights", "", lights),
+        ];
+        children.extend(extra);
+        with_paths(el("shadowcull", "", children), "")
+    }
+
+    fn parse_it(root: &Section) -> Result<BakeSettings, FormatError> {
+        parse(root, Path::new("/work/cfg"))
+    }
+
+    #[test]
+    fn the_spec_sketch_parses_with_defaults() {
+        let s = parse_it(&settings(vec![sun(), spot(), point()], vec![])).unwrap();
+        assert_eq!(
+            s.res_paths,
+            [PathBuf::from("/work/cfg/res"), PathBuf::from("/abs/res")]
+        );
+        assert_eq!(s.space, "spaces/arctic");
+        assert_eq!(s.face_culling, FaceCulling::Back);
+        assert_eq!(s.height_bias, 0.05);
+        assert_eq!(s.tie_epsilon, 1e-4);
+        assert_eq!(s.lights.len(), 3);
+        assert_eq!(s.lights[0].name, "sun");
+        assert_eq!(
+            s.lights[0].kind,
+            LightKind::Directional {
+                direction: DVec3::new(0.0, -1.0, 0.0),
+                texel_size: 0.1
+            }
+        );
+        assert_eq!(s.lights[1].name, "light1");
+        assert_eq!(s.lights[1].kind.type_name(), "spot");
+        assert!(matches!(
+            s.lights[1].kind,
+            LightKind::Spot { fov_degrees, resolution: 1024, far, .. } if fov_degrees == 60.0 && far == 80.0
+        ));
+        assert_eq!(s.lights[2].name, "light2");
+        assert!(matches!(
+            s.lights[2].kind,
+            LightKind::Point { resolution: 512, position, .. } if position == DVec3::new(0.0, 5.0, 0.0)
+        ));
+    }
+
+    #[test]
+    fn overrides_are_read() {
+        let s = parse_it(&settings(
+            vec![],
+            vec![
+                leaf("faceCulling", "NONE"),
+                leaf("heightBias", "0"),
+                leaf("tieEpsilon", "0.01"),
+            ],
+        ))
+        .unwrap();
+        assert_eq!(s.face_culling, FaceCulling::None);
+        assert_eq!(s.height_bias, 0.0);
+        assert_eq!(s.tie_epsilon, 0.01);
+        assert!(s.lights.is_empty());
+        assert_eq!(FaceCulling::from_name("front"), Some(FaceCulling::Front));
+        assert_eq!(FaceCulling::Front.name(), "front");
+    }
+
+    fn error_of(root: Section) -> String {
+        parse_it(&root).unwrap_err().to_string()
+    }
+
+    /// `light` with `tag` set to `value`, or removed when `value` is None.
+    fn tweak(mut light: Section, tag: &str, value: Option<&str>) -> Section {
+        light.children.retain(|c| c.name != tag);
+        if let Some(v) = value {
+            light.children.push(leaf(tag, v));
+        }
+        light
+    }
+
+    fn light_error(light: Section) -> String {
+        error_of(settings(vec![light], vec![]))
+    }
+
+    #[test]
+    fn too_many_lights() {
+        let lights: Vec<Section> = (0..33).map(|_| tweak(sun(), "name", None)).collect();
+        let e = error_of(settings(lights, vec![]));
+        assert!(
+            e.contains("33 lights") && e.contains("<shadowcull/lights>"),
+            "{e}"
+        );
+        let lights: Vec<Section> = (0..32).map(|_| tweak(sun(), "name", None)).collect();
+        assert_eq!(
+            parse_it(&settings(lights, vec![])).unwrap().lights.len(),
+            32
+        );
+    }
+
+    #[test]
+    fn bad_directions() {
+        for d in ["0 0 0", "NaN 1 0", "inf 0 0", "1 2"] {
+            let e = light_error(tweak(sun(), "direction", Some(d)));
+            assert!(
+                e.contains("<shadowcull/lights/light/direction>"),
+                "{d}: {e}"
+            );
+        }
+        let e = light_error(tweak(spot(), "direction", Some("0 0 0")));
+        assert!(e.contains("non-zero"), "{e}");
+    }
+
+    #[test]
+    fn bad_light_values() {
+        let cases = [
+            (tweak(sun(), "texelSize", Some("0")), "texelSize"),
+            (tweak(sun(), "texelSize", Some("-1")), "texelSize"),
+            (tweak(spot(), "fov", Some("0")), "(0, 180)"),
+            (tweak(spot(), "fov", Some("180")), "(0, 180)"),
+            (tweak(spot(), "fov", Some("NaN")), "(0, 180)"),
+            (tweak(spot(), "near", Some("0")), "<near> must be"),
+            (tweak(point(), "far", Some("0.1")), "greater than <near>"),
+            (tweak(point(), "far", Some("inf")), "greater than <near>"),
+            (
+                tweak(point(), "resolution", Some("0")),
+                "between 1 and 65536",
+            ),
+            (
+                tweak(spot(), "resolution", Some("65537")),
+                "between 1 and 65536",
+            ),
+            (
+                tweak(spot(), "resolution", Some("-3")),
+                "between 1 and 65536",
+            ),
+            (tweak(spot(), "position", Some("1 inf 0")), "finite"),
+            (
+                tweak(sun(), "type", Some("area")),
+                "unknown light type `area`",
+            ),
+            (tweak(sun(), "name", Some("")), "empty light <name>"),
+        ];
+        for (light, expected) in cases {
+            let e = light_error(light);
+            assert!(e.contains(expected), "expected `{expected}`: {e}");
+            assert!(e.contains("<shadowcull/lights/light"), "{e}");
+        }
+    }
+
+    #[test]
+    fn missing_values() {
+        for (light, tag) in [
+            (tweak(sun(), "type", None), "type"),
+            (tweak(sun(), "direction", None), "direction"),
+            (tweak(sun(), "texelSize", None), "texelSize"),
+            (tweak(spot(), "fov", None), "fov"),
+            (tweak(spot(), "position", None), "position"),
+            (tweak(point(), "near", None), "near"),
+            (tweak(point(), "far", None), "far"),
+            (tweak(point(), "resolution", None), "resolution"),
+        ] {
+            let e = light_error(light);
+            assert!(
+                e.contains(&format!("missing required element <{tag}>")),
+                "{e}"
+            );
+        }
+        let mut root = settings(vec![], vec![]);
+        root.children.retain(|c| c.name != "space");
+        assert!(error_of(root).contains("<space>"));
+        let mut root = settings(vec![], vec![]);
+        root.children.retain(|c| c.name != "resPaths");
+        assert!(error_of(root).contains("<resPaths>"));
+        let mut root = settings(vec![], vec![]);
+        root.children[0].children.clear();
+        assert!(error_of(root).contains("no <path>"));
+    }
+
+    #[test]
+    fn bad_global_values() {
+        let e = error_of(settings(vec![], vec![leaf("faceCulling", "both")]));
+        assert!(e.contains("unknown face culling `both`"), "{e}");
+        let e = error_of(settings(vec![], vec![leaf("heightBias", "-1")]));
+        assert!(e.contains("<heightBias>"), "{e}");
+        let e = error_of(settings(vec![], vec![leaf("tieEpsilon", "NaN")]));
+        assert!(e.contains("<tieEpsilon>"), "{e}");
+        let e = error_of(settings(vec![], vec![leaf("tieEpsilon", "tiny")]));
+        assert!(e.contains("tiny"), "{e}");
+    }
+
+    #[test]
+    fn duplicate_names_including_defaults() {
+        let e = error_of(settings(vec![sun(), sun()], vec![]));
+        assert!(e.contains("duplicate light name `sun`"), "{e}");
+        // The second light's default name is light1, which the first took.
+        let e = error_of(settings(
+            vec![tweak(sun(), "name", Some("light1")), spot()],
+            vec![],
+        ));
+        assert!(e.contains("duplicate light name `light1`"), "{e}");
+    }
+}
