@@ -1,4 +1,8 @@
 //! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
 
+mod generated;
+mod primitives_real;
+mod real_scene;
 mod support;
+mod terrain_real;
 mod xml_real;

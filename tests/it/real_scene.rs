@@ -1,0 +1,154 @@
+//! Scenes built from real BigWorld files: every real model loads with the
+//! triangle counts its own index headers give, and the arctic space (whose
+//! binaries are absent) still loads, with every missing resource listed.
+
+use crate::support::realdata;
+use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::formats::{binsection, primitives};
+use shadowcull::scene::{load_scene, LoadConfig};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+fn real_model_names(res: &Path) -> Vec<String> {
+    let mut names: Vec<String> = shadowcull::formats::resources::find_files(res, ".model")
+        .unwrap()
+        .into_iter()
+        .map(|p| {
+            p.strip_prefix(res)
+                .unwrap()
+                .to_string_lossy()
+                .replace('\\', "/")
+        })
+        .collect();
+    names.sort();
+    names
+}
+
+/// A one-chunk space placing every given model once, 10 m apart.
+fn world_placing(models: &[String]) -> Vec<(String, Vec<u8>)> {
+    let mut chunk = String::from("<root>\n");
+    for (i, model) in models.iter().enumerate() {
+        chunk += &format!(
+            "\t<model>\n\t\t<resource>\t{model}\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t1.000000 0.000000 0.000000\t</row0>\n\t\t\t<row1>\t0.000000 1.000000 0.000000\t</row1>\n\t\t\t<row2>\t0.000000 0.000000 1.000000\t</row2>\n\t\t\t<row3>\t{}.000000 0.000000 50.000000\t</row3>\n\t\t</transform>\n\t</model>\n",
+            3 * i
+        );
+    }
+    chunk += "</root>\n";
+    let settings = "<space.settings>\n\t<bounds>\n\t\t<minX>\t0\t</minX>\n\t\t<maxX>\t0\t</maxX>\n\t\t<minY>\t0\t</minY>\n\t\t<maxY>\t0\t</maxY>\n\t</bounds>\n</space.settings>\n";
+    vec![
+        ("spaces/real/00000000o.chunk".to_string(), chunk.into_bytes()),
+        ("spaces/real/space.settings".to_string(), settings.as_bytes().to_vec()),
+    ]
+}
+
+/// nPrimitives of every group of every index section of a `.primitives`
+/// file, straight from the index headers.
+fn header_triangles(primitives_file: &Path) -> BTreeMap<String, Vec<u32>> {
+    let bytes = std::fs::read(primitives_file).unwrap();
+    let container = binsection::parse(&bytes).unwrap();
+    let mut groups = BTreeMap::new();
+    for entry in &container.entries {
+        if entry.name.ends_with("indices") {
+            let indices = primitives::read_indices(&bytes[entry.data.clone()]).unwrap();
+            groups.insert(
+                entry.name.clone(),
+                indices.groups.iter().map(|g| g.n_primitives).collect(),
+            );
+        }
+    }
+    groups
+}
+
+#[test]
+fn every_real_model_loads_with_its_index_header_counts() {
+    let Some(root) = realdata("every_real_model_loads_with_its_index_header_counts") else {
+        return;
+    };
+    let res = root.join("bigworld-14.4.1/res");
+    let models = real_model_names(&res);
+    assert_eq!(models.len(), 26, "{models:?}");
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &world_placing(&models)).unwrap();
+    let scene = load_scene(&LoadConfig {
+        res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res.clone()]),
+        space: "spaces/real".into(),
+    })
+    .unwrap();
+    assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
+    assert_eq!(scene.models.len(), models.len());
+
+    let mut total_groups = 0;
+    for model in &scene.models {
+        // Oracle: the visual's own <primitiveGroup> elements, counted as text,
+        // and each group's nPrimitives from its index section header.
+        let visual_text = std::fs::read_to_string(model.file.with_extension("visual")).unwrap();
+        let group_elements = visual_text.matches("<primitiveGroup>").count();
+        assert_eq!(model.groups.len(), group_elements, "{}", model.resource);
+        total_groups += group_elements;
+        let headers = header_triangles(&model.file.with_extension("primitives"));
+        let header_total: u32 = headers.values().flatten().sum();
+        let loaded_total: usize = model.groups.iter().map(|g| g.triangles.len()).sum();
+        assert!(loaded_total > 0, "{}", model.resource);
+        for group in &model.groups {
+            let per_section: Vec<u32> = headers
+                .values()
+                .filter_map(|groups| groups.get(group.primitive_group).copied())
+                .collect();
+            assert!(
+                per_section.contains(&(group.triangles.len() as u32)),
+                "{} group {}: {} triangles, headers say {per_section:?}",
+                model.resource,
+                group.primitive_group,
+                group.triangles.len()
+            );
+        }
+        assert!(loaded_total as u32 <= header_total, "{}", model.resource);
+        for triangle in &model.triangles[..] {
+            for &v in triangle {
+                assert!(model.positions[v as usize].is_finite(), "{}", model.resource);
+            }
+        }
+    }
+    let stats = scene.stats();
+    assert_eq!((stats.instances, stats.models, stats.groups), (26, 26, total_groups));
+    assert_eq!(stats.triangles, scene.models.iter().map(|m| m.triangles.len()).sum::<usize>());
+    // The minspec trees' leaves are alpha-tested and double-sided.
+    let tree = scene
+        .models
+        .iter()
+        .find(|m| m.resource == "sets/minspec/props/tree/model/tree.model")
+        .unwrap();
+    assert!(tree.groups.iter().any(|g| g.alpha_tested && g.double_sided));
+    assert!(stats.alpha_tested_groups > 0 && stats.double_sided_groups > 0);
+}
+
+#[test]
+fn arctic_loads_and_lists_every_missing_resource() {
+    let Some(root) = realdata("arctic_loads_and_lists_every_missing_resource") else {
+        return;
+    };
+    let scene = load_scene(&LoadConfig {
+        res_paths: ResPaths::new(vec![root.join("fantasydemo-arctic/res")]),
+        space: "spaces/arctic".into(),
+    })
+    .unwrap();
+    let stats = scene.stats();
+    // README: 104 chunks; 250 <model> placements plus 4 <shell>s.
+    assert_eq!(stats.chunks, 104);
+    assert_eq!(stats.instances, 254);
+    // No .primitives and no .cdata were collected: nothing loads, and each
+    // of the 18 placed model resources and 100 terrain blocks is a problem.
+    assert_eq!((stats.models, stats.terrain_blocks), (0, 0));
+    let model_problems: Vec<_> = scene
+        .problems
+        .iter()
+        .filter(|p| p.what.ends_with(".model"))
+        .collect();
+    assert_eq!(model_problems.len(), 18, "{model_problems:#?}");
+    for problem in &model_problems {
+        assert!(problem.why.contains(".primitives"), "{problem:?}");
+    }
+    let terrain_problems = scene.problems.iter().filter(|p| p.what.ends_with("<terrain>")).count();
+    assert_eq!(terrain_problems, 100);
+    assert!(scene.instances.iter().any(|i| scene.chunks[i.chunk].grid.is_none()));
+}
