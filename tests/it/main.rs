@@ -1,8 +1,10 @@
 //! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
 
 mod generated;
+mod packed_real;
 mod primitives_real;
 mod real_scene;
 mod support;
 mod terrain_real;
+mod visual_real;
 mod xml_real;
