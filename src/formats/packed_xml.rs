@@ -840,4 +840,51 @@ mod tests {
             }
         }
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        fn value() -> impl Strategy<Value = String> {
+            prop_oneof![
+                any::<i64>().prop_map(|v| v.to_string()),
+                any::<f32>().prop_map(|v| v.to_string()),
+                proptest::collection::vec(any::<f32>(), 1..13).prop_map(|v| v
+                    .iter()
+                    .map(|f| f.to_string())
+                    .collect::<Vec<_>>()
+                    .join(" ")),
+                Just("true".to_string()),
+                Just("false".to_string()),
+                "[ -~é]{0,16}".prop_map(|s| s.trim().to_string()),
+            ]
+        }
+
+        fn tree() -> impl Strategy<Value = Section> {
+            let name = "[a-zA-Z_][a-zA-Z0-9_.]{0,8}";
+            let leaf = (name, value()).prop_map(|(n, v)| node(&n, &v, vec![]));
+            leaf.prop_recursive(5, 64, 6, move |inner| {
+                (name, value(), proptest::collection::vec(inner, 0..6))
+                    .prop_map(|(n, v, c)| node(&n, &v, c))
+            })
+        }
+
+        proptest! {
+            #[test]
+            fn random_trees_round_trip(children in proptest::collection::vec(tree(), 0..5)) {
+                let root = node("root", "", children);
+                let bytes = write(&root).unwrap();
+                let back = parse(&bytes).unwrap();
+                prop_assert!(same_tree(&root, &back));
+                prop_assert_eq!(write(&back).unwrap(), bytes);
+            }
+
+            #[test]
+            fn random_bytes_never_panic(tail in proptest::collection::vec(any::<u8>(), 0..200)) {
+                let mut bytes = MAGIC.to_vec();
+                bytes.extend(tail);
+                let _ = parse(&bytes);
+            }
+        }
+    }
 }
