@@ -3,6 +3,7 @@
 
 pub mod error;
 pub mod formats;
+pub mod gen;
 pub mod scene;
 
 pub use error::{Error, Result};
