@@ -298,7 +298,7 @@ fn pick_kind(rng: &mut Rng) -> Kind {
 
 pub(crate) fn plan(preset: Preset, seed: u64) -> WorldPlan {
     let params = Params::of(preset);
-    let mut rng = Rng::new(seed ^ 0x5EED_0F_5A4D_0C11);
+    let mut rng = Rng::new(seed ^ 0x005E_ED0F_5A4D_0C11);
     let hills = Hills {
         seed: mix(seed.wrapping_add(1)),
         amplitude: params.hill_height,
