@@ -1,1 +1,620 @@
-//! TODO
+//! One chunk's terrain block as world-space geometry: the triangles the rays
+//! hit and the height query of the below-ground test (SPEC §4). Both come
+//! from one cell/diagonal/hole rule so that they can never disagree.
+//!
+//! Geometry is the visible part of the block only: chunk-local
+//! `0..=chunk_size` on x and z. Border samples are read but never become
+//! triangles.
+//!
+//! Diagonals follow the engine's `heightAt` and collision code:
+//! - terrain2 (`TerrainHeightMap2::heightAt`): if `(cx ^ cz) & 1` the cell's
+//!   diagonal joins (x, z+1)–(x+1, z), else (x, z)–(x+1, z+1). The engine
+//!   counts `cx, cz` in the bordered image (visible cell + 2) in `heightAt`
+//!   and in visible cells in its collision code; the border is even, so the
+//!   parity is the same. Here `cx, cz` are visible cell indices.
+//! - terrain1 (`TerrainHeightMap1::heightAt`, BigWorld 1.x/2.0): every cell's
+//!   diagonal joins (x, z)–(x+1, z+1); terrain1 does not alternate.
+//!
+//! Holes: the hole map covers the visible square, a hole cell spanning
+//! `chunk_size / holes.width` by `chunk_size / holes.height`. A height cell
+//! is a hole if its centre lies in a hole cell (computed exactly in integers:
+//! hole column `((2·cx + 1) · holes.width) / (2 · cells_x)`); both of its
+//! triangles are then dropped and `height_at` answers `None` inside it. The
+//! engine instead tests the hole map at the query point itself; the two agree
+//! whenever a hole cell is a whole number of height cells (highlands:
+//! heightMapSize 128, holeMapSize 64). They do not always: fantasydemo's
+//! arctic space has heightMapSize 32 and holeMapSize 25, where hole borders
+//! here follow height cells and may differ from the engine's by up to one
+//! height cell (3.125 m).
+//!
+//! A point on an inner cell edge belongs to the cell on its +x/+z side
+//! (floor); the block's far edges (local x or z = chunk_size) belong to the
+//! last cell.
+
+use glam::DVec3;
+
+use crate::formats::terrain::{TerrainData, TerrainVersion};
+
+/// A chunk's terrain block in world space.
+#[derive(Debug, Clone)]
+pub struct TerrainBlock {
+    origin: DVec3,
+    chunk_size: f64,
+    version: TerrainVersion,
+    cells_x: usize,
+    cells_z: usize,
+    spacing_x: f64,
+    spacing_z: f64,
+    /// Visible vertex heights, `(cells_x + 1) × (cells_z + 1)`, row-major by z.
+    heights: Vec<f64>,
+    /// One flag per height cell, row-major by z.
+    cell_holes: Vec<bool>,
+    min_height: f64,
+    max_height: f64,
+}
+
+impl TerrainBlock {
+    /// Builds the block of one chunk from its terrain data, the chunk's world
+    /// translation and its size in metres. Fails on a grid too small or
+    /// inconsistent to have a visible cell, on non-finite heights, origin or
+    /// size, and on a hole map whose size does not match its cells.
+    pub fn new(data: &TerrainData, origin: DVec3, chunk_size: f64) -> Result<TerrainBlock, String> {
+        if !origin.is_finite() {
+            return Err(format!("terrain block origin {origin} is not finite"));
+        }
+        if !(chunk_size.is_finite() && chunk_size > 0.0) {
+            return Err(format!(
+                "chunk size {chunk_size} is not a positive finite number of metres"
+            ));
+        }
+        let grid = &data.heights;
+        if grid.width.checked_mul(grid.height) != Some(grid.heights.len()) {
+            return Err(format!(
+                "height grid says {}×{} but holds {} heights",
+                grid.width,
+                grid.height,
+                grid.heights.len()
+            ));
+        }
+        let border = data.border;
+        // Visible vertices are the grid minus `border` on each side.
+        let visible = |n: usize| n.checked_sub(border.checked_mul(2)?).filter(|&v| v >= 2);
+        let (Some(vx), Some(vz)) = (visible(grid.width), visible(grid.height)) else {
+            return Err(format!(
+                "height grid {}×{} with a {border}-sample border has no visible cell",
+                grid.width, grid.height
+            ));
+        };
+        let (cells_x, cells_z) = (vx - 1, vz - 1);
+
+        let mut heights = Vec::with_capacity(vx * vz);
+        let (mut min_height, mut max_height) = (f64::INFINITY, f64::NEG_INFINITY);
+        for z in 0..vz {
+            let row_start = (z + border) * grid.width + border;
+            let row = grid
+                .heights
+                .get(row_start..row_start + vx)
+                .ok_or("height grid row out of range")?;
+            for (x, &h) in row.iter().enumerate() {
+                if !h.is_finite() {
+                    return Err(format!(
+                        "height {h} at visible sample ({x}, {z}) is not finite"
+                    ));
+                }
+                let h = f64::from(h);
+                min_height = min_height.min(h);
+                max_height = max_height.max(h);
+                heights.push(h);
+            }
+        }
+
+        let mut cell_holes = vec![false; cells_x * cells_z];
+        if let Some(map) = &data.holes {
+            if map.width.checked_mul(map.height) != Some(map.holes.len()) {
+                return Err(format!(
+                    "hole map says {}×{} but holds {} cells",
+                    map.width,
+                    map.height,
+                    map.holes.len()
+                ));
+            }
+            // An empty map means no holes (the engine's noHoles()).
+            if map.width > 0 && map.height > 0 {
+                for cz in 0..cells_z {
+                    let hz = hole_index(cz, cells_z, map.height);
+                    for cx in 0..cells_x {
+                        let hx = hole_index(cx, cells_x, map.width);
+                        if map.holes.get(hz * map.width + hx).copied().unwrap_or(false) {
+                            cell_holes[cz * cells_x + cx] = true;
+                        }
+                    }
+                }
+            }
+        }
+
+        Ok(TerrainBlock {
+            origin,
+            chunk_size,
+            version: data.version,
+            cells_x,
+            cells_z,
+            spacing_x: chunk_size / cells_x as f64,
+            spacing_z: chunk_size / cells_z as f64,
+            heights,
+            cell_holes,
+            min_height,
+            max_height,
+        })
+    }
+
+    /// World translation of the chunk (local origin of the visible square).
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+
+    pub fn chunk_size(&self) -> f64 {
+        self.chunk_size
+    }
+
+    pub fn version(&self) -> TerrainVersion {
+        self.version
+    }
+
+    /// Visible cells along x and z (e.g. 128 × 128 for heightMapSize 128).
+    pub fn cells(&self) -> (usize, usize) {
+        (self.cells_x, self.cells_z)
+    }
+
+    /// Metres between samples along x and z: chunk size / cells.
+    pub fn spacing(&self) -> (f64, f64) {
+        (self.spacing_x, self.spacing_z)
+    }
+
+    /// Height (chunk-local, without `origin.y`) of visible vertex (x, z).
+    pub fn vertex_height(&self, x: usize, z: usize) -> Option<f64> {
+        if x > self.cells_x {
+            return None;
+        }
+        self.heights.get(z * (self.cells_x + 1) + x).copied()
+    }
+
+    /// Whether height cell (cx, cz) is a hole (no triangles, no height).
+    pub fn cell_is_hole(&self, cx: usize, cz: usize) -> bool {
+        cx < self.cells_x && self.cell_holes.get(cz * self.cells_x + cx) == Some(&true)
+    }
+
+    /// Whether the cell's diagonal joins (x, z+1)–(x+1, z) rather than
+    /// (x, z)–(x+1, z+1).
+    pub fn cell_has_odd_diagonal(&self, cx: usize, cz: usize) -> bool {
+        self.version == TerrainVersion::Terrain2 && (cx ^ cz) & 1 == 1
+    }
+
+    /// World-space box of the visible vertices (holes included).
+    pub fn bounds(&self) -> (DVec3, DVec3) {
+        let o = self.origin;
+        (
+            DVec3::new(o.x, o.y + self.min_height, o.z),
+            DVec3::new(
+                o.x + self.chunk_size,
+                o.y + self.max_height,
+                o.z + self.chunk_size,
+            ),
+        )
+    }
+
+    /// The cell holding world point (x, z) and the point's fractions inside
+    /// it, or `None` outside the visible square (edges included).
+    fn locate(&self, x: f64, z: f64) -> Option<(usize, usize, f64, f64)> {
+        let lx = x - self.origin.x;
+        let lz = z - self.origin.z;
+        let inside = |l: f64| (0.0..=self.chunk_size).contains(&l);
+        if !inside(lx) || !inside(lz) {
+            return None;
+        }
+        let (cx, xf) = cell_and_fraction(lx / self.spacing_x, self.cells_x);
+        let (cz, zf) = cell_and_fraction(lz / self.spacing_z, self.cells_z);
+        Some((cx, cz, xf, zf))
+    }
+
+    /// Whether world point (x, z) is inside the visible square and in a hole
+    /// cell (where [`height_at`](Self::height_at) answers `None`).
+    pub fn is_hole(&self, x: f64, z: f64) -> bool {
+        self.locate(x, z)
+            .is_some_and(|(cx, cz, _, _)| self.cell_is_hole(cx, cz))
+    }
+
+    /// World height of the terrain surface at world (x, z): `None` outside
+    /// the visible square or in a hole, else the height of the triangle
+    /// containing the point (the engine's `heightAt` interpolation).
+    pub fn height_at(&self, x: f64, z: f64) -> Option<f64> {
+        let (cx, cz, xf, zf) = self.locate(x, z)?;
+        if self.cell_is_hole(cx, cz) {
+            return None;
+        }
+        let h00 = self.vertex_height(cx, cz)?;
+        let h10 = self.vertex_height(cx + 1, cz)?;
+        let h01 = self.vertex_height(cx, cz + 1)?;
+        let h11 = self.vertex_height(cx + 1, cz + 1)?;
+        let h = if self.cell_has_odd_diagonal(cx, cz) {
+            if (1.0 - xf) > zf {
+                h00 + (h10 - h00) * xf + (h01 - h00) * zf
+            } else {
+                h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf)
+            }
+        } else if xf > zf {
+            h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf
+        } else {
+            h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf)
+        };
+        Some(self.origin.y + h)
+    }
+
+    /// The visible, non-hole triangles in world space, two per cell (row by
+    /// row, x fastest), split along the cell's diagonal and wound so the
+    /// geometric normal (v1 − v0) × (v2 − v0) points up (+y): the engine's
+    /// vertex orders.
+    pub fn triangles(&self) -> Vec<[DVec3; 3]> {
+        let mut out = Vec::with_capacity(2 * self.cell_holes.iter().filter(|&&h| !h).count());
+        for cz in 0..self.cells_z {
+            for cx in 0..self.cells_x {
+                if self.cell_is_hole(cx, cz) {
+                    continue;
+                }
+                let v = |x: usize, z: usize| -> DVec3 {
+                    let h = self.vertex_height(x, z).unwrap_or(0.0);
+                    DVec3::new(
+                        self.origin.x + x as f64 * self.spacing_x,
+                        self.origin.y + h,
+                        self.origin.z + z as f64 * self.spacing_z,
+                    )
+                };
+                let bottom_left = v(cx, cz);
+                let bottom_right = v(cx + 1, cz);
+                let top_left = v(cx, cz + 1);
+                let top_right = v(cx + 1, cz + 1);
+                if self.cell_has_odd_diagonal(cx, cz) {
+                    out.push([bottom_left, top_left, bottom_right]);
+                    out.push([top_left, top_right, bottom_right]);
+                } else {
+                    out.push([bottom_left, top_left, top_right]);
+                    out.push([top_right, bottom_right, bottom_left]);
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The hole-map index whose span holds the centre of cell `c` of `cells`:
+/// `floor((c + 0.5) / cells * holes)`, in integers so it is exact.
+fn hole_index(c: usize, cells: usize, holes: usize) -> usize {
+    let index = (2 * c + 1).saturating_mul(holes) / (2 * cells).max(1);
+    index.min(holes.saturating_sub(1))
+}
+
+/// Splits a grid coordinate `g` (in cells, `0..=cells`) into a cell index and
+/// the fraction inside it; `g == cells` maps to the last cell at fraction 1.
+fn cell_and_fraction(g: f64, cells: usize) -> (usize, f64) {
+    let last = cells - 1; // cells >= 1 by construction
+    let floor = g.floor().max(0.0);
+    let c = if floor >= last as f64 {
+        last
+    } else {
+        floor as usize
+    };
+    (c, (g - c as f64).clamp(0.0, 1.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formats::terrain::{HeightGrid, HoleMap};
+
+    const SENTINEL: f32 = 1000.0;
+
+    /// Visible vertex heights of the hand-worked 2×2 block, `[z][x]`.
+    const VISIBLE: [[f32; 3]; 3] = [[0.0, 1.0, 0.0], [2.0, 0.0, 4.0], [0.0, 8.0, 0.0]];
+
+    /// The 3×3 visible heights wrapped in a border of sentinel samples that
+    /// must never show up in geometry.
+    fn data(version: TerrainVersion, holes: Option<HoleMap>) -> TerrainData {
+        let border = match version {
+            TerrainVersion::Terrain2 => 2,
+            TerrainVersion::Terrain1 => 1,
+        };
+        let w = 3 + 2 * border;
+        let mut heights = vec![SENTINEL; w * w];
+        for (z, row) in VISIBLE.iter().enumerate() {
+            for (x, &h) in row.iter().enumerate() {
+                heights[(z + border) * w + x + border] = h;
+            }
+        }
+        TerrainData {
+            version,
+            heights: HeightGrid {
+                width: w,
+                height: w,
+                heights,
+            },
+            border,
+            holes,
+        }
+    }
+
+    const ORIGIN: DVec3 = DVec3::new(10.0, 5.0, 20.0);
+
+    fn block(version: TerrainVersion, holes: Option<HoleMap>) -> TerrainBlock {
+        TerrainBlock::new(&data(version, holes), ORIGIN, 2.0).unwrap()
+    }
+
+    fn close(a: Option<f64>, b: f64) -> bool {
+        a.is_some_and(|a| (a - b).abs() < 1e-12)
+    }
+
+    #[test]
+    fn terrain2_2x2_heights_worked_by_hand() {
+        let b = block(TerrainVersion::Terrain2, None);
+        assert_eq!(b.cells(), (2, 2));
+        assert_eq!(b.spacing(), (1.0, 1.0));
+        // (local x, local z, expected local height), see the comments.
+        let cases = [
+            // cell (0,0) even, diagonal (0,0)-(1,1). Lower-right triangle is
+            // the plane h = x - z; upper-left is h = -2x + 2z.
+            (0.75, 0.25, 0.5),
+            (0.25, 0.75, 1.0),
+            // cell (1,0) odd, diagonal (1,1)-(2,0). Triangle (1,0),(2,0),(1,1)
+            // has h = 1 - fx - fz; triangle (2,1),(1,1),(2,0) has
+            // h = 4 - 4(1-fx) - 4(1-fz).
+            (1.25, 0.25, 0.5),
+            (1.75, 0.75, 2.0),
+            // Distinguishes the diagonal: an even split would give 0.8.
+            (1.6, 0.1, 0.3),
+            // cell (1,1) even: triangle (1,1),(2,1),(2,2): 4 - 4fx' ... at
+            // (0.5, 0.25): 4 + (0-4)(0.5) + (0-4)(0.25) = 1.
+            (1.5, 1.25, 1.0),
+            // cell (0,1) odd: triangle (0,1),(1,1),(0,2): 2 - 2fx - 2fz.
+            (0.25, 1.5, 0.5),
+            // vertices and the far corner
+            (1.0, 1.0, 0.0),
+            (0.0, 1.0, 2.0),
+            (2.0, 1.0, 4.0),
+            (1.0, 2.0, 8.0),
+            (2.0, 2.0, 0.0),
+        ];
+        for (lx, lz, h) in cases {
+            let got = b.height_at(ORIGIN.x + lx, ORIGIN.z + lz);
+            assert!(
+                close(got, ORIGIN.y + h),
+                "({lx}, {lz}): {got:?}, want {}",
+                ORIGIN.y + h
+            );
+        }
+        for (lx, lz) in [(-0.001, 1.0), (2.001, 1.0), (1.0, -0.001), (1.0, 2.001)] {
+            assert_eq!(b.height_at(ORIGIN.x + lx, ORIGIN.z + lz), None);
+        }
+        let (lo, hi) = b.bounds();
+        assert_eq!(lo, DVec3::new(10.0, 5.0, 20.0));
+        assert_eq!(
+            hi,
+            DVec3::new(12.0, 13.0, 22.0),
+            "border sentinels excluded"
+        );
+    }
+
+    #[test]
+    fn terrain1_never_alternates_the_diagonal() {
+        let b = block(TerrainVersion::Terrain1, None);
+        assert_eq!(b.cells(), (2, 2));
+        // Cell (1,0) even here: triangle (1,0),(2,0),(2,1):
+        // 0 + (1-0)(1-0.6) + (4-0)(0.1) = 0.8.
+        assert!(close(b.height_at(11.6, 20.1), 5.8));
+        assert!(!(0..2).any(|c| b.cell_has_odd_diagonal(c, 0) || b.cell_has_odd_diagonal(c, 1)));
+    }
+
+    #[test]
+    fn triangles_face_up_and_follow_the_diagonals() {
+        let b = block(TerrainVersion::Terrain2, None);
+        let tris = b.triangles();
+        assert_eq!(tris.len(), 8);
+        for t in &tris {
+            let n = (t[1] - t[0]).cross(t[2] - t[0]);
+            assert!(n.y > 0.0, "{t:?} normal {n}");
+            for v in t {
+                assert!(v.y < 5.0 + 9.0, "border sample leaked: {v}");
+            }
+        }
+        // Cell (1,0) is odd: its triangles share the edge (1,1)-(2,0).
+        let p11 = DVec3::new(11.0, 5.0, 21.0);
+        let p20 = DVec3::new(12.0, 5.0, 20.0);
+        let cell10 = &tris[2..4];
+        for t in cell10 {
+            assert!(t.contains(&p11) && t.contains(&p20), "{t:?}");
+        }
+        // Cell (0,0) is even: both triangles hold (0,0) and (1,1).
+        let p00 = DVec3::new(10.0, 5.0, 20.0);
+        for t in &tris[0..2] {
+            assert!(t.contains(&p00) && t.contains(&p11), "{t:?}");
+        }
+    }
+
+    #[test]
+    fn holes_remove_cells_from_both_queries() {
+        // 2×2 hole map over 2×2 cells: hole at hole cell (1,0).
+        let holes = HoleMap {
+            width: 2,
+            height: 2,
+            holes: vec![false, true, false, false],
+        };
+        let b = block(TerrainVersion::Terrain2, Some(holes));
+        assert_eq!(b.height_at(11.5, 20.5), None);
+        assert!(b.is_hole(11.5, 20.5));
+        assert!(!b.is_hole(10.5, 20.5));
+        assert!(!b.is_hole(30.0, 20.5), "outside is not a hole");
+        assert!(b.height_at(10.5, 20.5).is_some());
+        assert_eq!(b.triangles().len(), 6);
+        // A finer hole map: 4×4 hole cells of 0.5 m; cell (0,1) centre
+        // (0.5, 1.5) falls in hole cell (1, 3).
+        let mut fine = vec![false; 16];
+        fine[3 * 4 + 1] = true;
+        fine[0] = true; // hole cell (0,0) holds no cell centre: no effect
+        let b = block(
+            TerrainVersion::Terrain2,
+            Some(HoleMap {
+                width: 4,
+                height: 4,
+                holes: fine,
+            }),
+        );
+        assert_eq!(b.triangles().len(), 6);
+        assert!(b.cell_is_hole(0, 1));
+        assert!(!b.cell_is_hole(0, 0));
+        // An empty hole map means no holes.
+        let b = block(
+            TerrainVersion::Terrain2,
+            Some(HoleMap {
+                width: 0,
+                height: 0,
+                holes: vec![],
+            }),
+        );
+        assert_eq!(b.triangles().len(), 8);
+    }
+
+    #[test]
+    fn hole_index_takes_the_cell_centre() {
+        // 2 cells over 3 hole cells: centres at 0.25 and 0.75 of the block.
+        assert_eq!(hole_index(0, 2, 3), 0);
+        assert_eq!(hole_index(1, 2, 3), 2);
+        // 128 cells over 32 hole cells: 4 cells per hole cell.
+        assert_eq!(hole_index(3, 128, 32), 0);
+        assert_eq!(hole_index(4, 128, 32), 1);
+        assert_eq!(hole_index(127, 128, 32), 31);
+    }
+
+    #[test]
+    fn bad_blocks_are_refused() {
+        let good = data(TerrainVersion::Terrain2, None);
+        let mut d = good.clone();
+        d.heights.heights.pop();
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        let mut d = good.clone();
+        d.heights.heights[2 * 7 + 3] = f32::NAN;
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        // A NaN in the border is harmless.
+        let mut d = good.clone();
+        d.heights.heights[0] = f32::NAN;
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_ok());
+        let mut d = good.clone();
+        d.border = 3; // 7 - 6 = 1 visible sample: no cell
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+        assert!(TerrainBlock::new(&good, ORIGIN, 0.0).is_err());
+        assert!(TerrainBlock::new(&good, ORIGIN, f64::NAN).is_err());
+        assert!(TerrainBlock::new(&good, DVec3::new(f64::INFINITY, 0.0, 0.0), 2.0).is_err());
+        let mut d = good;
+        d.holes = Some(HoleMap {
+            width: 2,
+            height: 2,
+            holes: vec![true],
+        });
+        assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
+    }
+
+    /// xorshift64*, so the test needs no RNG crate and is reproducible.
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+        }
+        fn unit(&mut self) -> f64 {
+            (self.next() >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// Height at (x, z) of the plane through `t`, if (x, z) is inside `t`'s
+    /// xz projection by a margin (so edge points, which two triangles share,
+    /// are skipped). Independent of the block's own cell logic.
+    fn plane_height(t: &[DVec3; 3], x: f64, z: f64) -> Option<f64> {
+        let (a, b, c) = (t[0], t[1], t[2]);
+        let area = (b.x - a.x) * (c.z - a.z) - (c.x - a.x) * (b.z - a.z);
+        let wa = ((b.x - x) * (c.z - z) - (c.x - x) * (b.z - z)) / area;
+        let wb = ((c.x - x) * (a.z - z) - (a.x - x) * (c.z - z)) / area;
+        let wc = 1.0 - wa - wb;
+        let margin = 1e-9;
+        (wa > margin && wb > margin && wc > margin).then_some(wa * a.y + wb * b.y + wc * c.y)
+    }
+
+    #[test]
+    fn height_at_matches_the_triangles_at_random_points() {
+        for (seed, version) in [
+            (1u64, TerrainVersion::Terrain2),
+            (7, TerrainVersion::Terrain1),
+        ] {
+            let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ seed);
+            let border = if version == TerrainVersion::Terrain2 {
+                2
+            } else {
+                1
+            };
+            let (cx, cz) = (6usize, 5usize);
+            let (w, h) = (cx + 1 + 2 * border, cz + 1 + 2 * border);
+            let heights = (0..w * h)
+                .map(|_| (rng.unit() * 40.0 - 20.0) as f32)
+                .collect();
+            let holes = HoleMap {
+                width: 3,
+                height: 5,
+                holes: (0..15).map(|_| rng.next().is_multiple_of(4)).collect(),
+            };
+            let d = TerrainData {
+                version,
+                heights: HeightGrid {
+                    width: w,
+                    height: h,
+                    heights,
+                },
+                border,
+                holes: Some(holes),
+            };
+            let origin = DVec3::new(-3100.0, 12.5, 4700.0);
+            let b = TerrainBlock::new(&d, origin, 100.0).unwrap();
+            let tris = b.triangles();
+            let (mut solid, mut holed) = (0, 0);
+            for _ in 0..4000 {
+                // Some points fall outside the block on purpose.
+                let x = origin.x - 5.0 + rng.unit() * 110.0;
+                let z = origin.z - 5.0 + rng.unit() * 110.0;
+                let expected = tris.iter().find_map(|t| plane_height(t, x, z));
+                let got = b.height_at(x, z);
+                match (got, expected) {
+                    (Some(g), Some(e)) => {
+                        assert!((g - e).abs() < 1e-9, "({x}, {z}): height_at {g}, plane {e}");
+                        solid += 1;
+                    }
+                    (None, None) => {
+                        let inside = (0.0..=100.0).contains(&(x - origin.x))
+                            && (0.0..=100.0).contains(&(z - origin.z));
+                        if inside {
+                            assert!(b.is_hole(x, z), "({x}, {z})");
+                            holed += 1;
+                        }
+                    }
+                    (g, e) => {
+                        // Only a point within the margin of an edge may
+                        // find no triangle; it must still be solid ground.
+                        assert!(
+                            g.is_some() && e.is_none(),
+                            "({x}, {z}): height_at {g:?}, triangles {e:?}"
+                        );
+                    }
+                }
+            }
+            assert!(
+                solid > 1000 && holed > 100,
+                "{solid} solid, {holed} in holes"
+            );
+        }
+    }
+}
