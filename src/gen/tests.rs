@@ -364,3 +364,67 @@ fn dump_for_inspection() {
         }
     }
 }
+
+#[test]
+fn written_binaries_read_back_with_the_crate_readers() {
+    use crate::formats::{binsection, primitives, terrain};
+    use crate::gen::mesh::{is_closed_and_consistent, signed_volume};
+    for p in [Preset::Small, Preset::Village] {
+        let w = generate(p, 6);
+        let mut tris_of_model: BTreeMap<String, u64> = BTreeMap::new();
+        for (path, bytes) in w.files.iter().filter(|f| f.0.ends_with(".primitives")) {
+            let bs = binsection::parse(bytes).unwrap();
+            let v = primitives::read_vertices(bs.get("vertices").unwrap().0).unwrap();
+            let ix = primitives::read_indices(bs.get("indices").unwrap().0).unwrap();
+            assert_eq!(v.format, "xyznuv");
+            assert_eq!(ix.format, "list", "small meshes use u16 indices");
+            let visual = text(&w, &path.replace(".primitives", ".visual"));
+            let materials: Vec<&str> = visual.split("<primitiveGroup>").skip(1).collect();
+            assert_eq!(ix.groups.len(), materials.len(), "{path}");
+            for (g, mat) in materials.iter().enumerate() {
+                let idx = primitives::group_triangles(&ix, g, v.positions.len()).unwrap();
+                let tris: Vec<[[f32; 3]; 3]> = idx
+                    .chunks_exact(3)
+                    .map(|t| [t[0], t[1], t[2]].map(|i| v.positions[i as usize]))
+                    .collect();
+                if !mat.contains("doubleSided") {
+                    // Single-sided groups must be closed solids facing out.
+                    is_closed_and_consistent(&tris).unwrap_or_else(|e| panic!("{path} {g}: {e}"));
+                    assert!(signed_volume(&tris) > 0.0, "{path} group {g} faces inward");
+                }
+            }
+            let n: u64 = ix.groups.iter().map(|g| g.n_primitives as u64).sum();
+            tris_of_model.insert(path.replace(".primitives", ".model"), n);
+        }
+        let mut triangles = 0;
+        for c in chunk_paths(&w) {
+            for r in leaves(&text(&w, &c), "resource") {
+                if !r.contains(".cdata/") {
+                    triangles += tris_of_model[r];
+                }
+            }
+        }
+        assert_eq!(triangles, w.expected.triangles, "{p:?}");
+
+        let pl = plan(p, 6);
+        let mut holes = 0;
+        for ch in &pl.chunks {
+            let cdata = w
+                .file(&format!("{}/{}.cdata", pl.params.space(), ch.name()))
+                .unwrap();
+            let t = terrain::read_terrain(cdata, "terrain2").unwrap();
+            let want = world::height_grid(&pl, ch);
+            assert_eq!(t.heights.width, pl.params.height_map_size + 5);
+            assert_eq!(t.heights.height, want.height);
+            for (a, b) in t.heights.heights.iter().zip(&want.heights) {
+                assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+            }
+            if let Some(h) = t.holes {
+                assert_eq!(h.width, pl.params.height_map_size);
+                holes += h.holes.iter().filter(|&&x| x).count();
+            }
+        }
+        let n = (pl.params.height_map_size / 8).max(2);
+        assert_eq!(holes, n * n, "{p:?}");
+    }
+}
