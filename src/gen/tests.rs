@@ -340,28 +340,20 @@ fn bench_is_big() {
     check_references(&w, "spaces/bench");
 }
 
+/// Prints sizes and timings; run with `--release -- --ignored --nocapture`.
 #[test]
 #[ignore]
-fn dump_for_inspection() {
+fn report_sizes_and_timings() {
     for p in Preset::ALL {
         let t = std::time::Instant::now();
         let w = generate(p, 1);
         let bytes: usize = w.files.iter().map(|f| f.1.len()).sum();
         println!(
-            "{p:?}: {:?} {} files {} bytes in {:?}",
+            "{p:?}: {:?}, {} files, {bytes} bytes, {:?}",
             w.expected,
             w.files.len(),
-            bytes,
             t.elapsed()
         );
-        if p == Preset::Village {
-            let dir = std::path::Path::new("/tmp/gen_village");
-            for (path, b) in &w.files {
-                let f = dir.join(path);
-                std::fs::create_dir_all(f.parent().unwrap()).unwrap();
-                std::fs::write(f, b).unwrap();
-            }
-        }
     }
 }
 
