@@ -3,6 +3,7 @@
 
 pub mod error;
 pub mod formats;
+pub mod gen;
 pub mod inspect;
 pub mod scene;
 

@@ -925,7 +925,10 @@ mod tests {
         assert_eq!(byte_of(&e), 4);
         // A zero width with a huge height is an empty map, read at once.
         let m = decode_holes(&le(&[HOLES_MAGIC, 0, u32::MAX, 1])).unwrap();
-        assert_eq!((m.width, m.height, m.holes.len()), (0, u32::MAX as usize, 0));
+        assert_eq!(
+            (m.width, m.height, m.holes.len()),
+            (0, u32::MAX as usize, 0)
+        );
     }
 
     fn compressed_block(payload: &[u8], claimed: u32) -> Vec<u8> {

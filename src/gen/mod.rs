@@ -1,0 +1,145 @@
+//! Synthetic BigWorld worlds for tests, fixtures and benchmarks
+//! (`shadowcull gen`). Real worlds are few and cannot be committed; a
+//! generator gives worlds of any size that exercise every feature the bake
+//! handles (multi-group, nodefull, mirrored, alpha-tested, double-sided,
+//! receiver-only, multi-part instances, terrain with holes), together with the
+//! counts they must produce (`Expected`), decided by the generator itself.
+//!
+//! The generator does no file I/O: it returns every file as bytes, and is
+//! deterministic (same preset and seed, same bytes).
+
+mod mesh;
+mod models;
+mod rng;
+mod world;
+mod xml;
+
+#[cfg(test)]
+mod tests;
+
+use std::collections::BTreeMap;
+
+/// Size and content level of a generated world.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Preset {
+    /// 2×2 chunks of 50 m, a dozen instances: a tiny fixture.
+    Small,
+    /// 3×3 chunks of 100 m, ~140 instances, every feature.
+    Village,
+    /// 10×10 chunks, ~30 000 instances, millions of triangles.
+    Bench,
+}
+
+impl Preset {
+    pub const ALL: [Preset; 3] = [Preset::Small, Preset::Village, Preset::Bench];
+
+    /// Parses a preset name (`small`, `village`, `bench`; case-insensitive).
+    pub fn from_name(name: &str) -> Option<Preset> {
+        Preset::ALL
+            .into_iter()
+            .find(|p| p.name().eq_ignore_ascii_case(name.trim()))
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Small => "small",
+            Preset::Village => "village",
+            Preset::Bench => "bench",
+        }
+    }
+}
+
+/// What a generated world holds, with the meanings of `inspect --json`
+/// (SPEC §8): counts over placed instances (a model placed twice counts its
+/// groups and triangles twice; a two-resource instance counts both parts),
+/// except `models`, the number of distinct model resources. Receiver-only
+/// instances are instances too and count in `groups` and `triangles`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Expected {
+    pub chunks: u64,
+    pub instances: u64,
+    pub models: u64,
+    pub groups: u64,
+    pub triangles: u64,
+    pub terrain_blocks: u64,
+    pub alpha_tested_groups: u64,
+    pub double_sided_groups: u64,
+    pub receiver_only_instances: u64,
+}
+
+/// Every file of a world, paths relative to the output folder (which is the
+/// res root and holds `bake.xml`), `/`-separated, sorted by path.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeneratedWorld {
+    pub files: Vec<(String, Vec<u8>)>,
+    pub expected: Expected,
+}
+
+impl GeneratedWorld {
+    pub fn file(&self, path: &str) -> Option<&[u8]> {
+        self.files
+            .binary_search_by(|(p, _)| p.as_str().cmp(path))
+            .ok()
+            .and_then(|i| self.files.get(i))
+            .map(|(_, b)| b.as_slice())
+    }
+}
+
+/// Name of the settings file at the root of a generated world.
+pub const SETTINGS_FILE: &str = "bake.xml";
+
+/// Generates a complete world.
+pub fn generate(preset: Preset, seed: u64) -> GeneratedWorld {
+    let plan = world::plan(preset, seed);
+    let catalog = models::catalog(plan.params.detail);
+    let stats: BTreeMap<models::Kind, models::ModelStats> =
+        catalog.iter().map(|d| (d.kind, d.stats())).collect();
+
+    let mut expected = Expected {
+        chunks: plan.chunks.len() as u64,
+        terrain_blocks: plan.chunks.len() as u64,
+        ..Expected::default()
+    };
+    let mut used = std::collections::BTreeSet::new();
+    for ch in &plan.chunks {
+        for p in &ch.placements {
+            expected.instances += 1;
+            if p.shadow.receiver_only() {
+                expected.receiver_only_instances += 1;
+            }
+            for k in &p.parts {
+                used.insert(*k);
+                let s = stats.get(k).copied().unwrap_or_default();
+                expected.groups += s.groups;
+                expected.triangles += s.triangles;
+                expected.alpha_tested_groups += s.alpha_tested_groups;
+                expected.double_sided_groups += s.double_sided_groups;
+            }
+        }
+    }
+    expected.models = used.len() as u64;
+
+    let space = plan.params.space();
+    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
+    files.push((SETTINGS_FILE.to_string(), world::bake_settings(&plan)));
+    files.push((
+        format!("{space}/space.settings"),
+        world::space_settings(&plan.params),
+    ));
+    for ch in &plan.chunks {
+        let name = ch.name();
+        files.push((
+            format!("{space}/{name}.chunk"),
+            world::chunk_xml(ch, plan.seed),
+        ));
+        files.push((
+            format!("{space}/{name}.cdata"),
+            world::terrain_cdata(&plan, ch),
+        ));
+    }
+    for def in catalog.iter().filter(|d| used.contains(&d.kind)) {
+        files.extend(models::files(def));
+    }
+    files.sort_by(|a, b| a.0.cmp(&b.0));
+    GeneratedWorld { files, expected }
+}
