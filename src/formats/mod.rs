@@ -31,9 +31,7 @@ pub fn parse_data_section(bytes: &[u8]) -> Result<Section, FormatError> {
 
 /// Reads and validates a bake settings file; relative paths in it are taken
 /// relative to the file's folder.
-pub fn read_bake_settings(
-    path: &std::path::Path,
-) -> crate::Result<bake_settings::BakeSettings> {
+pub fn read_bake_settings(path: &std::path::Path) -> crate::Result<bake_settings::BakeSettings> {
     let bytes = resources::read_file(path)?;
     let root = parse_data_section(&bytes).map_err(|e| e.in_file(path))?;
     let dir = match path.parent() {

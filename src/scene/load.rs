@@ -4,12 +4,12 @@
 //! missing resource, not just the first); only a world that cannot be read
 //! at all (no settings, no chunks) is an error.
 
-use super::{Chunk, Instance, Model, Problem, Scene, TerrainBlock};
+use super::{Chunk, Group, Instance, Model, Problem, Scene, TerrainBlock};
 use crate::error::{Error, Result};
 use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::space_settings;
-use crate::formats::{self, terrain as terrain_format};
+use crate::formats::{self, binsection, model, primitives, terrain as terrain_format, visual};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -115,20 +115,24 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 
     // Each distinct model resource once, in name order, loaded in parallel.
     let mut model_names: BTreeMap<String, usize> = BTreeMap::new();
-    for (_, chunk) in by_name.values() {
+    let mut first_reference: BTreeMap<String, PathBuf> = BTreeMap::new();
+    for (path, chunk) in by_name.values() {
         for instance in &chunk.instances {
             for resource in &instance.resources {
-                model_names.insert(resources::normalise(resource), 0);
+                let name = resources::normalise(resource);
+                first_reference
+                    .entry(name.clone())
+                    .or_insert_with(|| path.clone());
+                model_names.insert(name, 0);
             }
         }
     }
-    let loaded: Vec<(String, Result<Model>)> = model_names
-        .keys()
-        .cloned()
+    let loaded: Vec<(String, Result<Model>)> = first_reference
+        .into_iter()
         .collect::<Vec<_>>()
         .into_par_iter()
-        .map(|name| {
-            let model = load_model(&config.res_paths, &name);
+        .map(|(name, referenced_by)| {
+            let model = load_model(&config.res_paths, &name, &referenced_by);
             (name, model)
         })
         .collect();
@@ -318,8 +322,125 @@ fn load_terrain(
         .map_err(|message| Error::invalid(&cdata_path, message))
 }
 
-/// Loads one model resource's LOD 0 geometry.
-fn load_model(res_paths: &ResPaths, name: &str) -> Result<Model> {
-    let _ = (res_paths, name);
-    Err(Error::invalid(name, "model loading not implemented yet"))
+/// Loads one model resource's LOD 0 geometry: `.model` → its own visual
+/// (not the `<parent>` LODs) → `.primitives`. `referenced_by` is a chunk that
+/// places it, for the error when the model itself is missing.
+fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<Model> {
+    let (model_path, bytes) = res_paths.read(name, referenced_by)?;
+    let model_root = formats::parse_data_section(&bytes).map_err(|e| e.in_file(&model_path))?;
+    let model_file = model::parse_model(&model_root).map_err(|e| e.in_file(&model_path))?;
+    let candidates = model::visual_candidates(&model_file);
+    let Some((visual_resource, visual_path)) = candidates
+        .iter()
+        .find_map(|c| res_paths.resolve(c).map(|p| (c.clone(), p)))
+    else {
+        return Err(Error::NotFound {
+            name: candidates.join(" or "),
+            referenced_by: model_path,
+            searched: res_paths.roots.clone(),
+        });
+    };
+    let mut visual = read_section(&visual_path)
+        .and_then(|root| visual::parse_visual(&root).map_err(|e| e.in_file(&visual_path)))?;
+    visual
+        .resolve_materials(&mut |mfm| {
+            let path = res_paths.resolve(mfm)?;
+            read_section(&path).ok()
+        })
+        .map_err(|e| e.in_file(&visual_path))?;
+
+    let primitives_file = visual::primitives_name(&visual_resource);
+    // Each .primitives file read once per model, however many geometries use it.
+    let mut containers: BTreeMap<String, (PathBuf, Vec<u8>)> = BTreeMap::new();
+    let mut section = |file: &str, section: &str| -> Result<(PathBuf, Vec<u8>, usize)> {
+        if !containers.contains_key(file) {
+            let (path, bytes) = res_paths.read(file, &visual_path)?;
+            containers.insert(file.to_string(), (path, bytes));
+        }
+        let (path, bytes) = &containers[file];
+        let container = binsection::parse(bytes).map_err(|e| e.in_file(path))?;
+        let (data, offset) = container.get(section).ok_or_else(|| {
+            Error::invalid(
+                path,
+                format!(
+                    "no section `{section}` (named by {}); it holds: {}",
+                    visual_path.display(),
+                    container
+                        .entries
+                        .iter()
+                        .map(|e| e.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            )
+        })?;
+        Ok((path.clone(), data.to_vec(), offset))
+    };
+
+    let mut geometry_model = Model {
+        resource: name.to_string(),
+        file: model_path.clone(),
+        ..Model::default()
+    };
+    for (render_set_index, render_set) in visual.render_sets.iter().enumerate() {
+        // Skinned sets hold model-space vertices (static pose); the others
+        // are in their first node's space.
+        let node_to_model = if render_set.treat_as_world_space_object {
+            DMat4::IDENTITY
+        } else {
+            visual
+                .node_to_root_index(render_set.first_node)
+                .unwrap_or(DMat4::IDENTITY)
+        };
+        for (geometry_index, geometry) in render_set.geometries.iter().enumerate() {
+            let split = |name: &str| {
+                visual::split_section_resource(&primitives_file, name).ok_or_else(|| {
+                    Error::invalid(
+                        &visual_path,
+                        format!("<{}>: `{name}` names no section", geometry.path),
+                    )
+                })
+            };
+            let (vertices_file, vertices_section) = split(&geometry.vertices)?;
+            let (indices_file, indices_section) = split(&geometry.primitive)?;
+            let (path, data, offset) = section(&vertices_file, &vertices_section)?;
+            let vertices =
+                primitives::read_vertices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
+            let (path, data, offset) = section(&indices_file, &indices_section)?;
+            let indices =
+                primitives::read_indices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
+
+            let base = geometry_model.positions.len() as u32;
+            geometry_model
+                .positions
+                .extend(vertices.positions.iter().map(|p| {
+                    node_to_model
+                        .transform_point3(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                        .as_vec3()
+                }));
+            for group in &geometry.groups {
+                let triangle_indices = primitives::group_triangles(
+                    &indices,
+                    group.index as usize,
+                    vertices.positions.len(),
+                )
+                .map_err(|e| e.shifted(offset).in_file(&path))?;
+                let first = geometry_model.triangles.len();
+                geometry_model.triangles.extend(
+                    triangle_indices
+                        .chunks_exact(3)
+                        .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                );
+                geometry_model.groups.push(Group {
+                    render_set: render_set_index,
+                    geometry: geometry_index,
+                    primitive_group: group.index as usize,
+                    triangles: first..geometry_model.triangles.len(),
+                    alpha_tested: group.flags.alpha_tested(),
+                    double_sided: group.flags.double_sided(),
+                });
+            }
+        }
+    }
+    Ok(geometry_model)
 }

@@ -53,8 +53,15 @@ fn generated_worlds_read_back_with_the_generators_counts() {
                 "{preset:?}/{seed}: {:#?}",
                 scene.problems
             );
-            assert_eq!(scene.stats(), stats_of(&world.expected), "{preset:?} seed {seed}");
-            assert!(scene.instances.iter().any(|i| i.mirrored), "{preset:?}: a mirrored placement");
+            assert_eq!(
+                scene.stats(),
+                stats_of(&world.expected),
+                "{preset:?} seed {seed}"
+            );
+            assert!(
+                scene.instances.iter().any(|i| i.mirrored),
+                "{preset:?}: a mirrored placement"
+            );
             assert!(
                 scene.instances.iter().any(|i| i.parts.len() == 2),
                 "{preset:?}: a two-resource instance"
@@ -76,7 +83,10 @@ fn committed_fixtures_are_what_gen_writes() {
         for (relative, bytes) in &world.files {
             let path = dir.join(relative);
             let committed = std::fs::read(&path).unwrap_or_else(|e| {
-                panic!("{}: {e}; re-bless with SHADOWCULL_BLESS=1 cargo test fixtures", path.display())
+                panic!(
+                    "{}: {e}; re-bless with SHADOWCULL_BLESS=1 cargo test fixtures",
+                    path.display()
+                )
             });
             assert!(
                 committed == *bytes,
@@ -86,6 +96,11 @@ fn committed_fixtures_are_what_gen_writes() {
             );
         }
         let committed_files = shadowcull::formats::resources::find_files(&dir, "").unwrap();
-        assert_eq!(committed_files.len(), world.files.len(), "{}: stray files", dir.display());
+        assert_eq!(
+            committed_files.len(),
+            world.files.len(),
+            "{}: stray files",
+            dir.display()
+        );
     }
 }

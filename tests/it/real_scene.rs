@@ -36,8 +36,14 @@ fn world_placing(models: &[String]) -> Vec<(String, Vec<u8>)> {
     chunk += "</root>\n";
     let settings = "<space.settings>\n\t<bounds>\n\t\t<minX>\t0\t</minX>\n\t\t<maxX>\t0\t</maxX>\n\t\t<minY>\t0\t</minY>\n\t\t<maxY>\t0\t</maxY>\n\t</bounds>\n</space.settings>\n";
     vec![
-        ("spaces/real/00000000o.chunk".to_string(), chunk.into_bytes()),
-        ("spaces/real/space.settings".to_string(), settings.as_bytes().to_vec()),
+        (
+            "spaces/real/00000000o.chunk".to_string(),
+            chunk.into_bytes(),
+        ),
+        (
+            "spaces/real/space.settings".to_string(),
+            settings.as_bytes().to_vec(),
+        ),
     ]
 }
 
@@ -105,13 +111,27 @@ fn every_real_model_loads_with_its_index_header_counts() {
         assert!(loaded_total as u32 <= header_total, "{}", model.resource);
         for triangle in &model.triangles[..] {
             for &v in triangle {
-                assert!(model.positions[v as usize].is_finite(), "{}", model.resource);
+                assert!(
+                    model.positions[v as usize].is_finite(),
+                    "{}",
+                    model.resource
+                );
             }
         }
     }
     let stats = scene.stats();
-    assert_eq!((stats.instances, stats.models, stats.groups), (26, 26, total_groups));
-    assert_eq!(stats.triangles, scene.models.iter().map(|m| m.triangles.len()).sum::<usize>());
+    assert_eq!(
+        (stats.instances, stats.models, stats.groups),
+        (26, 26, total_groups)
+    );
+    assert_eq!(
+        stats.triangles,
+        scene
+            .models
+            .iter()
+            .map(|m| m.triangles.len())
+            .sum::<usize>()
+    );
     // The minspec trees' leaves are alpha-tested and double-sided.
     let tree = scene
         .models
@@ -148,7 +168,14 @@ fn arctic_loads_and_lists_every_missing_resource() {
     for problem in &model_problems {
         assert!(problem.why.contains(".primitives"), "{problem:?}");
     }
-    let terrain_problems = scene.problems.iter().filter(|p| p.what.ends_with("<terrain>")).count();
+    let terrain_problems = scene
+        .problems
+        .iter()
+        .filter(|p| p.what.ends_with("<terrain>"))
+        .count();
     assert_eq!(terrain_problems, 100);
-    assert!(scene.instances.iter().any(|i| scene.chunks[i.chunk].grid.is_none()));
+    assert!(scene
+        .instances
+        .iter()
+        .any(|i| scene.chunks[i.chunk].grid.is_none()));
 }
