@@ -46,8 +46,8 @@ enum Command {
     Gen {
         /// Output folder (created; existing files of the same names are replaced).
         dir: PathBuf,
-        /// small, village or bench.
-        #[arg(long, default_value = "village")]
+        /// Size and content of the world.
+        #[arg(long, default_value = "village", value_parser = ["small", "village", "bench"])]
         preset: String,
         #[arg(long, default_value_t = 1)]
         seed: u64,

@@ -118,10 +118,20 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
             return Err(path.error("empty resource path; give a folder or remove the element"));
         }
         let p = PathBuf::from(&path.value);
-        res_paths.push(if p.is_absolute() {
+        let joined = if p.is_absolute() {
             p
         } else {
             settings_dir.join(p)
+        };
+        // `.` components only clutter messages (`world/./spaces/x`).
+        let cleaned: PathBuf = joined
+            .components()
+            .filter(|c| !matches!(c, std::path::Component::CurDir))
+            .collect();
+        res_paths.push(if cleaned.as_os_str().is_empty() {
+            PathBuf::from(".")
+        } else {
+            cleaned
         });
     }
     if res_paths.is_empty() {

@@ -1,5 +1,7 @@
 //! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
 
+mod bad_input;
+mod cli;
 mod generated;
 mod packed_real;
 mod primitives_real;

@@ -1,0 +1,153 @@
+//! The `shadowcull` binary: exit codes, `inspect --json` fields, `gen`.
+
+use crate::generated::{fixture_dir, FIXTURE_SEED};
+use crate::support::realdata;
+use shadowcull::gen::{generate, Preset};
+use std::process::{Command, Output};
+
+fn shadowcull(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_shadowcull"))
+        .args(args)
+        .output()
+        .expect("run shadowcull")
+}
+
+fn json(output: &Output) -> serde_json::Value {
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).expect("inspect --json prints one JSON object")
+}
+
+#[test]
+fn inspect_json_counts_match_the_generator_on_both_fixtures() {
+    for preset in [Preset::Small, Preset::Village] {
+        let settings = fixture_dir(preset).join("bake.xml");
+        let value = json(&shadowcull(&[
+            "inspect",
+            settings.to_str().unwrap(),
+            "--json",
+        ]));
+        let expected = serde_json::to_value(generate(preset, FIXTURE_SEED).expected).unwrap();
+        for field in [
+            "chunks",
+            "instances",
+            "models",
+            "groups",
+            "triangles",
+            "terrain_blocks",
+            "alpha_tested_groups",
+            "double_sided_groups",
+            "receiver_only_instances",
+        ] {
+            assert!(value[field].is_u64(), "{field} is an integer");
+            assert_eq!(value[field], expected[field], "{preset:?} {field}");
+        }
+        assert_eq!(value["problems"].as_array().map(Vec::len), Some(0));
+    }
+}
+
+#[test]
+fn inspect_text_summary_is_readable() {
+    let settings = fixture_dir(Preset::Small).join("bake.xml");
+    let output = shadowcull(&["inspect", settings.to_str().unwrap()]);
+    assert!(output.status.success());
+    let text = String::from_utf8(output.stdout).unwrap();
+    assert!(
+        text.contains("triangles") && text.contains("no problems"),
+        "{text}"
+    );
+}
+
+#[test]
+fn inspect_of_arctic_lists_every_missing_primitives_file() {
+    let Some(root) = realdata("inspect_of_arctic_lists_every_missing_primitives_file") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let settings = dir.path().join("arctic.xml");
+    std::fs::write(
+        &settings,
+        format!(
+            "<shadowcull>\n\t<resPaths>\n\t\t<path>\t{}\t</path>\n\t</resPaths>\n\t<space>\tspaces/arctic\t</space>\n</shadowcull>\n",
+            root.join("fantasydemo-arctic/res").display()
+        ),
+    )
+    .unwrap();
+    let value = json(&shadowcull(&[
+        "inspect",
+        settings.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(value["chunks"], 104);
+    let problems = value["problems"].as_array().unwrap();
+    let needed = std::fs::read_to_string(root.join("fantasydemo-arctic/PRIMITIVES_NEEDED.txt"))
+        .unwrap_or_default();
+    let mut listed = 0;
+    for problem in problems {
+        let why = problem["why"].as_str().unwrap();
+        if let Some(start) = why.find("resource `") {
+            let name = &why[start + 10..];
+            let name = &name[..name.find('`').unwrap()];
+            if name.ends_with(".primitives") {
+                listed += 1;
+                assert!(
+                    needed.is_empty() || needed.contains(name),
+                    "{name} not in PRIMITIVES_NEEDED.txt"
+                );
+            }
+        }
+    }
+    // 18 placed models, each missing its .primitives (README).
+    assert_eq!(listed, 18, "{problems:#?}");
+}
+
+#[test]
+fn exit_codes() {
+    assert_eq!(shadowcull(&[]).status.code(), Some(2));
+    assert_eq!(shadowcull(&["inspect"]).status.code(), Some(2));
+    assert_eq!(shadowcull(&["frobnicate"]).status.code(), Some(2));
+    assert_eq!(
+        shadowcull(&["gen", "x", "--preset", "huge"]).status.code(),
+        Some(2)
+    );
+    let missing = shadowcull(&["inspect", "/nonexistent/bake.xml"]);
+    assert_eq!(missing.status.code(), Some(1));
+    let message = String::from_utf8_lossy(&missing.stderr);
+    assert!(message.contains("/nonexistent/bake.xml"), "{message}");
+    assert_eq!(shadowcull(&["--help"]).status.code(), Some(0));
+}
+
+#[test]
+fn gen_writes_the_same_bytes_as_the_library_and_the_world_inspects_clean() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("world");
+    let output = shadowcull(&[
+        "gen",
+        out.to_str().unwrap(),
+        "--preset",
+        "small",
+        "--seed",
+        "3",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    for (relative, bytes) in generate(Preset::Small, 3).files {
+        assert_eq!(
+            std::fs::read(out.join(&relative)).unwrap(),
+            bytes,
+            "{relative}"
+        );
+    }
+    let value = json(&shadowcull(&[
+        "inspect",
+        out.join("bake.xml").to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(value["problems"].as_array().map(Vec::len), Some(0));
+}
