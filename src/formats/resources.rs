@@ -66,6 +66,11 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>> {
 /// Every file under `dir` (recursively) whose name ends with `suffix`,
 /// sorted, so callers see a deterministic order.
 pub fn find_files(dir: &Path, suffix: &str) -> Result<Vec<PathBuf>> {
+    find_files_in(dir, suffix, true)
+}
+
+/// As [`find_files`]; `recursive` false looks in `dir` itself only.
+pub fn find_files_in(dir: &Path, suffix: &str, recursive: bool) -> Result<Vec<PathBuf>> {
     let mut found = Vec::new();
     let mut pending = vec![dir.to_path_buf()];
     while let Some(dir) = pending.pop() {
@@ -75,7 +80,9 @@ pub fn find_files(dir: &Path, suffix: &str) -> Result<Vec<PathBuf>> {
             let path = entry.path();
             let kind = entry.file_type().map_err(|e| Error::io(&path, "stat", e))?;
             if kind.is_dir() {
-                pending.push(path);
+                if recursive {
+                    pending.push(path);
+                }
             } else if path
                 .file_name()
                 .and_then(|n| n.to_str())

@@ -420,3 +420,75 @@ fn written_binaries_read_back_with_the_crate_readers() {
         assert_eq!(holes, n * n, "{p:?}");
     }
 }
+
+#[test]
+fn scene_loader_reads_back_every_generated_model_exactly() {
+    // The generator's in-memory meshes against what the whole loader
+    // (model → visual → primitives, node transform applied) makes of the
+    // written files: same groups, flags, triangles and positions.
+    use crate::formats::resources::{write_tree, ResPaths};
+    use crate::scene::{load_scene, LoadConfig};
+    for preset in [Preset::Small, Preset::Village] {
+        let world = generate(preset, 2);
+        let dir = tempfile::tempdir().unwrap();
+        write_tree(dir.path(), &world.files).unwrap();
+        let scene = load_scene(&LoadConfig {
+            res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
+            space: plan(preset, 2).params.space(),
+        })
+        .unwrap();
+        let catalog = models::catalog(plan(preset, 2).params.detail);
+        assert!(!scene.models.is_empty());
+        for model in &scene.models {
+            let def = catalog
+                .iter()
+                .find(|d| d.kind.resource() == model.resource)
+                .unwrap_or_else(|| panic!("{} is not a catalogue model", model.resource));
+            let mesh = &def.mesh;
+            assert_eq!(model.groups.len(), mesh.groups.len(), "{}", model.resource);
+            for (i, (group, material)) in model.groups.iter().zip(&def.materials).enumerate() {
+                assert_eq!(
+                    group.alpha_tested, material.alpha_test,
+                    "{} group {i}",
+                    model.resource
+                );
+                assert_eq!(
+                    group.double_sided, material.double_sided,
+                    "{} group {i}",
+                    model.resource
+                );
+                let written = &mesh.groups[i];
+                assert_eq!(group.triangles.len(), written.n_primitives as usize);
+                let first = written.start_index as usize;
+                for (t, triangle) in model.triangles[group.triangles.clone()].iter().enumerate() {
+                    for corner in 0..3 {
+                        let expected_index = mesh.indices[first + 3 * t + corner] as usize;
+                        let p = mesh.positions[expected_index];
+                        let expected = match &def.node {
+                            // Rows as written (%.6f), applied as p·M.
+                            Some(m) => {
+                                let m = m.map(|row| row.map(|v| (v * 1e6).round() / 1e6));
+                                let [x, y, z] = p.map(f64::from);
+                                [0, 1, 2].map(|c| {
+                                    (x * m[0][c] + y * m[1][c] + z * m[2][c] + m[3][c]) as f32
+                                })
+                            }
+                            None => p,
+                        };
+                        let got = model.positions[triangle[corner] as usize].to_array();
+                        for c in 0..3 {
+                            assert!(
+                                (got[c] - expected[c]).abs() <= 1e-5 * (1.0 + expected[c].abs()),
+                                "{} group {i} triangle {t}: {got:?} vs {expected:?}",
+                                model.resource
+                            );
+                        }
+                        if def.node.is_none() {
+                            assert_eq!(got, expected, "{}: exact without a node", model.resource);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}

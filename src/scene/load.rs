@@ -52,7 +52,9 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
     let settings = read_section(&settings_path)
         .and_then(|root| space_settings::parse(&root).map_err(|e| e.in_file(&settings_path)))?;
 
-    let chunk_files = resources::find_files(&space_dir, ".chunk")?;
+    // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
+    // space.settings says <singleDir>.
+    let chunk_files = resources::find_files_in(&space_dir, ".chunk", !settings.single_dir)?;
     if chunk_files.is_empty() {
         return Err(Error::invalid(
             &space_dir,

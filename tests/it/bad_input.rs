@@ -253,3 +253,49 @@ fn every_damaged_copy_of_a_generated_file_loads_or_reports() {
     }
     assert!(damaged > 20, "damage was noticed only {damaged} times");
 }
+
+#[test]
+fn chunks_in_sep_sub_folders_load_unless_single_dir() {
+    let dir = small_world();
+    let before = load(dir.path()).unwrap().stats();
+    let sep = dir.path().join("spaces/small/fffxfffx/sep");
+    std::fs::create_dir_all(&sep).unwrap();
+    std::fs::rename(
+        dir.path().join("spaces/small/ffffffffo.chunk"),
+        sep.join("ffffffffo.chunk"),
+    )
+    .unwrap();
+    // The terrain resource is relative to the chunk's folder.
+    std::fs::rename(
+        dir.path().join("spaces/small/ffffffffo.cdata"),
+        sep.join("ffffffffo.cdata"),
+    )
+    .unwrap();
+    assert_eq!(load(dir.path()).unwrap().stats(), before);
+    replace_text(
+        dir.path(),
+        "spaces/small/space.settings",
+        "</bounds>",
+        "</bounds>\n\t<singleDir>\ttrue\t</singleDir>",
+    );
+    assert_eq!(load(dir.path()).unwrap().chunks.len(), before.chunks - 1);
+}
+
+#[test]
+fn a_world_saved_as_packed_binary_xml_loads_the_same() {
+    let dir = small_world();
+    let before = load(dir.path()).unwrap().stats();
+    let mut converted = 0;
+    for suffix in [".chunk", ".model", ".visual", "space.settings"] {
+        for path in shadowcull::formats::resources::find_files(dir.path(), suffix).unwrap() {
+            let text = std::fs::read(&path).unwrap();
+            let tree = shadowcull::formats::xml::parse(&text).unwrap();
+            let packed = shadowcull::formats::packed_xml::write(&tree).unwrap();
+            assert!(packed.starts_with(&shadowcull::formats::packed_xml::MAGIC));
+            std::fs::write(&path, packed).unwrap();
+            converted += 1;
+        }
+    }
+    assert!(converted > 10);
+    assert_eq!(load(dir.path()).unwrap().stats(), before);
+}
