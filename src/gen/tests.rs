@@ -461,7 +461,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
                 assert_eq!(group.triangles.len(), written.n_primitives as usize);
                 let first = written.start_index as usize;
                 for (t, triangle) in model.triangles[group.triangles.clone()].iter().enumerate() {
-                    for corner in 0..3 {
+                    for (corner, &vertex) in triangle.iter().enumerate() {
                         let expected_index = mesh.indices[first + 3 * t + corner] as usize;
                         let p = mesh.positions[expected_index];
                         let expected = match &def.node {
@@ -475,7 +475,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
                             }
                             None => p,
                         };
-                        let got = model.positions[triangle[corner] as usize].to_array();
+                        let got = model.positions[vertex as usize].to_array();
                         for c in 0..3 {
                             assert!(
                                 (got[c] - expected[c]).abs() <= 1e-5 * (1.0 + expected[c].abs()),
