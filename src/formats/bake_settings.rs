@@ -310,31 +310,7 @@ fn resolution(light: &Section) -> Result<u32, FormatError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A tiny tree builder: `el("a", "text", vec![...])`, paths filled in.
-    fn el(name: &str, value: &str, children: Vec<Section>) -> Section {
-        Section {
-            name: name.into(),
-            value: value.into(),
-            children,
-            ..Default::default()
-        }
-    }
-
-    fn with_paths(mut s: Section, parent: &str) -> Section {
-        s.path = if parent.is_empty() {
-            s.name.clone()
-        } else {
-            format!("{parent}/{}", s.name)
-        };
-        let path = s.path.clone();
-        s.children = s
-            .children
-            .into_iter()
-            .map(|c| with_paths(c, &path))
-            .collect();
-        s
-    }
+    use crate::formats::section::build::{el, with_paths};
 
     fn leaf(name: &str, value: &str) -> Section {
         el(name, value, vec![])

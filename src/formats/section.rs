@@ -143,6 +143,37 @@ impl Section {
     }
 }
 
+/// Hand-built trees for unit tests of the format readers.
+#[cfg(test)]
+pub(crate) mod build {
+    use super::Section;
+
+    pub fn el(name: &str, value: &str, children: Vec<Section>) -> Section {
+        Section {
+            name: name.into(),
+            value: value.into(),
+            children,
+            ..Default::default()
+        }
+    }
+
+    /// Fills in every element's `path` as a parser would.
+    pub fn with_paths(mut s: Section, parent: &str) -> Section {
+        s.path = if parent.is_empty() {
+            s.name.clone()
+        } else {
+            format!("{parent}/{}", s.name)
+        };
+        let path = s.path.clone();
+        s.children = s
+            .children
+            .into_iter()
+            .map(|c| with_paths(c, &path))
+            .collect();
+        s
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

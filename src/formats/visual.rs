@@ -448,34 +448,11 @@ fn resolve_chain(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::formats::section::build::{el, with_paths};
     use glam::DVec3;
-
-    fn el(name: &str, value: &str, children: Vec<Section>) -> Section {
-        Section {
-            name: name.into(),
-            value: value.into(),
-            children,
-            ..Default::default()
-        }
-    }
 
     fn leaf(name: &str, value: &str) -> Section {
         el(name, value, vec![])
-    }
-
-    fn with_paths(mut s: Section, parent: &str) -> Section {
-        s.path = if parent.is_empty() {
-            s.name.clone()
-        } else {
-            format!("{parent}/{}", s.name)
-        };
-        let path = s.path.clone();
-        s.children = s
-            .children
-            .into_iter()
-            .map(|c| with_paths(c, &path))
-            .collect();
-        s
     }
 
     fn transform(rows: [&str; 4]) -> Section {

@@ -10,7 +10,7 @@
 
 mod mesh;
 mod models;
-mod rng;
+
 mod world;
 mod xml;
 

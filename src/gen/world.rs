@@ -4,10 +4,10 @@
 //! `Expected` counts are derived, so the oracle cannot drift from the output.
 
 use super::models::Kind;
-use super::rng::{mix, Rng};
 use super::xml::{f6, v3, XmlOut};
 use super::Preset;
 use crate::formats::terrain::{write_terrain2_cdata, HeightGrid, HoleMap};
+use crate::rng::{mix, Rng};
 
 pub(crate) type M43 = [[f64; 3]; 4];
 

@@ -309,6 +309,7 @@ fn cell_and_fraction(g: f64, cells: usize) -> (usize, f64) {
 mod tests {
     use super::*;
     use crate::formats::terrain::{HeightGrid, HoleMap};
+    use crate::rng::Rng;
 
     const SENTINEL: f32 = 1000.0;
 
@@ -519,20 +520,6 @@ mod tests {
         assert!(TerrainBlock::new(&d, ORIGIN, 2.0).is_err());
     }
 
-    /// xorshift64*, so the test needs no RNG crate and is reproducible.
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-        }
-        fn unit(&mut self) -> f64 {
-            (self.next() >> 11) as f64 / (1u64 << 53) as f64
-        }
-    }
-
     /// Height at (x, z) of the plane through `t`, if (x, z) is inside `t`'s
     /// xz projection by a margin (so edge points, which two triangles share,
     /// are skipped). Independent of the block's own cell logic.
@@ -552,7 +539,7 @@ mod tests {
             (1u64, TerrainVersion::Terrain2),
             (7, TerrainVersion::Terrain1),
         ] {
-            let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ seed);
+            let mut rng = Rng::new(0x9E37_79B9_7F4A_7C15 ^ seed);
             let border = if version == TerrainVersion::Terrain2 {
                 2
             } else {
@@ -566,7 +553,7 @@ mod tests {
             let holes = HoleMap {
                 width: 3,
                 height: 5,
-                holes: (0..15).map(|_| rng.next().is_multiple_of(4)).collect(),
+                holes: (0..15).map(|_| rng.next_u64().is_multiple_of(4)).collect(),
             };
             let d = TerrainData {
                 version,

@@ -222,13 +222,7 @@ fn every_damaged_copy_of_a_generated_file_loads_or_reports() {
         "spaces/small/00000000o.cdata",
         "sets/gen/props/crate.visual",
     ];
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
+    let mut rng = shadowcull::rng::Rng::new(11);
     let mut damaged = 0;
     for target in targets {
         let path = dir.path().join(target);
@@ -236,11 +230,11 @@ fn every_damaged_copy_of_a_generated_file_loads_or_reports() {
         for round in 0..24 {
             let mut bytes = original.clone();
             if round % 3 == 0 {
-                bytes.truncate((next() as usize) % original.len());
+                bytes.truncate(rng.below(original.len()));
             } else {
                 for _ in 0..1 + round % 4 {
-                    let at = (next() as usize) % bytes.len();
-                    bytes[at] ^= 1 << (next() % 8);
+                    let at = rng.below(bytes.len());
+                    bytes[at] ^= 1 << rng.below(8);
                 }
             }
             std::fs::write(&path, &bytes).unwrap();

@@ -6,6 +6,7 @@
 use crate::support::realdata;
 use shadowcull::error::FormatError;
 use shadowcull::formats::{binsection, primitives};
+use shadowcull::rng::Rng;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 
@@ -213,22 +214,6 @@ fn real_primitives_decode_and_agree_with_their_headers() {
     }
 }
 
-/// xorshift64*: a fixed, dependency-free sequence so failures reproduce.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
-    }
-}
-
 #[test]
 fn damaged_real_primitives_give_errors_not_panics() {
     let Some(root) = realdata("damaged_real_primitives_give_errors_not_panics") else {
@@ -279,7 +264,7 @@ fn damaged_real_primitives_give_errors_not_panics() {
             }
         }
 
-        let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ (file_no as u64 + 1));
+        let mut rng = Rng::new(0x9E37_79B9_7F4A_7C15 ^ (file_no as u64 + 1));
         for flip in 0..200 {
             let at = if flip % 2 == 0 {
                 rng.below(len)

@@ -10,6 +10,7 @@ use shadowcull::formats::terrain::{
     decode_heights, decode_holes, read_terrain, write_terrain2_cdata, HeightGrid, HoleMap,
     TerrainVersion,
 };
+use shadowcull::rng::Rng;
 use shadowcull::scene::terrain::TerrainBlock;
 
 use crate::support::realdata;
@@ -96,20 +97,6 @@ fn no_panic<T>(case: &str, f: impl FnOnce() -> T) -> T {
     }
 }
 
-/// xorshift64*, reproducible without an RNG crate.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n as u64) as usize
-    }
-}
-
 /// Truncations at every `step`-th offset plus every offset near both ends,
 /// then `flips` seeded single-bit flips anywhere and `hot_flips` more inside
 /// the `hot` byte ranges `[from, to)` (headers). `read` returns whether the bytes were
@@ -143,7 +130,7 @@ fn torture(
             || read(&bytes[..cut]),
         ));
     }
-    let mut rng = Rng(seed);
+    let mut rng = Rng::new(seed);
     let mut offsets: Vec<(usize, u8)> = (0..flips)
         .map(|_| (rng.below(n), rng.below(8) as u8))
         .collect();
