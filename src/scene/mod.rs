@@ -49,6 +49,9 @@ pub struct Chunk {
     pub transform: DMat4,
     /// Into `Scene::instances`.
     pub instances: Range<usize>,
+    /// How many `<model>`/`<shell>` elements the chunk file holds, including
+    /// those left out of the scene (bad transform, no resource).
+    pub instance_elements: usize,
     /// Into `Scene::terrain`.
     pub terrain: Option<usize>,
 }
@@ -88,6 +91,30 @@ pub struct Model {
     pub triangles: Vec<[u32; 3]>,
     /// In output order: renderSet, geometry, group.
     pub groups: Vec<Group>,
+    /// The visual's structure: per renderSet, per geometry, its group
+    /// count (the shape of the `<shadow>` element, empty geometries too).
+    pub layout: Vec<Vec<usize>>,
+}
+
+impl Model {
+    /// Model-space bounds of the vertices the triangles use, or `None` when
+    /// the model has no (finite) triangle.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let mut bounds: Option<(Vec3, Vec3)> = None;
+        for &index in self.triangles.iter().flatten() {
+            let Some(&p) = self.positions.get(index as usize) else {
+                continue;
+            };
+            if !p.is_finite() {
+                continue;
+            }
+            bounds = Some(match bounds {
+                Some((min, max)) => (min.min(p), max.max(p)),
+                None => (p, p),
+            });
+        }
+        bounds
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
