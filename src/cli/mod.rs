@@ -1,6 +1,9 @@
 //! Command-line parsing and the subcommands' glue. Library errors become
 //! messages here; nothing below this module prints.
 
+mod bake;
+mod progress;
+
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use shadowcull::formats::{self, bake_settings::BakeSettings, resources::ResPaths};
@@ -21,7 +24,7 @@ struct Cli {
 
 /// Values of the settings file that every subcommand may override.
 #[derive(Debug, clap::Args)]
-struct SettingsArgs {
+pub(crate) struct SettingsArgs {
     /// The bake settings file (XML, see README). Paths in it are relative to it.
     settings: PathBuf,
     /// Replace the settings file's <resPaths> (repeatable, searched in order).
@@ -34,6 +37,8 @@ struct SettingsArgs {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Bake every light and write the masks into the chunk files.
+    Bake(bake::BakeArgs),
     /// Print what the world holds, without baking.
     Inspect {
         #[command(flatten)]
@@ -77,6 +82,7 @@ pub fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
+        Command::Bake(args) => bake::run(args),
         Command::Inspect { settings, json } => {
             let settings = load_settings(&settings)?;
             let scene = scene::load_scene(&load_config(&settings))?;
@@ -105,7 +111,7 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
+pub(crate) fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
     let mut settings = formats::read_bake_settings(&args.settings)?;
     if !args.res_paths.is_empty() {
         settings.res_paths = args.res_paths.clone();
@@ -116,7 +122,7 @@ fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
     Ok(settings)
 }
 
-fn load_config(settings: &BakeSettings) -> LoadConfig {
+pub(crate) fn load_config(settings: &BakeSettings) -> LoadConfig {
     LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),

@@ -1,0 +1,256 @@
+//! The bake: for each light, its texel grid, a BVH over what it reaches,
+//! one ray per texel, and the casters the rays prove useful; then the masks
+//! per group, instance and terrain block. Orchestration only: the rules are
+//! in `classify`, the rays in `light`, the traversal in `trace`.
+
+pub mod casters;
+pub mod geometry;
+pub mod ground;
+pub mod output;
+pub mod trace_light;
+
+use crate::classify::Passes;
+use crate::formats::bake_settings::{FaceCulling, LightSettings};
+use crate::light::TexelGrid;
+use crate::scene::Scene;
+use crate::trace::Bvh;
+use casters::CasterTable;
+use std::sync::atomic::AtomicU64;
+use std::time::Instant;
+use trace_light::{CasterSet, RayRules, Tracer};
+
+/// What to bake (the settings file's values after command-line overrides).
+#[derive(Debug, Clone)]
+pub struct BakeConfig {
+    pub face_culling: FaceCulling,
+    /// Metres: a non-terrain hit more than this below the terrain surface is
+    /// ignored.
+    pub height_bias: f64,
+    /// Metres along a ray: the tie tolerance of SPEC §4.
+    pub tie_epsilon: f64,
+    pub lights: Vec<LightSettings>,
+    /// Trace every ray against every triangle instead of the BVH (the
+    /// oracle; slow).
+    pub brute_force: bool,
+}
+
+/// Where a bake reports progress; the library never prints.
+pub trait Progress: Sync {
+    fn light_started(&self, _index: usize, _light: &LightSettings, _rays: u64) {}
+    /// Called from worker threads with the running total of rays traced.
+    fn rays_traced(&self, _index: usize, _done: &AtomicU64) {}
+    fn light_finished(&self, _report: &LightReport) {}
+}
+
+/// No progress output.
+pub struct Silent;
+impl Progress for Silent {}
+
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LightReport {
+    pub index: usize,
+    pub name: String,
+    pub kind: &'static str,
+    pub rays: u64,
+    pub seconds: f64,
+    pub useful_casters: usize,
+    pub culled_casters: usize,
+    /// Triangles in this light's BVH.
+    pub triangles: usize,
+    /// Both passes (All and Opaque) or only All.
+    pub passes: usize,
+}
+
+/// Something the bake left out, and why.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+pub struct Skipped {
+    pub what: String,
+    pub why: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct BakeResult {
+    pub casters: CasterTable,
+    /// Per caster id: bit i set = useful for light i.
+    pub masks: Vec<u32>,
+    pub lights: Vec<LightReport>,
+    pub skipped: Vec<Skipped>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    #[error("{count} lights: at most 32 fit the 32-bit mask; split the bake into several settings files")]
+    TooManyLights { count: usize },
+}
+
+pub fn bake(
+    scene: &Scene,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+) -> Result<BakeResult, BakeError> {
+    if config.lights.len() > 32 {
+        return Err(BakeError::TooManyLights {
+            count: config.lights.len(),
+        });
+    }
+    let casters = CasterTable::new(scene);
+    let mut masks = vec![0u32; casters.len()];
+    let mut skipped: Vec<Skipped> = scene
+        .problems
+        .iter()
+        .map(|p| Skipped {
+            what: p.what.clone(),
+            why: p.why.clone(),
+        })
+        .collect();
+    for (index, instance) in scene.instances.iter().enumerate() {
+        if casters.first_of_instance[index].is_none() {
+            let chunk = &scene.chunks[instance.chunk];
+            skipped.push(Skipped {
+                what: format!("{} instance {} ({})", chunk.name, instance.index, instance.resources.join(", ")),
+                why: "a <resource> part did not load (see its problem); its <shadow> is left as it was".into(),
+            });
+        }
+    }
+    let ground = ground::Ground::new(scene);
+    if ground.is_none() {
+        skipped.push(Skipped {
+            what: "below-ground test".into(),
+            why: "the world has no terrain: no height tests".into(),
+        });
+    }
+    let bounds = geometry::world_bounds(scene);
+    let mut lights = Vec::new();
+    for (index, light) in config.lights.iter().enumerate() {
+        let started = Instant::now();
+        let name = format!("light {index} ({})", light.name);
+        let Some(bounds) = bounds else {
+            skipped.push(Skipped {
+                what: name,
+                why: "the world has no geometry to cast or receive shadows".into(),
+            });
+            continue;
+        };
+        let grid = match TexelGrid::new(light, bounds) {
+            Ok(grid) => grid,
+            Err(err) => {
+                skipped.push(Skipped {
+                    what: name,
+                    why: err.to_string(),
+                });
+                continue;
+            }
+        };
+        let geometry = geometry::light_geometry(scene, &casters, &grid);
+        if geometry.instances_out_of_reach + geometry.blocks_out_of_reach > 0 {
+            skipped.push(Skipped {
+                what: name.clone(),
+                why: format!(
+                    "{} instances and {} terrain blocks outside its reach were left out of its BVH",
+                    geometry.instances_out_of_reach, geometry.blocks_out_of_reach
+                ),
+            });
+        }
+        if geometry.degenerate_triangles > 0 {
+            skipped.push(Skipped {
+                what: name.clone(),
+                why: format!(
+                    "{} zero-area or non-finite triangles left out (they can never be hit)",
+                    geometry.degenerate_triangles
+                ),
+            });
+        }
+        let passes = if geometry.reaches_alpha_tested {
+            Passes::AllAndOpaque
+        } else {
+            skipped.push(Skipped {
+                what: name.clone(),
+                why: "reaches no alpha-tested group: one pass (All) instead of two".into(),
+            });
+            Passes::AllOnly
+        };
+        let rays = grid.texel_count();
+        progress.light_started(index, light, rays);
+        let useful = if geometry.triangles.is_empty() {
+            skipped.push(Skipped {
+                what: name.clone(),
+                why: "its frustum holds no geometry: no rays traced".into(),
+            });
+            CasterSet::new(casters.len())
+        } else {
+            let bvh;
+            let tracer = if config.brute_force {
+                Tracer::BruteForce(&geometry.triangles)
+            } else {
+                bvh = Bvh::build(&geometry.triangles);
+                Tracer::Bvh(&bvh)
+            };
+            let rules = RayRules {
+                face_culling: config.face_culling,
+                height_bias: config.height_bias,
+                tie_epsilon: config.tie_epsilon as f32,
+                passes,
+            };
+            let done = AtomicU64::new(0);
+            let reporter = ProgressRelay {
+                progress,
+                index,
+                done: &done,
+            };
+            let useful = trace_light::trace_light(
+                &grid,
+                &tracer,
+                &casters,
+                ground.as_ref(),
+                rules,
+                &reporter,
+            );
+            useful
+        };
+        let mut useful_casters = 0;
+        for (id, caster) in casters.casters.iter().enumerate() {
+            if !caster.receiver_only && useful.contains(id as u32) {
+                masks[id] |= 1 << index;
+                useful_casters += 1;
+            }
+        }
+        let report = LightReport {
+            index,
+            name: light.name.clone(),
+            kind: light.kind.type_name(),
+            rays: if geometry.triangles.is_empty() { 0 } else { rays },
+            seconds: started.elapsed().as_secs_f64(),
+            useful_casters,
+            culled_casters: casters.real_casters() - useful_casters,
+            triangles: geometry.triangles.len(),
+            passes: match passes {
+                Passes::AllOnly => 1,
+                Passes::AllAndOpaque => 2,
+            },
+        };
+        progress.light_finished(&report);
+        lights.push(report);
+    }
+    skipped.sort();
+    Ok(BakeResult {
+        casters,
+        masks,
+        lights,
+        skipped,
+    })
+}
+
+/// Passes ray counts from the tracing threads to the caller's progress.
+struct ProgressRelay<'a> {
+    progress: &'a dyn Progress,
+    index: usize,
+    done: &'a AtomicU64,
+}
+
+impl trace_light::RayCounter for ProgressRelay<'_> {
+    fn add(&self, rays: u64) {
+        self.done
+            .fetch_add(rays, std::sync::atomic::Ordering::Relaxed);
+        self.progress.rays_traced(self.index, self.done);
+    }
+}

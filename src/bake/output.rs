@@ -1,0 +1,180 @@
+//! From masks to results: the `<shadow>` content of every chunk (SPEC §5)
+//! and the JSON report (SPEC §8).
+
+use super::{BakeResult, LightReport, Skipped};
+use crate::formats::chunk::InstanceKind;
+use crate::formats::resources::{self, ResPaths};
+use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
+use crate::scene::Scene;
+use crate::{Error, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// The masks of one chunk, ready for `shadow_write`.
+pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkShadows {
+    let chunk = &scene.chunks[chunk];
+    let mut instances: Vec<Option<InstanceShadow>> = vec![None; chunk.instance_elements];
+    for index in chunk.instances.clone() {
+        let instance = &scene.instances[index];
+        let Some(first) = result.casters.first_of_instance[index] else {
+            continue;
+        };
+        let mut caster = first as usize;
+        let mut shadow = InstanceShadow {
+            mask: 0,
+            render_sets: Vec::new(),
+        };
+        for &model in instance.parts.iter().flatten() {
+            for geometries in &scene.models[model].layout {
+                let mut render_set = Vec::new();
+                for &groups in geometries {
+                    let masks = result.masks[caster..caster + groups].to_vec();
+                    caster += groups;
+                    shadow.mask |= masks.iter().fold(0, |a, b| a | b);
+                    render_set.push(masks);
+                }
+                shadow.render_sets.push(render_set);
+            }
+        }
+        if let Some(slot) = instances.get_mut(instance.index) {
+            *slot = Some(shadow);
+        }
+    }
+    let terrain = chunk
+        .terrain
+        .map(|block| result.masks[result.casters.of_block[block] as usize]);
+    ChunkShadows { instances, terrain }
+}
+
+/// One chunk file's new content and where it goes.
+#[derive(Debug, Clone)]
+pub struct ChunkOutput {
+    pub source: PathBuf,
+    pub target: PathBuf,
+    pub bytes: Vec<u8>,
+    /// The target would hold different bytes after writing.
+    pub changed: bool,
+}
+
+/// Computes every chunk's new content, in memory, before anything is
+/// written: a failure in one chunk leaves every file untouched.
+/// `out_dir`: write under it at the path relative to the chunk's res root
+/// instead of in place.
+pub fn chunk_outputs(
+    scene: &Scene,
+    result: &BakeResult,
+    res_paths: &ResPaths,
+    out_dir: Option<&Path>,
+) -> Result<Vec<ChunkOutput>> {
+    let mut outputs = Vec::with_capacity(scene.chunks.len());
+    for (index, chunk) in scene.chunks.iter().enumerate() {
+        let original = resources::read_file(&chunk.file)?;
+        let bytes = shadow_write::write_shadows(&original, &chunk_shadows(scene, result, index))
+            .map_err(|e| e.in_file(&chunk.file))?;
+        let target = match out_dir {
+            None => chunk.file.clone(),
+            Some(dir) => {
+                let (_, relative) = res_paths.relative(&chunk.file).ok_or_else(|| {
+                    Error::invalid(
+                        &chunk.file,
+                        "is not under any res path, so it has no place under --out",
+                    )
+                })?;
+                dir.join(relative)
+            }
+        };
+        let changed = match out_dir {
+            None => bytes != original,
+            Some(_) => std::fs::read(&target).map(|old| old != bytes).unwrap_or(true),
+        };
+        outputs.push(ChunkOutput {
+            source: chunk.file.clone(),
+            target,
+            bytes,
+            changed,
+        });
+    }
+    Ok(outputs)
+}
+
+/// Writes the outputs that change something, each atomically. Returns how
+/// many files were written.
+pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
+    let mut written = 0;
+    for output in outputs.iter().filter(|o| o.changed) {
+        resources::write_atomic(&output.target, &output.bytes)?;
+        written += 1;
+    }
+    Ok(written)
+}
+
+/// The `--report` JSON (SPEC §8).
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub lights: Vec<LightReport>,
+    pub casters: Vec<CasterEntry>,
+    pub skipped: Vec<Skipped>,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq, Eq)]
+pub struct CasterEntry {
+    pub chunk: String,
+    /// `model` (a `<model>` or `<shell>` instance) or `terrain`.
+    pub kind: &'static str,
+    /// `model` or `shell`: the instance's element tag.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub element: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub index: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resources: Option<Vec<String>>,
+    pub mask: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub groups: Option<Vec<u32>>,
+    /// `castsShadow` false: listed with mask 0.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub receiver_only: bool,
+}
+
+pub fn report(scene: &Scene, result: &BakeResult) -> Report {
+    let mut casters = Vec::new();
+    for (index, chunk) in scene.chunks.iter().enumerate() {
+        let shadows = chunk_shadows(scene, result, index);
+        for instance in &scene.instances[chunk.instances.clone()] {
+            let Some(Some(shadow)) = shadows.instances.get(instance.index) else {
+                continue;
+            };
+            casters.push(CasterEntry {
+                chunk: chunk.name.clone(),
+                kind: "model",
+                element: Some(match instance.kind {
+                    InstanceKind::Model => "model",
+                    InstanceKind::Shell => "shell",
+                }),
+                index: Some(instance.index),
+                resources: Some(instance.resources.iter().map(|r| r.trim().to_string()).collect()),
+                mask: shadow.mask,
+                groups: Some(shadow.render_sets.iter().flatten().flatten().copied().collect()),
+                receiver_only: !instance.casts_shadow,
+            });
+        }
+        if let Some(mask) = shadows.terrain {
+            casters.push(CasterEntry {
+                chunk: chunk.name.clone(),
+                kind: "terrain",
+                element: None,
+                index: None,
+                resources: None,
+                mask,
+                groups: None,
+                receiver_only: false,
+            });
+        }
+    }
+    casters.sort_by(|a, b| (&a.chunk, a.kind, a.index).cmp(&(&b.chunk, b.kind, b.index)));
+    Report {
+        lights: result.lights.clone(),
+        casters,
+        skipped: result.skipped.clone(),
+    }
+}

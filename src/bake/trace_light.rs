@@ -1,0 +1,179 @@
+//! One light's rays: texel tiles in parallel, each ray's hits filtered by
+//! face culling and the below-ground test, then classified (SPEC §4). The
+//! result is a set of useful casters, the same for any thread count (tiles
+//! are OR-ed, and each ray's answer does not depend on traversal order).
+
+use super::casters::CasterTable;
+use super::ground::Ground;
+use crate::classify::{self, Passes, RayHit};
+use crate::formats::bake_settings::FaceCulling;
+use crate::light::TexelGrid;
+use crate::trace::{Bvh, Hit, TraceRay, TraceTriangle};
+use rayon::prelude::*;
+
+/// Receives the number of rays traced, tile by tile, from worker threads.
+pub trait RayCounter: Sync {
+    fn add(&self, rays: u64);
+}
+
+/// Texels per tile side: big enough to amortise scheduling, small enough
+/// to balance 2–64 threads and to report progress often.
+pub const TILE: u32 = 32;
+
+/// The rules a ray applies to its hits.
+#[derive(Debug, Clone, Copy)]
+pub struct RayRules {
+    pub face_culling: FaceCulling,
+    pub height_bias: f64,
+    pub tie_epsilon: f32,
+    pub passes: Passes,
+}
+
+/// A set of caster ids as bits.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CasterSet(Vec<u64>);
+
+impl CasterSet {
+    pub fn new(casters: usize) -> Self {
+        CasterSet(vec![0; casters.div_ceil(64)])
+    }
+
+    pub fn insert(&mut self, caster: u32) {
+        self.0[caster as usize / 64] |= 1 << (caster % 64);
+    }
+
+    pub fn contains(&self, caster: u32) -> bool {
+        self.0[caster as usize / 64] & (1 << (caster % 64)) != 0
+    }
+
+    pub fn union(mut self, other: &CasterSet) -> Self {
+        for (a, b) in self.0.iter_mut().zip(&other.0) {
+            *a |= b;
+        }
+        self
+    }
+
+    pub fn len(&self) -> usize {
+        self.0.iter().map(|w| w.count_ones() as usize).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// How rays find their hits: the BVH, or (for the oracle) every triangle.
+pub enum Tracer<'a> {
+    Bvh(&'a Bvh),
+    BruteForce(&'a [TraceTriangle]),
+}
+
+impl Tracer<'_> {
+    fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
+        match self {
+            Tracer::Bvh(bvh) => bvh.for_each_hit(ray, on_hit),
+            Tracer::BruteForce(triangles) => crate::trace::brute_force_hits(triangles, ray, on_hit),
+        }
+    }
+}
+
+/// Traces every texel of `grid`; `rays_done` hears of every finished tile so
+/// a caller can show progress.
+pub fn trace_light(
+    grid: &TexelGrid,
+    tracer: &Tracer<'_>,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+    rays_done: &dyn RayCounter,
+) -> CasterSet {
+    let tiles_x = grid.width().div_ceil(TILE);
+    let tiles_y = grid.height().div_ceil(TILE);
+    let tiles = grid.faces() as u64 * tiles_x as u64 * tiles_y as u64;
+    (0..tiles)
+        .into_par_iter()
+        .fold(
+            || (CasterSet::new(casters.len()), Vec::new()),
+            |(mut useful, mut hits), tile| {
+                let face = (tile / (tiles_x as u64 * tiles_y as u64)) as usize;
+                let within = tile % (tiles_x as u64 * tiles_y as u64);
+                let x0 = (within % tiles_x as u64) as u32 * TILE;
+                let y0 = (within / tiles_x as u64) as u32 * TILE;
+                let x1 = (x0 + TILE).min(grid.width());
+                let y1 = (y0 + TILE).min(grid.height());
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        trace_texel(
+                            grid, tracer, casters, ground, rules, face, x, y, &mut hits,
+                            &mut useful,
+                        );
+                    }
+                }
+                rays_done.add(((x1 - x0) * (y1 - y0)) as u64);
+                (useful, hits)
+            },
+        )
+        .map(|(useful, _)| useful)
+        .reduce(|| CasterSet::new(casters.len()), |a, b| a.union(&b))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn trace_texel(
+    grid: &TexelGrid,
+    tracer: &Tracer<'_>,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+    face: usize,
+    x: u32,
+    y: u32,
+    hits: &mut Vec<RayHit>,
+    useful: &mut CasterSet,
+) {
+    let ray = grid.ray(face, x, y);
+    let reference = grid.reference_point();
+    let trace_ray = TraceRay {
+        origin: (ray.origin - reference).as_vec3(),
+        direction: ray.direction.as_vec3(),
+        t_min: ray.t_min as f32,
+        t_max: if ray.t_max.is_finite() {
+            ray.t_max as f32
+        } else {
+            f32::INFINITY
+        },
+    };
+    hits.clear();
+    let mut limit = trace_ray.t_max;
+    tracer.for_each_hit(&trace_ray, |hit| {
+        let caster = &casters.casters[hit.caster as usize];
+        let culled = !caster.double_sided
+            && match rules.face_culling {
+                FaceCulling::Back => hit.back_facing,
+                FaceCulling::Front => !hit.back_facing,
+                FaceCulling::None => false,
+            };
+        if culled || hit.t > limit {
+            return limit;
+        }
+        if let Some(ground) = ground.filter(|_| !caster.is_terrain()) {
+            let p = ray.origin + ray.direction * hit.t as f64;
+            if ground
+                .height(p.x, p.z)
+                .is_some_and(|h| p.y < h - rules.height_bias)
+            {
+                return limit;
+            }
+        }
+        hits.push(RayHit {
+            t: hit.t,
+            caster: hit.caster,
+            receiver_only: caster.receiver_only,
+            alpha_tested: caster.alpha_tested,
+        });
+        classify::sort_hits(hits);
+        limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
+        limit
+    });
+    hits.retain(|h| h.t <= limit);
+    classify::classify_ray(hits, rules.tie_epsilon, rules.passes, |c| useful.insert(c));
+}

@@ -1,0 +1,160 @@
+//! `shadowcull bake`: load, bake, write the chunks and the report, print the
+//! per-light table.
+
+use super::progress::Reporter;
+use super::{load_config, load_settings, SettingsArgs};
+use anyhow::{Context, Result};
+use shadowcull::bake::{self, output, BakeConfig};
+use shadowcull::formats::bake_settings::FaceCulling;
+use shadowcull::formats::resources::{self, ResPaths};
+use shadowcull::scene;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Debug, clap::Args)]
+pub struct BakeArgs {
+    #[command(flatten)]
+    settings: SettingsArgs,
+    /// Write every chunk of the space under DIR (at its path relative to its
+    /// res root) instead of in place.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Bake and report, but write no chunk file.
+    #[arg(long)]
+    dry_run: bool,
+    /// Write the machine-readable report (JSON) to FILE.
+    #[arg(long, value_name = "FILE")]
+    report: Option<PathBuf>,
+    /// Worker threads (default: one per core). Results are identical for any N.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    threads: Option<u16>,
+    /// Override <faceCulling>.
+    #[arg(long, value_name = "MODE", value_parser = ["back", "front", "none"])]
+    face_culling: Option<String>,
+    /// Override <heightBias> (metres).
+    #[arg(long, value_name = "M")]
+    height_bias: Option<f64>,
+    /// Override <tieEpsilon> (metres along a ray).
+    #[arg(long, value_name = "M")]
+    tie_epsilon: Option<f64>,
+    /// Trace every ray against every triangle instead of the BVH (the
+    /// correctness oracle; slow).
+    #[arg(long, hide = true)]
+    brute_force: bool,
+}
+
+pub fn run(args: BakeArgs) -> Result<()> {
+    let settings = load_settings(&args.settings)?;
+    let mut config = BakeConfig {
+        face_culling: settings.face_culling,
+        height_bias: settings.height_bias,
+        tie_epsilon: settings.tie_epsilon,
+        lights: settings.lights.clone(),
+        brute_force: args.brute_force,
+    };
+    if let Some(mode) = &args.face_culling {
+        config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
+    }
+    for (value, name) in [(args.height_bias, "--height-bias"), (args.tie_epsilon, "--tie-epsilon")] {
+        if let Some(v) = value {
+            anyhow::ensure!(v.is_finite() && v >= 0.0, "{name} must be a number ≥ 0, got {v}");
+        }
+    }
+    if let Some(bias) = args.height_bias {
+        config.height_bias = bias;
+    }
+    if let Some(epsilon) = args.tie_epsilon {
+        config.tie_epsilon = epsilon;
+    }
+    anyhow::ensure!(
+        !config.lights.is_empty(),
+        "{}: no <light> in <lights>: nothing to bake",
+        args.settings.settings.display()
+    );
+    let threads = args.threads.map(usize::from).unwrap_or(0);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("cannot start worker threads")?;
+    pool.install(|| bake_with(args, settings.res_paths.clone(), config, &settings))
+}
+
+fn bake_with(
+    args: BakeArgs,
+    res_paths: Vec<PathBuf>,
+    config: BakeConfig,
+    settings: &shadowcull::formats::bake_settings::BakeSettings,
+) -> Result<()> {
+    let started = Instant::now();
+    let scene = scene::load_scene(&load_config(settings))?;
+    let stats = scene.stats();
+    eprintln!(
+        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s{}",
+        stats.chunks,
+        stats.instances,
+        stats.triangles,
+        stats.terrain_blocks,
+        started.elapsed().as_secs_f64(),
+        if scene.problems.is_empty() {
+            String::new()
+        } else {
+            format!("; {} problems (see the report's `skipped`)", scene.problems.len())
+        }
+    );
+    for problem in scene.problems.iter().take(5) {
+        eprintln!("  {}: {}", problem.what, problem.why);
+    }
+    if scene.problems.len() > 5 {
+        eprintln!("  … and {} more", scene.problems.len() - 5);
+    }
+
+    let reporter = Reporter::new();
+    let result = bake::bake(&scene, &config, &reporter)?;
+    let res_paths = ResPaths::new(res_paths);
+    let outputs = output::chunk_outputs(&scene, &result, &res_paths, args.out.as_deref())?;
+    let changed = outputs.iter().filter(|o| o.changed).count();
+    let written = if args.dry_run {
+        0
+    } else {
+        output::write_outputs(&outputs)?
+    };
+    if let Some(path) = &args.report {
+        let report = output::report(&scene, &result);
+        let json = serde_json::to_vec_pretty(&report).context("report")?;
+        resources::write_atomic(path, &json)?;
+    }
+
+    println!(
+        "{:<3} {:<16} {:<12} {:>11} {:>9} {:>8} {:>8} {:>8}",
+        "#", "light", "kind", "rays", "seconds", "Mrays/s", "useful", "culled"
+    );
+    for light in &result.lights {
+        println!(
+            "{:<3} {:<16} {:<12} {:>11} {:>9.3} {:>8.2} {:>8} {:>8}",
+            light.index,
+            light.name,
+            light.kind,
+            light.rays,
+            light.seconds,
+            light.rays as f64 / light.seconds.max(1e-9) / 1e6,
+            light.useful_casters,
+            light.culled_casters
+        );
+    }
+    let skipped_lights = config.lights.len() - result.lights.len();
+    if skipped_lights > 0 {
+        println!("{skipped_lights} light(s) skipped: see the report's `skipped`");
+    }
+    let verb = if args.dry_run { "would change" } else { "wrote" };
+    let count = if args.dry_run { changed } else { written };
+    println!(
+        "{verb} {count} of {} chunk files{}; {:.2} s in all",
+        outputs.len(),
+        match &args.out {
+            Some(dir) => format!(" under {}", dir.display()),
+            None => " in place".to_string(),
+        },
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
