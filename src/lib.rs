@@ -5,6 +5,7 @@ pub mod error;
 pub mod formats;
 pub mod gen;
 pub mod inspect;
+pub mod light;
 pub mod rng;
 pub mod scene;
 
