@@ -6,6 +6,7 @@ pub mod error;
 pub mod formats;
 pub mod gen;
 pub mod inspect;
+pub mod light;
 pub mod rng;
 pub mod scene;
 

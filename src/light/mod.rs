@@ -1,0 +1,572 @@
+//! Shadow-map texel grids of the three light kinds (SPEC §3–§4).
+//!
+//! The bake casts one ray through the centre of every texel of every light's
+//! shadow map. This module decides where those texels are: it turns a
+//! validated `LightSettings` (plus, for a directional light, the bounds of the
+//! world it must cover) into a [`TexelGrid`] that hands out the ray of any
+//! texel as a pure function of `(face, x, y)`, so any thread computes the same
+//! ray and the bake is deterministic whatever the thread count. It also
+//! answers whether a box can be reached by the light at all, so geometry
+//! outside a light's frustum can be left out of that light's BVH (SPEC §7).
+//!
+//! Conventions (fixed; the report and the rasterized cross-check rely on
+//! them):
+//! - Texel `(x, y)` of a face lies at image coordinates
+//!   `s = k·((x + 0.5)/w·2 − 1)`, `t = k·((y + 0.5)/h·2 − 1)` along the face's
+//!   basis vectors `u` (x grows with `u`) and `v` (y grows with `v`), where `k`
+//!   is `tan(fov/2)` for a spot light and 1 for a cube face. `(u, v)` come
+//!   from [`orthonormal_basis`], so `u × v` is the face's forward axis.
+//! - A point light has six faces in the order +X, −X, +Y, −Y, +Z, −Z, each
+//!   the 90° frustum around its axis with the basis `orthonormal_basis(axis)`:
+//!
+//!   | face | axis | u | v |
+//!   |---|---|---|---|
+//!   | 0 | +X | −Z | +Y |
+//!   | 1 | −X | +Z | +Y |
+//!   | 2 | +Y | +X | −Z |
+//!   | 3 | −Y | +X | +Z |
+//!   | 4 | +Z | +X | +Y |
+//!   | 5 | −Z | +X | −Y |
+//!
+//! - A directional light's texel `(x, y)` is centred at light-plane
+//!   coordinates `(u_min + (x + 0.5)·texelSize, v_min + (y + 0.5)·texelSize)`
+//!   where `u_min`, `v_min` are the smallest projections of the world bounds'
+//!   corners on `u`, `v`.
+//! - Linear texel indices ([`TexelGrid::texel_at`]) run over faces, then
+//!   rows (`y`), then columns (`x`).
+//!
+//! Rays are unit length, so `t` is a distance in metres; spot and point rays
+//! keep hits with `near <= t <= far` (distance along the ray, not depth).
+
+mod basis;
+
+pub use basis::orthonormal_basis;
+
+use crate::formats::bake_settings::{LightKind, LightSettings};
+use glam::DVec3;
+
+/// Largest shadow map side, in texels.
+pub const MAX_SIDE: u64 = 65536;
+/// Largest number of texels of one light (all faces together).
+pub const MAX_TEXELS: u64 = 1 << 32;
+
+/// Cube faces of a point light, as `(axis, u, v)`; see the module docs.
+/// `u` and `v` are what `orthonormal_basis(axis)` returns (a test checks it),
+/// written out so the table is documentation too.
+const CUBE_FACES: [(DVec3, DVec3, DVec3); 6] = [
+    (DVec3::X, DVec3::NEG_Z, DVec3::Y),
+    (DVec3::NEG_X, DVec3::Z, DVec3::Y),
+    (DVec3::Y, DVec3::X, DVec3::NEG_Z),
+    (DVec3::NEG_Y, DVec3::X, DVec3::Z),
+    (DVec3::Z, DVec3::X, DVec3::Y),
+    (DVec3::NEG_Z, DVec3::X, DVec3::NEG_Y),
+];
+
+/// Short names of the cube faces, for messages and reports.
+pub const CUBE_FACE_NAMES: [&str; 6] = ["+X", "-X", "+Y", "-Y", "+Z", "-Z"];
+
+/// Distance (metres) by which a directional light's ray origins sit in front
+/// of the nearest point of the world, before the relative part is added.
+const DIRECTIONAL_MARGIN: f64 = 1.0;
+/// Relative part of that margin (times the world's coordinate magnitude), so
+/// the origins stay clear of the geometry in worlds far from the origin.
+const RELATIVE_MARGIN: f64 = 1e-6;
+/// Relative slack of [`TexelGrid::reaches`], far larger than the rounding of
+/// its f64 arithmetic, so it never rejects a box a ray can enter.
+const REACH_SLACK: f64 = 1e-9;
+
+/// One texel's ray: hits count for `t_min <= t <= t_max`, with the hit point
+/// `origin + t·direction` (world coordinates, metres).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TexelRay {
+    pub origin: DVec3,
+    /// Unit length.
+    pub direction: DVec3,
+    pub t_min: f64,
+    pub t_max: f64,
+}
+
+impl TexelRay {
+    pub fn at(&self, t: f64) -> DVec3 {
+        self.origin + self.direction * t
+    }
+}
+
+/// Why a light's grid cannot be built. Each names the light.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GridError {
+    #[error(
+        "light `{light}`: the world has no extent to cover (bounds min {min}, max {max}); \
+         a directional light's grid covers the world's geometry and terrain, so the space \
+         needs at least one loaded model or terrain block"
+    )]
+    EmptyWorld {
+        light: String,
+        min: DVec3,
+        max: DVec3,
+    },
+    #[error(
+        "light `{light}`: the shadow map would be {faces} × {width} × {height} texels, more than \
+         the limit of {MAX_SIDE} per side and {MAX_TEXELS} in total; {}",
+        too_large_fix(.light_type)
+    )]
+    TooLarge {
+        light: String,
+        light_type: &'static str,
+        faces: u64,
+        width: u64,
+        height: u64,
+    },
+    #[error("light `{light}`: {message}")]
+    BadLight { light: String, message: String },
+}
+
+fn too_large_fix(light_type: &str) -> &'static str {
+    if light_type == "directional" {
+        "raise <texelSize> (metres per texel)"
+    } else {
+        "lower <resolution>"
+    }
+}
+
+/// A light's shadow map: `faces × height × width` texels, each with one ray
+/// through its centre.
+#[derive(Debug, Clone)]
+pub struct TexelGrid {
+    projection: Projection,
+    faces: usize,
+    width: u32,
+    height: u32,
+    reference: DVec3,
+}
+
+#[derive(Debug, Clone)]
+enum Projection {
+    Orthographic {
+        direction: DVec3,
+        u: DVec3,
+        v: DVec3,
+        /// Light-plane coordinates of the grid's lower edges.
+        u_min: f64,
+        v_min: f64,
+        texel_size: f64,
+        /// `p·direction` of every ray origin.
+        w_origin: f64,
+        t_max: f64,
+    },
+    Perspective {
+        position: DVec3,
+        near: f64,
+        far: f64,
+        /// Half-width of the image plane at distance 1.
+        half_extent: f64,
+        /// `(forward, u, v)` of a spot light's only face.
+        frame: (DVec3, DVec3, DVec3),
+        /// A point light: the faces are [`CUBE_FACES`] and cover every
+        /// direction, so `reaches` need not test a pyramid.
+        cube: bool,
+    },
+}
+
+impl TexelGrid {
+    /// Builds the grid of `light`. `world_bounds` are the min and max corners
+    /// of everything that can be hit (every chunk's geometry and terrain); only
+    /// a directional light uses them, and it fails with
+    /// [`GridError::EmptyWorld`] when they are empty or not finite. A world of
+    /// zero size (one flat plane, or a point) still gets at least one texel
+    /// per side.
+    pub fn new(
+        light: &LightSettings,
+        world_bounds: (DVec3, DVec3),
+    ) -> Result<TexelGrid, GridError> {
+        let bad = |message: String| GridError::BadLight {
+            light: light.name.clone(),
+            message,
+        };
+        match light.kind {
+            LightKind::Directional {
+                direction,
+                texel_size,
+            } => {
+                let direction = unit(direction).ok_or_else(|| {
+                    bad(format!(
+                        "direction {direction} has no length; give a non-zero finite <direction>"
+                    ))
+                })?;
+                if !(texel_size.is_finite() && texel_size > 0.0) {
+                    return Err(bad(format!(
+                        "<texelSize> must be a finite number > 0, found {texel_size}"
+                    )));
+                }
+                Self::directional(light, direction, texel_size, world_bounds)
+            }
+            LightKind::Spot {
+                position,
+                direction,
+                fov_degrees,
+                near,
+                far,
+                resolution,
+            } => {
+                let direction = unit(direction).ok_or_else(|| {
+                    bad(format!(
+                        "direction {direction} has no length; give a non-zero finite <direction>"
+                    ))
+                })?;
+                if !(fov_degrees > 0.0 && fov_degrees < 180.0) {
+                    return Err(bad(format!(
+                        "spot light <fov> must be in (0, 180) degrees, found {fov_degrees}"
+                    )));
+                }
+                check_perspective(&light.name, position, near, far, resolution, 1)?;
+                let (u, v) = orthonormal_basis(direction);
+                Ok(TexelGrid {
+                    projection: Projection::Perspective {
+                        position,
+                        near,
+                        far,
+                        half_extent: (fov_degrees.to_radians() * 0.5).tan(),
+                        frame: (direction, u, v),
+                        cube: false,
+                    },
+                    faces: 1,
+                    width: resolution,
+                    height: resolution,
+                    reference: position,
+                })
+            }
+            LightKind::Point {
+                position,
+                near,
+                far,
+                resolution,
+            } => {
+                check_perspective(&light.name, position, near, far, resolution, 6)?;
+                Ok(TexelGrid {
+                    projection: Projection::Perspective {
+                        position,
+                        near,
+                        far,
+                        // tan(45°) is 1; written exactly rather than computed.
+                        half_extent: 1.0,
+                        frame: CUBE_FACES[0],
+                        cube: true,
+                    },
+                    faces: 6,
+                    width: resolution,
+                    height: resolution,
+                    reference: position,
+                })
+            }
+        }
+    }
+
+    fn directional(
+        light: &LightSettings,
+        direction: DVec3,
+        texel_size: f64,
+        (min, max): (DVec3, DVec3),
+    ) -> Result<TexelGrid, GridError> {
+        // `!(min <= max)` also catches NaN.
+        if !(min.is_finite() && max.is_finite() && min.cmple(max).all()) {
+            return Err(GridError::EmptyWorld {
+                light: light.name.clone(),
+                min,
+                max,
+            });
+        }
+        let (u, v) = orthonormal_basis(direction);
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        for corner in corners(min, max) {
+            let p = DVec3::new(corner.dot(u), corner.dot(v), corner.dot(direction));
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+        let side = |lo: f64, hi: f64| -> u64 {
+            // Float division can land a hair under the true quotient; grow the
+            // count until the grid's far edge really reaches `hi`. Saturating
+            // casts keep absurd sizes finite for the error message.
+            let mut n = ((hi - lo) / texel_size).ceil().max(1.0) as u64;
+            while n <= MAX_SIDE && lo + n as f64 * texel_size < hi {
+                n += 1;
+            }
+            n
+        };
+        let width = side(lo.x, hi.x);
+        let height = side(lo.y, hi.y);
+        check_size(light, 1, width, height)?;
+
+        let scale = min.abs().max(max.abs()).max_element().max(hi.z - lo.z);
+        let margin = DIRECTIONAL_MARGIN + RELATIVE_MARGIN * scale;
+        let w_origin = lo.z - margin;
+        Ok(TexelGrid {
+            projection: Projection::Orthographic {
+                direction,
+                u,
+                v,
+                u_min: lo.x,
+                v_min: lo.y,
+                texel_size,
+                w_origin,
+                t_max: (hi.z - w_origin) + margin,
+            },
+            faces: 1,
+            width: width as u32,
+            height: height as u32,
+            reference: (min + max) * 0.5,
+        })
+    }
+
+    /// 1, or 6 for a point light.
+    pub fn faces(&self) -> usize {
+        self.faces
+    }
+
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// `faces × width × height`; at most [`MAX_TEXELS`].
+    pub fn texel_count(&self) -> u64 {
+        self.faces as u64 * self.width as u64 * self.height as u64
+    }
+
+    /// The texel with linear index `index` (faces, then rows, then columns),
+    /// or `None` past the end. Lets a parallel bake split `0..texel_count()`
+    /// into ranges.
+    pub fn texel_at(&self, index: u64) -> Option<(usize, u32, u32)> {
+        if index >= self.texel_count() {
+            return None;
+        }
+        let per_face = self.width as u64 * self.height as u64;
+        let face = index / per_face;
+        let rest = index % per_face;
+        let y = rest / self.width as u64;
+        let x = rest % self.width as u64;
+        Some((face as usize, x as u32, y as u32))
+    }
+
+    /// The ray through the centre `(x + 0.5, y + 0.5)` of texel `(x, y)` of
+    /// `face`; a pure function of its arguments.
+    ///
+    /// The arguments should be in range (debug builds assert it). Out of
+    /// range, `x` and `y` extrapolate the grid and `face` is taken modulo
+    /// [`faces`](Self::faces), so a caller's mistake gives a wrong ray, never
+    /// a panic.
+    pub fn ray(&self, face: usize, x: u32, y: u32) -> TexelRay {
+        debug_assert!(
+            face < self.faces && x < self.width && y < self.height,
+            "texel ({face}, {x}, {y}) outside a {}×{}×{} grid",
+            self.faces,
+            self.width,
+            self.height
+        );
+        let cx = x as f64 + 0.5;
+        let cy = y as f64 + 0.5;
+        match &self.projection {
+            Projection::Orthographic {
+                direction,
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                w_origin,
+                t_max,
+            } => {
+                let pu = u_min + cx * texel_size;
+                let pv = v_min + cy * texel_size;
+                TexelRay {
+                    origin: *u * pu + *v * pv + *direction * *w_origin,
+                    direction: *direction,
+                    t_min: 0.0,
+                    t_max: *t_max,
+                }
+            }
+            Projection::Perspective {
+                position,
+                near,
+                far,
+                half_extent,
+                frame,
+                cube,
+            } => {
+                let (forward, u, v) = if *cube {
+                    CUBE_FACES[face % CUBE_FACES.len()]
+                } else {
+                    *frame
+                };
+                let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
+                let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
+                TexelRay {
+                    origin: *position,
+                    direction: (forward + u * s + v * t).normalize(),
+                    t_min: *near,
+                    t_max: *far,
+                }
+            }
+        }
+    }
+
+    /// Whether some ray of this light may hit a point of the box `min..max`
+    /// within its `[t_min, t_max]`. Conservative: `false` only when no point
+    /// of the box can be hit — for a spot light, the box misses the pyramid of
+    /// the full opening angle or the shell between `near` and `far` around the
+    /// light; for a point light, the shell; for a directional light, the slab
+    /// its grid sweeps (always `true` for boxes inside the world bounds).
+    /// An empty box (`min > max` on an axis) is `false`; a box with NaN
+    /// corners is `true`, so bad geometry is never silently dropped here.
+    pub fn reaches(&self, min: DVec3, max: DVec3) -> bool {
+        if min.is_nan() || max.is_nan() {
+            return true;
+        }
+        if !min.cmple(max).all() {
+            return false;
+        }
+        let centre = (min + max) * 0.5;
+        let half = (max - min) * 0.5;
+        // Extent of the box along unit-ish `n`, around `centre·n`.
+        let radius = |n: DVec3| half.dot(n.abs());
+        match &self.projection {
+            Projection::Orthographic {
+                direction,
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                w_origin,
+                t_max,
+            } => {
+                let u_max = u_min + self.width as f64 * texel_size;
+                let v_max = v_min + self.height as f64 * texel_size;
+                let w_max = w_origin + t_max;
+                let slack = REACH_SLACK
+                    * (1.0 + centre.abs().max_element() + half.max_element() + t_max.abs());
+                let overlaps = |axis: DVec3, lo: f64, hi: f64| {
+                    let c = centre.dot(axis);
+                    let r = radius(axis);
+                    c + r >= lo - slack && c - r <= hi + slack
+                };
+                overlaps(*u, *u_min, u_max)
+                    && overlaps(*v, *v_min, v_max)
+                    && overlaps(*direction, *w_origin, w_max)
+            }
+            Projection::Perspective {
+                position,
+                near,
+                far,
+                half_extent,
+                frame,
+                cube,
+            } => {
+                let rel_centre = centre - *position;
+                let slack =
+                    REACH_SLACK * (1.0 + rel_centre.abs().max_element() + half.max_element() + far);
+                // Nearest and farthest points of the box from the light.
+                let nearest = (rel_centre.abs() - half).max(DVec3::ZERO).length();
+                let farthest = (rel_centre.abs() + half).length();
+                if nearest > far + slack || farthest < near - slack {
+                    return false;
+                }
+                if *cube {
+                    return true;
+                }
+                let (forward, u, v) = *frame;
+                // The pyramid is the intersection of four half-spaces through
+                // the apex, {p : ±(p·side) <= k·(p·forward)}; a box entirely
+                // outside one of them is out of reach.
+                [u, -u, v, -v].into_iter().all(|side| {
+                    let n = forward * *half_extent - side;
+                    rel_centre.dot(n) + radius(n) >= -slack * n.length()
+                })
+            }
+        }
+    }
+
+    /// A good origin for light-relative f32 coordinates: the centre of the
+    /// world bounds for a directional light, the light position otherwise.
+    pub fn reference_point(&self) -> DVec3 {
+        self.reference
+    }
+}
+
+/// `d` normalised, or `None` when it has no usable length.
+fn unit(d: DVec3) -> Option<DVec3> {
+    let length = d.length();
+    (d.is_finite() && length.is_finite() && length > 0.0).then(|| d / length)
+}
+
+fn corners(min: DVec3, max: DVec3) -> [DVec3; 8] {
+    std::array::from_fn(|i| {
+        DVec3::new(
+            if i & 1 == 0 { min.x } else { max.x },
+            if i & 2 == 0 { min.y } else { max.y },
+            if i & 4 == 0 { min.z } else { max.z },
+        )
+    })
+}
+
+fn check_perspective(
+    light: &str,
+    position: DVec3,
+    near: f64,
+    far: f64,
+    resolution: u32,
+    faces: u64,
+) -> Result<(), GridError> {
+    let bad = |message: String| GridError::BadLight {
+        light: light.to_string(),
+        message,
+    };
+    if !position.is_finite() {
+        return Err(bad(format!("<position> must be finite, found {position}")));
+    }
+    if !(near.is_finite() && near > 0.0) {
+        return Err(bad(format!(
+            "<near> must be a finite number > 0, found {near}"
+        )));
+    }
+    if !(far.is_finite() && far > near) {
+        return Err(bad(format!(
+            "<far> must be finite and greater than <near> ({near}), found {far}"
+        )));
+    }
+    if resolution == 0 {
+        return Err(bad("<resolution> must be at least 1".to_string()));
+    }
+    let light_type = if faces == 6 { "point" } else { "spot" };
+    let size = u64::from(resolution);
+    if size > MAX_SIDE || faces * size * size > MAX_TEXELS {
+        return Err(GridError::TooLarge {
+            light: light.to_string(),
+            light_type,
+            faces,
+            width: size,
+            height: size,
+        });
+    }
+    Ok(())
+}
+
+fn check_size(light: &LightSettings, faces: u64, width: u64, height: u64) -> Result<(), GridError> {
+    let total = faces.checked_mul(width).and_then(|n| n.checked_mul(height));
+    if width > MAX_SIDE || height > MAX_SIDE || total.is_none_or(|n| n > MAX_TEXELS) {
+        return Err(GridError::TooLarge {
+            light: light.name.clone(),
+            light_type: light.kind.type_name(),
+            faces,
+            width,
+            height,
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;
