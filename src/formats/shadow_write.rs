@@ -10,22 +10,25 @@
 //! on the bytes). Packed binary XML has no byte layout worth keeping: it is
 //! decoded, the tree edited and re-encoded (see [`write_shadows`]).
 //!
-//! What is written, values tab-padded and indented as BigWorld's own writer
-//! does (one tab per level of depth):
+//! What is written (`→` stands for a tab; values are tab-padded and lines
+//! indented one tab per level of depth, as BigWorld's own writer does):
 //!
-//! ```xml
-//! <model>
-//!     ...
-//!     <shadow>	3
-//!         <RenderSet>
-//!             <Geometry>
-//!                 <PrimitiveGroup>	2	</PrimitiveGroup>
-//!                 <PrimitiveGroup>	3	</PrimitiveGroup>
-//!             </Geometry>
-//!         </RenderSet>
-//!     </shadow>
-//! </model>
-//! <terrain> ... <shadow>	2	</shadow> </terrain>
+//! ```text
+//! →<model>
+//! →→...
+//! →→<shadow>→3
+//! →→→<RenderSet>
+//! →→→→<Geometry>
+//! →→→→→<PrimitiveGroup>→2→</PrimitiveGroup>
+//! →→→→→<PrimitiveGroup>→3→</PrimitiveGroup>
+//! →→→→</Geometry>
+//! →→→</RenderSet>
+//! →→</shadow>
+//! →</model>
+//! →<terrain>
+//! →→...
+//! →→<shadow>→2→</shadow>
+//! →</terrain>
 //! ```
 //!
 //! An empty render set or geometry is written `<RenderSet />` /
@@ -218,7 +221,7 @@ enum Masks<'a> {
 fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
     let root = xml::parse(original)?;
     let eol = line_ending(original);
-    let mut edits: Vec<(Range<usize>, String)> = Vec::new();
+    let mut edits: Vec<(Range<usize>, Vec<u8>)> = Vec::new();
     for (element, masks) in targets(&root, shadows)? {
         element_edits(original, element, masks, eol, &mut edits)?;
     }
@@ -236,7 +239,7 @@ fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, Format
             ));
         };
         out.extend_from_slice(kept);
-        out.extend_from_slice(text.as_bytes());
+        out.extend_from_slice(text);
         pos = range.end;
     }
     out.extend_from_slice(original.get(pos..).unwrap_or(&[]));
@@ -276,16 +279,16 @@ fn element_edits(
     element: &Section,
     masks: Masks,
     eol: &str,
-    edits: &mut Vec<(Range<usize>, String)>,
+    edits: &mut Vec<(Range<usize>, Vec<u8>)>,
 ) -> Result<(), FormatError> {
     let depth = element.path.matches('/').count();
     let indent = "\t".repeat(depth + 1);
     let shadow = shadow_text(masks, depth + 1, eol);
     let mut existing = element.children_named(SHADOW_TAG);
     if let Some(first) = existing.next() {
-        edits.push((first.span.clone(), shadow));
+        edits.push((first.span.clone(), shadow.into_bytes()));
         for extra in existing {
-            edits.push((whole_line(original, extra.span.clone()), String::new()));
+            edits.push((whole_line(original, extra.span.clone()), Vec::new()));
         }
         return Ok(());
     }
@@ -294,17 +297,20 @@ fn element_edits(
         .get(span.clone())
         .ok_or_else(|| element.error("internal error: element span outside the file"))?;
     if text.ends_with(b"/>") {
-        // Self-closing: the span is the start tag alone.
+        // Self-closing: the span is the start tag alone. Its bytes are kept
+        // as they are (attributes need not be UTF-8); only `/>` becomes `>`.
         let head = text
             .get(..text.len() - 2)
             .unwrap_or_default()
             .trim_ascii_end();
-        let mut expanded = String::from_utf8_lossy(head).into_owned();
-        let _ = write!(
-            expanded,
-            ">{eol}{indent}{shadow}{eol}{}</{}>",
-            "\t".repeat(depth),
-            element.name
+        let mut expanded = head.to_vec();
+        expanded.extend_from_slice(
+            format!(
+                ">{eol}{indent}{shadow}{eol}{}</{}>",
+                "\t".repeat(depth),
+                element.name
+            )
+            .as_bytes(),
         );
         edits.push((span, expanded));
         return Ok(());
@@ -321,11 +327,14 @@ fn element_edits(
             .get(line_start..close)
             .is_some_and(|prefix| prefix.iter().all(|&b| b == b' ' || b == b'\t'));
     if alone {
-        edits.push((line_start..line_start, format!("{indent}{shadow}{eol}")));
+        edits.push((
+            line_start..line_start,
+            format!("{indent}{shadow}{eol}").into_bytes(),
+        ));
     } else {
         edits.push((
             close..close,
-            format!("{eol}{indent}{shadow}{eol}{}", "\t".repeat(depth)),
+            format!("{eol}{indent}{shadow}{eol}{}", "\t".repeat(depth)).into_bytes(),
         ));
     }
     Ok(())
@@ -725,6 +734,18 @@ mod tests {
             "<root>\n\t<model>\n\t\t<shadow>\t0\t</shadow>\n\t</model>\n\t<shell resource=\"x\">\n\t\t<shadow>\t0\t</shadow>\n\t</shell>\n\t<terrain>\n\t\t<shadow>\t3\t</shadow>\n\t</terrain>\n</root>\n"
         );
         assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_are_kept() {
+        let text = b"<root>\n\t<model a=\"\xe9\" />\n\t<entity>\xff</entity>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        let out = write_shadows(text, &shadows).unwrap();
+        let expected = b"<root>\n\t<model a=\"\xe9\">\n\t\t<shadow>\t0\t</shadow>\n\t</model>\n\t<entity>\xff</entity>\n</root>\n";
+        assert_eq!(out, expected.to_vec());
     }
 
     #[test]
