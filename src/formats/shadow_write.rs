@@ -1031,6 +1031,12 @@ mod tests {
                 };
                 assert_eq!(&back.instances[i], expected, "case {case} instance {i}");
             }
+            for ((_, element), want) in instance_elements(&root).zip(&shadows.instances) {
+                if want.is_some() {
+                    let n = element.children_named(SHADOW_TAG).count();
+                    assert_eq!(n, 1, "case {case}: one direct <shadow> per written element");
+                }
+            }
             let want_terrain = shadows.terrain.or(before.terrain);
             assert_eq!(back.terrain, want_terrain, "case {case}");
             if strict {
