@@ -21,6 +21,31 @@ impl InstanceKind {
             InstanceKind::Shell => "shell",
         }
     }
+
+    /// The kind of instance an element with this tag is, if it is one.
+    pub fn from_tag(tag: &str) -> Option<InstanceKind> {
+        match tag {
+            "model" => Some(InstanceKind::Model),
+            "shell" => Some(InstanceKind::Shell),
+            _ => None,
+        }
+    }
+}
+
+/// The chunk's instance elements in document order: the direct children of
+/// the root tagged `<model>` or `<shell>`. Their position in this sequence is
+/// the instance `index` everywhere (report, write-back), so both the reader
+/// and the shadow writer use this one definition.
+pub fn instance_elements(root: &Section) -> impl Iterator<Item = (InstanceKind, &Section)> + '_ {
+    root.children
+        .iter()
+        .filter_map(|e| InstanceKind::from_tag(&e.name).map(|kind| (kind, e)))
+}
+
+/// The chunk's terrain element: the first direct `<terrain>` child of the
+/// root, as the engine reads it.
+pub fn terrain_element(root: &Section) -> Option<&Section> {
+    root.child("terrain")
 }
 
 /// One `<model>` or `<shell>` element.
@@ -66,12 +91,7 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
         .map(Section::as_matrix)
         .transpose()?;
     let mut instances = Vec::new();
-    for element in &root.children {
-        let kind = match element.name.as_str() {
-            "model" => InstanceKind::Model,
-            "shell" => InstanceKind::Shell,
-            _ => continue,
-        };
+    for (kind, element) in instance_elements(root) {
         let resources = element
             .children_named("resource")
             .map(|r| r.value.clone())
@@ -100,7 +120,7 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             span: element.span.clone(),
         });
     }
-    let terrain = match root.child("terrain") {
+    let terrain = match terrain_element(root) {
         Some(element) => Some(TerrainElement {
             resource: element.required("resource")?.value.clone(),
             path: element.path.clone(),

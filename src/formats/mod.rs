@@ -10,6 +10,7 @@ pub mod packed_xml;
 pub mod primitives;
 pub mod resources;
 pub mod section;
+pub mod shadow_write;
 pub mod space_settings;
 pub mod terrain;
 pub mod visual;

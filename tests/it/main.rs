@@ -6,6 +6,7 @@ mod generated;
 mod packed_real;
 mod primitives_real;
 mod real_scene;
+mod shadow_write_real;
 mod support;
 mod terrain_real;
 mod visual_real;

@@ -1,0 +1,1097 @@
+//! Writing baked shadow-caster masks back into `.chunk` files (SPEC §5).
+//!
+//! The bake's only output the engine reads is a `<shadow>` element inside
+//! each `<model>`/`<shell>` and `<terrain>` of a chunk. Chunk files are
+//! hand-edited, version-controlled and full of data this tool does not
+//! understand (entities, lights, navmesh references), so a text chunk is
+//! edited surgically: only the `<shadow>` elements change, every other byte
+//! stays where it was, and re-running the bake on its own output changes
+//! nothing (so "a file whose content would not change is not rewritten" works
+//! on the bytes). Packed binary XML has no byte layout worth keeping: it is
+//! decoded, the tree edited and re-encoded (see [`write_shadows`]).
+//!
+//! What is written (`→` stands for a tab; values are tab-padded and lines
+//! indented one tab per level of depth, as BigWorld's own writer does):
+//!
+//! ```text
+//! →<model>
+//! →→...
+//! →→<shadow>→3
+//! →→→<RenderSet>
+//! →→→→<Geometry>
+//! →→→→→<PrimitiveGroup>→2→</PrimitiveGroup>
+//! →→→→→<PrimitiveGroup>→3→</PrimitiveGroup>
+//! →→→→</Geometry>
+//! →→→</RenderSet>
+//! →→</shadow>
+//! →</model>
+//! →<terrain>
+//! →→...
+//! →→<shadow>→2→</shadow>
+//! →</terrain>
+//! ```
+//!
+//! An empty render set or geometry is written `<RenderSet />` /
+//! `<Geometry />`, as BigWorld writes empty sections; an instance without
+//! render sets gets `<shadow>\t0\t</shadow>` (the mask alone).
+
+use super::chunk::{instance_elements, terrain_element, InstanceKind};
+use super::{packed_xml, xml, Section};
+use crate::error::FormatError;
+use std::fmt::Write as _;
+use std::ops::Range;
+
+/// Tag of the element the bake owns inside instances and terrain.
+pub const SHADOW_TAG: &str = "shadow";
+const RENDER_SET_TAG: &str = "RenderSet";
+const GEOMETRY_TAG: &str = "Geometry";
+const GROUP_TAG: &str = "PrimitiveGroup";
+
+/// Masks of one instance: `mask` = OR of all group masks; `render_sets[r][g]`
+/// = the group masks of geometry g of render set r, render sets concatenated
+/// over the instance's `<resource>` parts in order.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct InstanceShadow {
+    pub mask: u32,
+    pub render_sets: Vec<Vec<Vec<u32>>>,
+}
+
+impl InstanceShadow {
+    /// Builds the masks of an instance from its group masks, with `mask` as
+    /// their OR.
+    pub fn from_groups(render_sets: Vec<Vec<Vec<u32>>>) -> Self {
+        let mask = render_sets.iter().flatten().flatten().fold(0, |a, m| a | m);
+        InstanceShadow { mask, render_sets }
+    }
+
+    /// The group masks in output order (render set, geometry, group), as the
+    /// report's `groups` lists them.
+    pub fn groups(&self) -> impl Iterator<Item = u32> + '_ {
+        self.render_sets.iter().flatten().flatten().copied()
+    }
+}
+
+/// What to write into one chunk.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct ChunkShadows {
+    /// One entry per instance element (by its index among the chunk's
+    /// `<model>`/`<shell>` elements): the masks to write, or `None` to leave
+    /// that element exactly as it is (e.g. its model could not be loaded).
+    pub instances: Vec<Option<InstanceShadow>>,
+    /// The terrain block's mask, if the chunk's terrain was baked; `None`
+    /// leaves `<terrain>` exactly as it is.
+    pub terrain: Option<u32>,
+}
+
+/// Returns the new content of a chunk file with `shadows` written in.
+///
+/// **Text XML.** Only `<shadow>` elements that are direct children of the
+/// chunk's instance elements and of its `<terrain>` are touched:
+/// - an existing `<shadow>` is replaced in place, wherever it is among the
+///   element's children; further direct `<shadow>` children (an element has
+///   one; a hand edit or a merge may leave more) are removed, together with
+///   their line when they stand alone on it, so the engine cannot read a
+///   stale one;
+/// - otherwise the new `<shadow>` is inserted just before the element's
+///   closing tag, on its own line, indented one tab deeper than the element's
+///   depth; if the closing tag shares its line with other content
+///   (`<model><resource>a</resource></model>`), a line break and the closing
+///   tag's indentation are added around the new element;
+/// - a self-closing element (`<model ... />`, `<terrain/>`) is expanded into
+///   start tag, `<shadow>` and end tag.
+///
+/// Every other byte is kept as it was (comments, white space, entities,
+/// a byte order mark, text after the root). New line breaks follow the
+/// file's first line break (`\n` or `\r\n`). A `<shadow>` nested deeper (for
+/// example inside `<editorOnly>`) is not the bake's and is left alone. The
+/// output depends only on the bytes outside the direct `<shadow>` children
+/// and on `shadows`, so writing the same masks into the output again gives
+/// identical bytes.
+///
+/// **Packed binary XML** (magic `45 4E A1 62`): the file is decoded into its
+/// tree, each instance's direct `<shadow>` children are replaced by the new
+/// one (at the position of the first, else appended last), and the tree is
+/// re-encoded with [`packed_xml::write`]. Preserved: every tag, the order of
+/// children, every value as text. Not preserved: the byte encoding — values
+/// are re-typed by `res_packer`'s best guess (a number stored as a string
+/// becomes an int, an encrypted blob a plain blob), and the string table is
+/// rebuilt in sorted order. Re-running is idempotent here too.
+///
+/// Errors (with the element and byte offset): the file does not parse;
+/// `shadows.instances` does not have one entry per instance element (the
+/// chunk changed since it was read); an instance's `mask` is not the OR of
+/// its group masks; a terrain mask for a chunk without `<terrain>`.
+pub fn write_shadows(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
+    if original.starts_with(&packed_xml::MAGIC) {
+        write_packed(original, shadows)
+    } else {
+        write_text(original, shadows)
+    }
+}
+
+/// Reads back the direct `<shadow>` of an instance element: `None` when it
+/// has none. Only the first direct `<shadow>` counts, as the engine reads it.
+pub fn read_instance_shadow(element: &Section) -> Result<Option<InstanceShadow>, FormatError> {
+    let Some(shadow) = element.child(SHADOW_TAG) else {
+        return Ok(None);
+    };
+    let mask = mask_value(shadow)?;
+    let mut render_sets = Vec::new();
+    for render_set in shadow.children_named(RENDER_SET_TAG) {
+        let mut geometries = Vec::new();
+        for geometry in render_set.children_named(GEOMETRY_TAG) {
+            let groups = geometry
+                .children_named(GROUP_TAG)
+                .map(mask_value)
+                .collect::<Result<Vec<_>, _>>()?;
+            geometries.push(groups);
+        }
+        render_sets.push(geometries);
+    }
+    Ok(Some(InstanceShadow { mask, render_sets }))
+}
+
+/// Reads back every `<shadow>` the bake writes into a chunk: what
+/// [`write_shadows`] was given, for the elements it wrote.
+pub fn read_chunk_shadows(root: &Section) -> Result<ChunkShadows, FormatError> {
+    let instances = instance_elements(root)
+        .map(|(_, element)| read_instance_shadow(element))
+        .collect::<Result<Vec<_>, _>>()?;
+    let terrain = match terrain_element(root).and_then(|t| t.child(SHADOW_TAG)) {
+        Some(shadow) => Some(mask_value(shadow)?),
+        None => None,
+    };
+    Ok(ChunkShadows { instances, terrain })
+}
+
+fn mask_value(section: &Section) -> Result<u32, FormatError> {
+    section.value.trim().parse::<u32>().map_err(|_| {
+        section.error(format!(
+            "expected a 32-bit shadow mask (0..=4294967295), found `{}`",
+            section.value
+        ))
+    })
+}
+
+/// The elements to write into, each with its masks, after checking that
+/// `shadows` fits the chunk.
+fn targets<'a>(
+    root: &'a Section,
+    shadows: &'a ChunkShadows,
+) -> Result<Vec<(&'a Section, Masks<'a>)>, FormatError> {
+    let elements: Vec<&Section> = instance_elements(root).map(|(_, e)| e).collect();
+    if elements.len() != shadows.instances.len() {
+        return Err(root.error(format!(
+            "masks were given for {} instances but the chunk has {} <{}>/<{}> elements; \
+             the file changed since it was read: bake again",
+            shadows.instances.len(),
+            elements.len(),
+            InstanceKind::Model.tag(),
+            InstanceKind::Shell.tag(),
+        )));
+    }
+    let mut out = Vec::new();
+    for (element, shadow) in elements.into_iter().zip(&shadows.instances) {
+        let Some(shadow) = shadow else { continue };
+        let or = shadow.groups().fold(0, |a, m| a | m);
+        if or != shadow.mask {
+            return Err(element.error(format!(
+                "instance mask {} is not the OR of its group masks ({or}); \
+                 this is a bug in the caller of the shadow writer",
+                shadow.mask
+            )));
+        }
+        out.push((element, Masks::Instance(shadow)));
+    }
+    if let Some(mask) = shadows.terrain {
+        let terrain = terrain_element(root).ok_or_else(|| {
+            root.error("a terrain mask was given but the chunk has no <terrain> element")
+        })?;
+        out.push((terrain, Masks::Terrain(mask)));
+    }
+    Ok(out)
+}
+
+#[derive(Clone, Copy)]
+enum Masks<'a> {
+    Instance(&'a InstanceShadow),
+    Terrain(u32),
+}
+
+fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
+    let root = xml::parse(original)?;
+    let eol = line_ending(original);
+    let mut edits: Vec<(Range<usize>, Vec<u8>)> = Vec::new();
+    for (element, masks) in targets(&root, shadows)? {
+        element_edits(original, element, masks, eol, &mut edits)?;
+    }
+    edits.sort_by_key(|(range, _)| (range.start, range.end));
+    let mut out =
+        Vec::with_capacity(original.len() + edits.iter().map(|e| e.1.len()).sum::<usize>());
+    let mut pos = 0;
+    for (range, text) in &edits {
+        let Some(kept) = original.get(pos..range.start) else {
+            // Only possible if two edits overlap, which the element tree rules
+            // out; refuse rather than write a damaged file.
+            return Err(FormatError::at_byte(
+                range.start,
+                "internal error: overlapping <shadow> edits; the file was not changed",
+            ));
+        };
+        out.extend_from_slice(kept);
+        out.extend_from_slice(text);
+        pos = range.end;
+    }
+    out.extend_from_slice(original.get(pos..).unwrap_or(&[]));
+    verify(&out, shadows)?;
+    Ok(out)
+}
+
+/// Reads the output back before anyone writes it to disk: a file this module
+/// produced must parse and hold exactly the masks it was given.
+fn verify(out: &[u8], shadows: &ChunkShadows) -> Result<(), FormatError> {
+    let internal = |what: String| {
+        FormatError::whole_file(format!(
+            "internal error: the rewritten chunk {what}; the file was not changed"
+        ))
+    };
+    let root =
+        super::parse_data_section(out).map_err(|e| internal(format!("does not parse ({e})")))?;
+    let back =
+        read_chunk_shadows(&root).map_err(|e| internal(format!("does not read back ({e})")))?;
+    if back.instances.len() != shadows.instances.len() {
+        return Err(internal("has a different number of instances".into()));
+    }
+    for (i, (want, got)) in shadows.instances.iter().zip(&back.instances).enumerate() {
+        if want.is_some() && want != got {
+            return Err(internal(format!("reads back other masks for instance {i}")));
+        }
+    }
+    if shadows.terrain.is_some() && shadows.terrain != back.terrain {
+        return Err(internal("reads back another terrain mask".into()));
+    }
+    Ok(())
+}
+
+/// The edits that put `masks` into `element` (see [`write_shadows`]).
+fn element_edits(
+    original: &[u8],
+    element: &Section,
+    masks: Masks,
+    eol: &str,
+    edits: &mut Vec<(Range<usize>, Vec<u8>)>,
+) -> Result<(), FormatError> {
+    let depth = element.path.matches('/').count();
+    let indent = "\t".repeat(depth + 1);
+    let shadow = shadow_text(masks, depth + 1, eol);
+    let mut existing = element.children_named(SHADOW_TAG);
+    if let Some(first) = existing.next() {
+        edits.push((first.span.clone(), shadow.into_bytes()));
+        for extra in existing {
+            edits.push((whole_line(original, extra.span.clone()), Vec::new()));
+        }
+        return Ok(());
+    }
+    let span = element.span.clone();
+    let text = original
+        .get(span.clone())
+        .ok_or_else(|| element.error("internal error: element span outside the file"))?;
+    if text.ends_with(b"/>") {
+        // Self-closing: the span is the start tag alone. Its bytes are kept
+        // as they are (attributes need not be UTF-8); only `/>` becomes `>`.
+        let head = text
+            .get(..text.len() - 2)
+            .unwrap_or_default()
+            .trim_ascii_end();
+        let mut expanded = head.to_vec();
+        expanded.extend_from_slice(
+            format!(
+                ">{eol}{indent}{shadow}{eol}{}</{}>",
+                "\t".repeat(depth),
+                element.name
+            )
+            .as_bytes(),
+        );
+        edits.push((span, expanded));
+        return Ok(());
+    }
+    let close = find_last(text, b"</")
+        .map(|i| span.start + i)
+        .ok_or_else(|| element.error("internal error: element without an end tag"))?;
+    let line_start = original
+        .get(..close)
+        .and_then(|before| before.iter().rposition(|&b| b == b'\n'))
+        .map_or(0, |i| i + 1);
+    let alone = line_start > span.start
+        && original
+            .get(line_start..close)
+            .is_some_and(|prefix| prefix.iter().all(|&b| b == b' ' || b == b'\t'));
+    if alone {
+        edits.push((
+            line_start..line_start,
+            format!("{indent}{shadow}{eol}").into_bytes(),
+        ));
+    } else {
+        edits.push((
+            close..close,
+            format!("{eol}{indent}{shadow}{eol}{}", "\t".repeat(depth)).into_bytes(),
+        ));
+    }
+    Ok(())
+}
+
+/// `span` widened to its whole line, line break included, when nothing but
+/// spaces and tabs share the line with it; else `span` itself.
+fn whole_line(text: &[u8], span: Range<usize>) -> Range<usize> {
+    let blank = |b: &u8| *b == b' ' || *b == b'\t';
+    let Some(before) = text.get(..span.start) else {
+        return span;
+    };
+    let start = before
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map_or(0, |i| i + 1);
+    if !before.get(start..).is_some_and(|p| p.iter().all(blank)) {
+        return span;
+    }
+    let Some(after) = text.get(span.end..) else {
+        return span;
+    };
+    let spaces = after.iter().take_while(|b| blank(b)).count();
+    let rest = after.get(spaces..).unwrap_or_default();
+    let end = if rest.starts_with(b"\r\n") {
+        span.end + spaces + 2
+    } else if rest.starts_with(b"\n") {
+        span.end + spaces + 1
+    } else {
+        return span;
+    };
+    start..end
+}
+
+fn find_last(haystack: &[u8], needle: &[u8]) -> Option<usize> {
+    haystack.windows(needle.len()).rposition(|w| w == needle)
+}
+
+/// The file's own line break: that of its first line, `\n` if it has none.
+fn line_ending(text: &[u8]) -> &'static str {
+    match text.iter().position(|&b| b == b'\n') {
+        Some(i) if i > 0 && text.get(i - 1) == Some(&b'\r') => "\r\n",
+        _ => "\n",
+    }
+}
+
+/// The `<shadow>` element's text; `depth` is its own depth (its tag is
+/// preceded by `depth` tabs, written by the caller), inner lines go deeper.
+fn shadow_text(masks: Masks, depth: usize, eol: &str) -> String {
+    let shadow = match masks {
+        Masks::Terrain(mask) => return format!("<{SHADOW_TAG}>\t{mask}\t</{SHADOW_TAG}>"),
+        Masks::Instance(shadow) => shadow,
+    };
+    if shadow.render_sets.is_empty() {
+        return format!("<{SHADOW_TAG}>\t{}\t</{SHADOW_TAG}>", shadow.mask);
+    }
+    let tabs = |n: usize| "\t".repeat(n);
+    let mut out = format!("<{SHADOW_TAG}>\t{}{eol}", shadow.mask);
+    for render_set in &shadow.render_sets {
+        let ind = tabs(depth + 1);
+        if render_set.is_empty() {
+            let _ = write!(out, "{ind}<{RENDER_SET_TAG} />{eol}");
+            continue;
+        }
+        let _ = write!(out, "{ind}<{RENDER_SET_TAG}>{eol}");
+        for geometry in render_set {
+            let ind = tabs(depth + 2);
+            if geometry.is_empty() {
+                let _ = write!(out, "{ind}<{GEOMETRY_TAG} />{eol}");
+                continue;
+            }
+            let _ = write!(out, "{ind}<{GEOMETRY_TAG}>{eol}");
+            for mask in geometry {
+                let _ = write!(
+                    out,
+                    "{}<{GROUP_TAG}>\t{mask}\t</{GROUP_TAG}>{eol}",
+                    tabs(depth + 3)
+                );
+            }
+            let _ = write!(out, "{ind}</{GEOMETRY_TAG}>{eol}");
+        }
+        let _ = write!(out, "{ind}</{RENDER_SET_TAG}>{eol}");
+    }
+    let _ = write!(out, "{}</{SHADOW_TAG}>", tabs(depth));
+    out
+}
+
+fn write_packed(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
+    let mut root = packed_xml::parse(original)?;
+    // Validate (and collect nothing) on the unedited tree first, so errors
+    // point at the original elements.
+    targets(&root, shadows)?;
+    let mut wanted = shadows.instances.iter();
+    for element in root.children.iter_mut() {
+        if InstanceKind::from_tag(&element.name).is_none() {
+            continue;
+        }
+        if let Some(Some(shadow)) = wanted.next() {
+            let section = shadow_section(Masks::Instance(shadow), &element.path);
+            set_shadow(element, section);
+        }
+    }
+    if let Some(mask) = shadows.terrain {
+        if let Some(terrain) = root.children.iter_mut().find(|c| c.name == "terrain") {
+            let section = shadow_section(Masks::Terrain(mask), &terrain.path);
+            set_shadow(terrain, section);
+        }
+    }
+    let out = packed_xml::write(&root)?;
+    verify(&out, shadows)?;
+    Ok(out)
+}
+
+fn set_shadow(element: &mut Section, shadow: Section) {
+    let at = element.children.iter().position(|c| c.name == SHADOW_TAG);
+    element.children.retain(|c| c.name != SHADOW_TAG);
+    let at = at.unwrap_or(element.children.len());
+    element.children.insert(at, shadow);
+}
+
+fn shadow_section(masks: Masks, parent_path: &str) -> Section {
+    fn node(name: &str, value: String, parent: &str, children: Vec<Section>) -> Section {
+        Section {
+            name: name.into(),
+            value,
+            path: format!("{parent}/{name}"),
+            children,
+            span: 0..0,
+        }
+    }
+    let path = format!("{parent_path}/{SHADOW_TAG}");
+    match masks {
+        Masks::Terrain(mask) => node(SHADOW_TAG, mask.to_string(), parent_path, Vec::new()),
+        Masks::Instance(shadow) => {
+            let rs_path = format!("{path}/{RENDER_SET_TAG}");
+            let g_path = format!("{rs_path}/{GEOMETRY_TAG}");
+            let render_sets = shadow
+                .render_sets
+                .iter()
+                .map(|render_set| {
+                    let geometries = render_set
+                        .iter()
+                        .map(|groups| {
+                            let groups = groups
+                                .iter()
+                                .map(|m| node(GROUP_TAG, m.to_string(), &g_path, Vec::new()))
+                                .collect();
+                            node(GEOMETRY_TAG, String::new(), &rs_path, groups)
+                        })
+                        .collect();
+                    node(RENDER_SET_TAG, String::new(), &path, geometries)
+                })
+                .collect();
+            node(
+                SHADOW_TAG,
+                shadow.mask.to_string(),
+                parent_path,
+                render_sets,
+            )
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    fn one(mask_groups: &[&[u32]]) -> InstanceShadow {
+        InstanceShadow::from_groups(vec![mask_groups.iter().map(|g| g.to_vec()).collect()])
+    }
+
+    fn write_str(text: &str, shadows: &ChunkShadows) -> String {
+        let out = write_shadows(text.as_bytes(), shadows).unwrap();
+        String::from_utf8(out).unwrap()
+    }
+
+    /// The text with every direct `<shadow>` of instances and terrain cut
+    /// out, with its line when it stands alone on one: what must be equal
+    /// before and after a write.
+    fn strip_shadows(text: &[u8]) -> Vec<u8> {
+        let root = xml::parse(text).unwrap();
+        let mut cuts: Vec<Range<usize>> = instance_elements(&root)
+            .map(|(_, e)| e)
+            .chain(terrain_element(&root))
+            .flat_map(|e| e.children_named(SHADOW_TAG))
+            .map(|s| whole_line(text, s.span.clone()))
+            .collect();
+        cuts.sort_by_key(|r| r.start);
+        let mut out = Vec::new();
+        let mut pos = 0;
+        for cut in cuts {
+            assert!(cut.start >= pos, "overlapping cuts");
+            out.extend_from_slice(&text[pos..cut.start]);
+            pos = cut.end;
+        }
+        out.extend_from_slice(&text[pos..]);
+        out
+    }
+
+    const BASIC: &str = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<terrain>\n\t\t<resource>\tx.cdata/terrain2\t</resource>\n\t</terrain>\n</root>\n";
+
+    #[test]
+    fn writes_the_spec_layout() {
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[2, 3]]))],
+            terrain: Some(2),
+        };
+        assert_eq!(shadows.instances[0].as_ref().unwrap().mask, 3);
+        let expected = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\
+            \t\t<shadow>\t3\n\
+            \t\t\t<RenderSet>\n\
+            \t\t\t\t<Geometry>\n\
+            \t\t\t\t\t<PrimitiveGroup>\t2\t</PrimitiveGroup>\n\
+            \t\t\t\t\t<PrimitiveGroup>\t3\t</PrimitiveGroup>\n\
+            \t\t\t\t</Geometry>\n\
+            \t\t\t</RenderSet>\n\
+            \t\t</shadow>\n\
+            \t</model>\n\t<terrain>\n\t\t<resource>\tx.cdata/terrain2\t</resource>\n\
+            \t\t<shadow>\t2\t</shadow>\n\
+            \t</terrain>\n</root>\n";
+        let out = write_str(BASIC, &shadows);
+        assert_eq!(out, expected);
+        assert_eq!(write_str(&out, &shadows), expected, "idempotent");
+        assert_eq!(strip_shadows(out.as_bytes()), BASIC.as_bytes());
+    }
+
+    #[test]
+    fn several_render_sets_and_geometries_in_order() {
+        let shadow =
+            InstanceShadow::from_groups(vec![vec![vec![1], vec![]], vec![], vec![vec![4, 0, 8]]]);
+        assert_eq!(shadow.mask, 13);
+        assert_eq!(shadow.groups().collect::<Vec<_>>(), [1, 4, 0, 8]);
+        let shadows = ChunkShadows {
+            instances: vec![Some(shadow.clone())],
+            terrain: None,
+        };
+        let out = write_str(BASIC, &shadows);
+        assert!(out.contains(
+            "\t\t<shadow>\t13\n\t\t\t<RenderSet>\n\t\t\t\t<Geometry>\n\
+             \t\t\t\t\t<PrimitiveGroup>\t1\t</PrimitiveGroup>\n\t\t\t\t</Geometry>\n\
+             \t\t\t\t<Geometry />\n\t\t\t</RenderSet>\n\t\t\t<RenderSet />\n"
+        ));
+        let root = xml::parse(out.as_bytes()).unwrap();
+        let back = read_chunk_shadows(&root).unwrap();
+        assert_eq!(back.instances, [Some(shadow)]);
+        assert_eq!(back.terrain, None, "terrain untouched");
+        assert!(out.ends_with(&BASIC[BASIC.find("\t<terrain>").unwrap()..]));
+    }
+
+    #[test]
+    fn replaces_an_existing_last_child_in_place() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t7\n\t\t\t<RenderSet>\n\t\t\t</RenderSet>\n\t\t</shadow>\n\t</model>\n</root>";
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[1]]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t1\n\t\t\t<RenderSet>\n\t\t\t\t<Geometry>\n\t\t\t\t\t<PrimitiveGroup>\t1\t</PrimitiveGroup>\n\t\t\t\t</Geometry>\n\t\t\t</RenderSet>\n\t\t</shadow>\n\t</model>\n</root>"
+        );
+    }
+
+    #[test]
+    fn replaces_an_existing_middle_child_where_it_is() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t7\t</shadow>\n\t\t<transform>\n\t\t</transform>\n\t</model>\n</root>";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(out, text.replace("\t7\t", "\t0\t"));
+    }
+
+    #[test]
+    fn extra_shadow_children_are_removed_with_their_lines() {
+        let text = "<root>\n\t<model>\n\t\t<shadow>\t1\t</shadow>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t2\t</shadow>\n\t\t<castsShadow>\ttrue\t</castsShadow><shadow>\t3\t</shadow>\n\t</model>\n</root>";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::from_groups(vec![]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            "<root>\n\t<model>\n\t\t<shadow>\t0\t</shadow>\n\t\t<resource>\ta\t</resource>\n\t\t<castsShadow>\ttrue\t</castsShadow>\n\t</model>\n</root>"
+        );
+        assert_eq!(write_str(&out, &shadows), out);
+        assert_eq!(
+            strip_shadows(out.as_bytes()),
+            strip_shadows(text.as_bytes())
+        );
+    }
+
+    #[test]
+    fn shadow_inside_editor_only_is_not_ours() {
+        let text = "<root>\n\t<model>\n\t\t<editorOnly>\n\t\t\t<shadow>\t5\t</shadow>\n\t\t</editorOnly>\n\t\t<resource>\ta\t</resource>\n\t</model>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            text.replace("\t</model>", "\t\t<shadow>\t0\t</shadow>\n\t</model>")
+        );
+        let root = xml::parse(out.as_bytes()).unwrap();
+        let model = &root.children[0];
+        assert_eq!(
+            model.child("editorOnly").unwrap().child_text("shadow"),
+            Some("5")
+        );
+    }
+
+    #[test]
+    fn comments_and_odd_white_space_survive() {
+        let text = "<root> <!-- <model><shadow>9</shadow></model> -->\n  <model>   <!-- keep -->\n      <resource>a</resource>  \n  <!-- <shadow> -->\n  </model>  \n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::from_groups(vec![vec![vec![6]]]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        // The closing tag stands alone on its line: the shadow goes on the
+        // line before it, indented by depth (not by the file's spaces).
+        let at = out.find("\t\t<shadow>\t6\n").unwrap();
+        assert_eq!(&out[..at], &text[..text.find("  </model>").unwrap()]);
+        assert!(out.ends_with("\t\t</shadow>\n  </model>  \n</root>\n"));
+        assert_eq!(strip_shadows(out.as_bytes()), text.as_bytes());
+        assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn crlf_files_get_crlf() {
+        let text = BASIC.replace('\n', "\r\n");
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[2, 3]]))],
+            terrain: Some(1),
+        };
+        let out = write_str(&text, &shadows);
+        let lone_lf = out
+            .bytes()
+            .enumerate()
+            .filter(|&(i, b)| b == b'\n' && (i == 0 || out.as_bytes()[i - 1] != b'\r'))
+            .count();
+        assert_eq!(lone_lf, 0, "{out:?}");
+        assert_eq!(
+            out.replace("\r\n", "\n"),
+            write_str(BASIC, &shadows),
+            "same as the LF file but for line breaks"
+        );
+        assert_eq!(strip_shadows(out.as_bytes()), text.as_bytes());
+    }
+
+    #[test]
+    fn element_on_one_line() {
+        let text = "<root>\n\t<model><resource>a</resource></model>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[1]]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            "<root>\n\t<model><resource>a</resource>\n\t\t<shadow>\t1\n\t\t\t<RenderSet>\n\t\t\t\t<Geometry>\n\t\t\t\t\t<PrimitiveGroup>\t1\t</PrimitiveGroup>\n\t\t\t\t</Geometry>\n\t\t\t</RenderSet>\n\t\t</shadow>\n\t</model>\n</root>\n"
+        );
+        assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn whole_file_on_one_line() {
+        let text = "<root><model><resource>a</resource></model><terrain><resource>t</resource></terrain></root>";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: Some(4),
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            "<root><model><resource>a</resource>\n\t\t<shadow>\t0\t</shadow>\n\t</model><terrain><resource>t</resource>\n\t\t<shadow>\t4\t</shadow>\n\t</terrain></root>"
+        );
+        assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn self_closing_elements_are_expanded() {
+        let text = "<root>\n\t<model />\n\t<shell resource=\"x\"/>\n\t<terrain/>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![
+                Some(InstanceShadow::default()),
+                Some(InstanceShadow::default()),
+            ],
+            terrain: Some(3),
+        };
+        let out = write_str(text, &shadows);
+        assert_eq!(
+            out,
+            "<root>\n\t<model>\n\t\t<shadow>\t0\t</shadow>\n\t</model>\n\t<shell resource=\"x\">\n\t\t<shadow>\t0\t</shadow>\n\t</shell>\n\t<terrain>\n\t\t<shadow>\t3\t</shadow>\n\t</terrain>\n</root>\n"
+        );
+        assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_are_kept() {
+        let text = b"<root>\n\t<model a=\"\xe9\" />\n\t<entity>\xff</entity>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        let out = write_shadows(text, &shadows).unwrap();
+        let expected = b"<root>\n\t<model a=\"\xe9\">\n\t\t<shadow>\t0\t</shadow>\n\t</model>\n\t<entity>\xff</entity>\n</root>\n";
+        assert_eq!(out, expected.to_vec());
+    }
+
+    #[test]
+    fn file_named_root_and_nested_depth() {
+        let text = "<fffb0000o.chunk>\n\t<shell>\n\t\t<resource>\ts\t</resource>\n\t</shell>\n</fffb0000o.chunk>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[0]]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert!(out.starts_with("<fffb0000o.chunk>\n\t<shell>\n\t\t<resource>\ts\t</resource>\n\t\t<shadow>\t0\n\t\t\t<RenderSet>\n"));
+        assert!(out.ends_with("\t\t</shadow>\n\t</shell>\n</fffb0000o.chunk>\n"));
+    }
+
+    #[test]
+    fn entities_and_byte_order_mark_are_kept() {
+        let text = "\u{feff}<root>\n\t<entity>\n\t\t<name>\ta &amp; b &lt;c&gt; &#233;\t</name>\n\t</entity>\n\t<model>\n\t\t<resource>\tsets/&amp;.model\t</resource>\n\t</model>\n</root>\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[5]]))],
+            terrain: None,
+        };
+        let out = write_str(text, &shadows);
+        assert!(out.starts_with(
+            "\u{feff}<root>\n\t<entity>\n\t\t<name>\ta &amp; b &lt;c&gt; &#233;\t</name>"
+        ));
+        assert_eq!(strip_shadows(out.as_bytes()), text.as_bytes());
+        let root = xml::parse(out.as_bytes()).unwrap();
+        assert_eq!(
+            root.children[1].child_text("resource"),
+            Some("sets/&.model")
+        );
+    }
+
+    #[test]
+    fn none_leaves_elements_byte_for_byte() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t9\t</shadow>\n\t\t<shadow>\t8\t</shadow>\n\t</model>\n\t<model>\n\t\t<resource>\tb\t</resource>\n\t</model>\n\t<terrain>\n\t\t<shadow>\t1\t</shadow>\n\t</terrain>\n</root>\n";
+        let nothing = ChunkShadows {
+            instances: vec![None, None],
+            terrain: None,
+        };
+        assert_eq!(write_str(text, &nothing), text);
+        let second = ChunkShadows {
+            instances: vec![None, Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        let out = write_str(text, &second);
+        let first_model = &text
+            [text.find("\t<model>").unwrap()..text.find("\t<model>\n\t\t<resource>\tb").unwrap()];
+        assert!(out.contains(first_model));
+        assert!(out.contains("<terrain>\n\t\t<shadow>\t1\t</shadow>\n\t</terrain>"));
+        let back = read_chunk_shadows(&xml::parse(out.as_bytes()).unwrap()).unwrap();
+        assert_eq!(
+            back.instances[0].as_ref().unwrap().mask,
+            9,
+            "first one counts"
+        );
+        assert_eq!(back.instances[1], Some(InstanceShadow::default()));
+        assert_eq!(back.terrain, Some(1));
+    }
+
+    #[test]
+    fn receiver_only_instance_gets_zeros() {
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[0, 0]]))],
+            terrain: Some(0),
+        };
+        let out = write_str(BASIC, &shadows);
+        assert!(out.contains("<shadow>\t0\n"));
+        assert_eq!(
+            out.matches("<PrimitiveGroup>\t0\t</PrimitiveGroup>")
+                .count(),
+            2
+        );
+        assert!(out.contains("<shadow>\t0\t</shadow>\n\t</terrain>"));
+    }
+
+    #[test]
+    fn mismatches_are_errors_naming_the_element() {
+        let too_many = ChunkShadows {
+            instances: vec![None, None],
+            terrain: None,
+        };
+        let err = write_shadows(BASIC.as_bytes(), &too_many).unwrap_err();
+        assert!(err.to_string().contains("for 2 instances"), "{err}");
+        assert!(err.to_string().contains("has 1"), "{err}");
+        assert!(err.to_string().contains("<root>"), "{err}");
+
+        let wrong_or = ChunkShadows {
+            instances: vec![Some(InstanceShadow {
+                mask: 1,
+                render_sets: vec![vec![vec![2]]],
+            })],
+            terrain: None,
+        };
+        let err = write_shadows(BASIC.as_bytes(), &wrong_or).unwrap_err();
+        assert!(err.to_string().contains("root/model"), "{err}");
+        assert!(err.to_string().contains("(byte 8)"), "{err}");
+
+        let text = "<root>\n\t<model>\t</model>\n</root>";
+        let no_terrain = ChunkShadows {
+            instances: vec![None],
+            terrain: Some(1),
+        };
+        let err = write_shadows(text.as_bytes(), &no_terrain).unwrap_err();
+        assert!(err.to_string().contains("no <terrain>"), "{err}");
+
+        let err =
+            write_shadows(b"<root>\n\t<model>\n</root>", &ChunkShadows::default()).unwrap_err();
+        assert!(matches!(err.at, crate::error::Location::Byte(_)), "{err}");
+    }
+
+    #[test]
+    fn bad_existing_masks_do_not_stop_a_rewrite_but_fail_a_read() {
+        let text = "<root>\n\t<model>\n\t\t<shadow>\tlots\t</shadow>\n\t</model>\n</root>";
+        let root = xml::parse(text.as_bytes()).unwrap();
+        let err = read_chunk_shadows(&root).unwrap_err();
+        assert!(err.to_string().contains("root/model/shadow"), "{err}");
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: None,
+        };
+        assert_eq!(write_str(text, &shadows), text.replace("lots", "0"));
+    }
+
+    #[test]
+    fn packed_chunks_are_edited_as_trees() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t\t<shadow>\t1\t</shadow>\n\t\t<castsShadow>\ttrue\t</castsShadow>\n\t\t<shadow>\t2\t</shadow>\n\t</model>\n\t<model>\n\t\t<resource>\tb.model\t</resource>\n\t</model>\n\t<terrain>\n\t\t<resource>\tt\t</resource>\n\t</terrain>\n</root>\n";
+        let packed = packed_xml::write(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+        let shadows = ChunkShadows {
+            instances: vec![
+                Some(InstanceShadow::from_groups(vec![
+                    vec![vec![3, 0]],
+                    vec![vec![1 << 31]],
+                ])),
+                None,
+            ],
+            terrain: Some(6),
+        };
+        let out = write_shadows(&packed, &shadows).unwrap();
+        assert!(out.starts_with(&packed_xml::MAGIC));
+        assert_eq!(write_shadows(&out, &shadows).unwrap(), out, "idempotent");
+        let root = packed_xml::parse(&out).unwrap();
+        let back = read_chunk_shadows(&root).unwrap();
+        assert_eq!(back.instances[0], shadows.instances[0]);
+        assert_eq!(back.instances[1], None);
+        assert_eq!(back.terrain, Some(6));
+        let names: Vec<&str> = root.children[0]
+            .children
+            .iter()
+            .map(|c| c.name.as_str())
+            .collect();
+        assert_eq!(
+            names,
+            ["resource", "shadow", "castsShadow"],
+            "first position, extras gone"
+        );
+        // Errors also hold for packed files.
+        let err = write_shadows(&packed, &ChunkShadows::default()).unwrap_err();
+        assert!(err.message.contains("for 0 instances"), "{err}");
+    }
+
+    /// A random chunk in the styles real and hand-edited files have, with
+    /// a flag telling whether every element it writes into is laid out one
+    /// child per line (then bytes outside `<shadow>` lines must be equal).
+    fn random_chunk(rng: &mut Rng) -> (String, ChunkShadows, bool) {
+        let eol = if rng.chance(0.3) { "\r\n" } else { "\n" };
+        let root = if rng.chance(0.5) {
+            "root"
+        } else {
+            "fffb0000o.chunk"
+        };
+        let mut text = format!("<{root}>{eol}");
+        let mut shadows = ChunkShadows::default();
+        let mut strict = true;
+        let elements = rng.below(6);
+        let terrain_at = if rng.chance(0.7) {
+            Some(rng.below(elements + 1))
+        } else {
+            None
+        };
+        for i in 0..=elements {
+            if terrain_at == Some(i) {
+                let mask = rng.chance(0.8).then(|| rng.next_u64() as u32);
+                let one_line = rng.chance(0.2);
+                if mask.is_some() && one_line {
+                    strict = false;
+                }
+                if one_line {
+                    text.push_str(&format!("\t<terrain><resource>t</resource></terrain>{eol}"));
+                } else {
+                    text.push_str(&format!(
+                        "\t<terrain>{eol}\t\t<resource>\tt\t</resource>{eol}"
+                    ));
+                    if rng.chance(0.4) {
+                        text.push_str(&format!("\t\t<shadow>\t{}\t</shadow>{eol}", rng.below(99)));
+                    }
+                    text.push_str(&format!("\t</terrain>{eol}"));
+                }
+                shadows.terrain = mask;
+            }
+            if i == elements {
+                break;
+            }
+            if rng.chance(0.2) {
+                text.push_str(&format!("\t<entity>\t&amp;x{eol}\t</entity>{eol}"));
+            }
+            if rng.chance(0.15) {
+                text.push_str(&format!("\t<!-- <model> -->{eol}"));
+            }
+            let tag = if rng.chance(0.8) { "model" } else { "shell" };
+            let style = rng.below(10);
+            let masks = if rng.chance(0.8) {
+                let sets = (0..rng.below(3))
+                    .map(|_| {
+                        (0..rng.below(3))
+                            .map(|_| {
+                                (0..rng.below(4))
+                                    .map(|_| {
+                                        if rng.chance(0.3) {
+                                            0
+                                        } else {
+                                            rng.next_u64() as u32
+                                        }
+                                    })
+                                    .collect()
+                            })
+                            .collect()
+                    })
+                    .collect();
+                Some(InstanceShadow::from_groups(sets))
+            } else {
+                None
+            };
+            if masks.is_some() && style < 2 {
+                strict = false;
+            }
+            match style {
+                0 => text.push_str(&format!("\t<{tag} />{eol}")),
+                1 => text.push_str(&format!(
+                    "\t<{tag}><resource>a</resource><shadow>1</shadow></{tag}>{eol}"
+                )),
+                _ => {
+                    text.push_str(&format!("\t<{tag}>{eol}"));
+                    for _ in 0..rng.below(6) {
+                        let indent = if rng.chance(0.2) { "    " } else { "\t\t" };
+                        let child = match rng.below(6) {
+                            0 => format!("<shadow>\t{}\t</shadow>", rng.below(50)),
+                            1 => format!("<editorOnly>{eol}\t\t\t<shadow>\t4\t</shadow>{eol}\t\t</editorOnly>"),
+                            2 => "<!-- a comment -->".to_string(),
+                            3 => "<castsShadow>\ttrue\t</castsShadow><shadow>\t2\t</shadow>  ".to_string(),
+                            _ => "<resource>\tsets/a&amp;b.model\t</resource>".to_string(),
+                        };
+                        text.push_str(&format!("{indent}{child}{eol}"));
+                    }
+                    text.push_str(&format!("\t</{tag}>{eol}"));
+                }
+            }
+            shadows.instances.push(masks);
+        }
+        text.push_str(&format!("</{root}>{eol}"));
+        (text, shadows, strict)
+    }
+
+    #[test]
+    fn generated_chunks_idempotent_preserved_and_read_back() {
+        let mut rng = Rng::new(7);
+        let mut strict_cases = 0;
+        for case in 0..400 {
+            let (text, shadows, strict) = random_chunk(&mut rng);
+            let out = write_shadows(text.as_bytes(), &shadows)
+                .unwrap_or_else(|e| panic!("case {case}: {e}\n{text}"));
+            let again = write_shadows(&out, &shadows).unwrap();
+            assert_eq!(again, out, "case {case} not idempotent:\n{text}");
+            let root = xml::parse(&out).unwrap();
+            let before = read_chunk_shadows(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+            let back = read_chunk_shadows(&root).unwrap();
+            assert_eq!(back.instances.len(), shadows.instances.len());
+            for (i, want) in shadows.instances.iter().enumerate() {
+                let expected = if want.is_some() {
+                    want
+                } else {
+                    &before.instances[i]
+                };
+                assert_eq!(&back.instances[i], expected, "case {case} instance {i}");
+            }
+            for ((_, element), want) in instance_elements(&root).zip(&shadows.instances) {
+                if want.is_some() {
+                    let n = element.children_named(SHADOW_TAG).count();
+                    assert_eq!(n, 1, "case {case}: one direct <shadow> per written element");
+                }
+            }
+            let want_terrain = shadows.terrain.or(before.terrain);
+            assert_eq!(back.terrain, want_terrain, "case {case}");
+            if strict {
+                strict_cases += 1;
+                assert_eq!(
+                    String::from_utf8(strip_shadows(&out)).unwrap(),
+                    String::from_utf8(strip_shadows(text.as_bytes())).unwrap(),
+                    "case {case}"
+                );
+            } else {
+                // Only white space and expanded tags differ outside <shadow>.
+                let squash = |b: Vec<u8>| -> String {
+                    String::from_utf8(b)
+                        .unwrap()
+                        .split_whitespace()
+                        .collect::<String>()
+                };
+                let expand = |s: String| {
+                    s.replace("<model/>", "<model></model>")
+                        .replace("<shell/>", "<shell></shell>")
+                };
+                assert_eq!(
+                    expand(squash(strip_shadows(&out))),
+                    expand(squash(strip_shadows(text.as_bytes()))),
+                    "case {case}"
+                );
+            }
+            let packed = packed_xml::write(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+            let packed_out = write_shadows(&packed, &shadows).unwrap();
+            assert_eq!(write_shadows(&packed_out, &shadows).unwrap(), packed_out);
+            let packed_back = read_chunk_shadows(&packed_xml::parse(&packed_out).unwrap()).unwrap();
+            assert_eq!(packed_back, back, "case {case}: packed and text agree");
+        }
+        assert!(strict_cases > 100, "{strict_cases}");
+    }
+
+    #[test]
+    fn every_prefix_and_garbage_is_an_error_not_a_panic() {
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::default())],
+            terrain: Some(1),
+        };
+        for len in 0..BASIC.len() {
+            let _ = write_shadows(&BASIC.as_bytes()[..len], &shadows);
+        }
+        let packed = packed_xml::write(&xml::parse(BASIC.as_bytes()).unwrap()).unwrap();
+        for len in 0..packed.len() {
+            let _ = write_shadows(&packed[..len], &shadows);
+        }
+        let mut rng = Rng::new(3);
+        for _ in 0..200 {
+            let mut bytes = packed.clone();
+            let i = rng.below(bytes.len());
+            bytes[i] ^= 1 << rng.below(8);
+            let _ = write_shadows(&bytes, &shadows);
+        }
+    }
+}
