@@ -7,5 +7,6 @@ pub mod gen;
 pub mod inspect;
 pub mod rng;
 pub mod scene;
+pub mod trace;
 
 pub use error::{Error, Result};
