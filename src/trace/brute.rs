@@ -7,7 +7,7 @@ use super::{Hit, TraceRay, TraceTriangle};
 
 /// Calls `on_hit` for every triangle the ray crosses with
 /// `t_min <= t <= current t_max`, in input order; `on_hit` returns the new
-/// t_max (a larger or NaN value is ignored). Non-finite triangles are skipped,
+/// t_max (a larger or NaN value is ignored). Unusable (NaN, Inf, huge) triangles are skipped,
 /// as [`super::Bvh::build`] skips them.
 pub fn brute_force_hits(
     triangles: &[TraceTriangle],
@@ -21,7 +21,7 @@ pub fn brute_force_hits(
     let t_min = ray.t_min;
     let mut t_max = ray.t_max;
     for (index, tri) in triangles.iter().enumerate().take(super::bvh::MAX_TRIANGLES) {
-        if !tri.is_finite() {
+        if !tri.is_usable() {
             continue;
         }
         if let Some((t, back_facing)) = hit_t(&prepared, tri) {

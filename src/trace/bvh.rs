@@ -56,13 +56,13 @@ pub struct Bvh {
 
 impl Bvh {
     /// Builds in parallel (rayon); no spatial splits (each triangle in exactly
-    /// one leaf). NaN/Inf triangles are left out (they could never be hit).
+    /// one leaf). NaN, Inf and huge triangles ([`TraceTriangle::is_usable`]) are left out.
     pub fn build(triangles: &[TraceTriangle]) -> Bvh {
         let mut aabbs = Vec::with_capacity(triangles.len());
         let mut kept = Vec::with_capacity(triangles.len());
         let mut magnitude = 0.0f32;
         for (index, tri) in triangles.iter().enumerate().take(MAX_TRIANGLES) {
-            if !tri.is_finite() {
+            if !tri.is_usable() {
                 continue;
             }
             let [a, b, c] = tri.vertices.map(Vec3A::from);
@@ -103,7 +103,7 @@ impl Bvh {
         }
     }
 
-    /// Triangles in the BVH (NaN/Inf ones left out).
+    /// Triangles in the BVH (unusable ones left out).
     pub fn triangle_count(&self) -> usize {
         self.triangles.len()
     }
@@ -333,8 +333,10 @@ mod tests {
         let mut tris = quad_soup();
         tris[3].vertices[1].y = f32::NAN;
         tris[4].vertices[2].z = f32::INFINITY;
+        tris[5].vertices[0].x = 3e38;
+        tris[6].vertices[0].z = -2e15;
         let bvh = Bvh::build(&tris);
-        assert_eq!(bvh.triangle_count(), 48);
+        assert_eq!(bvh.triangle_count(), 46);
         for i in 0..50u32 {
             let ray = TraceRay {
                 origin: vec3(i as f32 + 0.25, 0.25, 1.0),
@@ -343,7 +345,7 @@ mod tests {
                 t_max: f32::INFINITY,
             };
             let hit = bvh.closest_hit(&ray);
-            if i == 3 || i == 4 {
+            if (3..=6).contains(&i) {
                 assert_eq!(hit, None);
             } else {
                 assert_eq!(

@@ -35,11 +35,18 @@ pub struct TraceTriangle {
     pub caster: u32,
 }
 
+/// Coordinates beyond this (in the light-relative frame, where a real scene
+/// spans at most ~1e5 m) are treated like NaN: far enough from any real value,
+/// and near enough to f32::MAX that box arithmetic would overflow.
+pub const MAX_COORDINATE: f32 = 1e15;
+
 impl TraceTriangle {
-    /// NaN or infinite vertices: such a triangle is never built into a BVH and
-    /// never hit.
-    pub fn is_finite(&self) -> bool {
-        self.vertices.iter().all(|v| v.is_finite())
+    /// False for NaN, infinite or absurdly large (> [`MAX_COORDINATE`])
+    /// coordinates: such a triangle is never built into a BVH and never hit.
+    pub fn is_usable(&self) -> bool {
+        self.vertices
+            .iter()
+            .all(|v| v.is_finite() && v.abs().max_element() <= MAX_COORDINATE)
     }
 }
 

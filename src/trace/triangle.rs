@@ -274,14 +274,10 @@ mod tests {
         });
         assert_eq!(intersect(&r, &t), None, "beyond t_max");
         let r = PreparedRay::new(&TraceRay {
+            origin: vec3(0.25, 0.25, 5.0),
+            direction: vec3(0.0, 0.0, -1.0),
             t_min: 5.0,
             t_max: 5.0,
-            ..TraceRay {
-                origin: vec3(0.25, 0.25, 5.0),
-                direction: vec3(0.0, 0.0, -1.0),
-                t_min: 0.0,
-                t_max: 0.0,
-            }
         });
         assert_eq!(intersect(&r, &t), Some((5.0, false)), "t range is closed");
         // Outside the triangle.
