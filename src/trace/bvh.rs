@@ -256,6 +256,78 @@ impl BoxRay {
     /// segment [t_lo, t_hi] touches. NaN anywhere counts as a touch.
     #[inline(always)]
     fn hitmask(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            self.hitmask_sse(node, oct_inv4, t_lo, t_hi)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self.hitmask_scalar(node, oct_inv4, t_lo, t_hi)
+        }
+    }
+
+    /// The same test four children at a time (SSE2, always present on
+    /// x86_64). Operand order matters for NaN: `_mm_max_ps(a, b)` returns b
+    /// when either is NaN, so a NaN slab is ignored (unbounded), as in the
+    /// scalar version.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn hitmask_sse(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
+        use std::arch::x86_64::*;
+        let p = Vec3A::from(node.p);
+        let scale = node.compute_extent() * self.inv;
+        let near0 = (p - self.origin_near) * self.inv;
+        let far0 = (p - self.origin_far) * self.inv;
+        let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+        let pick = |neg: bool, lo: &[u8; 8], hi: &[u8; 8], i: usize| {
+            let (n, f) = if neg { (hi, lo) } else { (lo, hi) };
+            let q = |v: &[u8; 8]| {
+                // SAFETY: SSE2 is part of the x86_64 baseline; loads are
+                // from in-bounds array elements.
+                unsafe {
+                    _mm_set_ps(
+                        v[i * 4 + 3] as f32,
+                        v[i * 4 + 2] as f32,
+                        v[i * 4 + 1] as f32,
+                        v[i * 4] as f32,
+                    )
+                }
+            };
+            (q(n), q(f))
+        };
+        let mut hit_mask = 0;
+        // SAFETY: SSE2 is part of the x86_64 baseline.
+        unsafe {
+            let lo = _mm_set1_ps(t_lo);
+            let hi = _mm_set1_ps(t_hi);
+            for i in 0..2 {
+                let (nx, fx) = pick(self.negative[0], &node.child_min_x, &node.child_max_x, i);
+                let (ny, fy) = pick(self.negative[1], &node.child_min_y, &node.child_max_y, i);
+                let (nz, fz) = pick(self.negative[2], &node.child_min_z, &node.child_max_z, i);
+                let slab = |q: __m128, s: f32, o: f32| {
+                    _mm_add_ps(_mm_mul_ps(q, _mm_set1_ps(s)), _mm_set1_ps(o))
+                };
+                let t_near = _mm_max_ps(slab(nx, scale.x, near0.x), lo);
+                let t_near = _mm_max_ps(slab(ny, scale.y, near0.y), t_near);
+                let t_near = _mm_max_ps(slab(nz, scale.z, near0.z), t_near);
+                let t_far = _mm_min_ps(slab(fx, scale.x, far0.x), hi);
+                let t_far = _mm_min_ps(slab(fy, scale.y, far0.y), t_far);
+                let t_far = _mm_min_ps(slab(fz, scale.z, far0.z), t_far);
+                let mask = _mm_movemask_ps(_mm_cmpngt_ps(t_near, t_far));
+                for j in 0..4 {
+                    if mask & (1 << j) != 0 {
+                        let c = i * 4 + j;
+                        hit_mask |= extract_byte64(child_bits8, c) << extract_byte64(bit_index8, c);
+                    }
+                }
+            }
+        }
+        hit_mask
+    }
+
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    #[inline(always)]
+    fn hitmask_scalar(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
         let p = Vec3A::from(node.p);
         let scale = node.compute_extent() * self.inv;
         let near0 = (p - self.origin_near) * self.inv;
@@ -377,6 +449,59 @@ mod tests {
             bvh.closest_hit(&ray).map(|h| (h.t, h.back_facing)),
             Some((2.0, true))
         );
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn sse_and_scalar_node_tests_agree() {
+        let mut rng = crate::rng::Rng::new(21);
+        let mut tris = Vec::new();
+        for i in 0..3000 {
+            let mut p = || {
+                vec3(
+                    rng.range(-50.0, 50.0) as f32,
+                    rng.range(-50.0, 50.0) as f32,
+                    rng.range(-5.0, 5.0) as f32,
+                )
+            };
+            let c = p();
+            tris.push(TraceTriangle {
+                vertices: [c, c + p() * 0.1, c + p() * 0.1],
+                caster: i,
+            });
+        }
+        let bvh = Bvh::build(&tris);
+        let mut tested = 0;
+        let mut touched = 0;
+        for k in 0..300 {
+            let mut d = vec3(
+                rng.range(-1.0, 1.0) as f32,
+                rng.range(-1.0, 1.0) as f32,
+                rng.range(-1.0, 1.0) as f32,
+            );
+            if k % 3 == 0 {
+                d = [Vec3::X, Vec3::NEG_Y, Vec3::Z][k % 9 / 3];
+            }
+            let ray = TraceRay {
+                origin: vec3(
+                    rng.range(-60.0, 60.0) as f32,
+                    rng.range(-60.0, 60.0) as f32,
+                    20.0,
+                ),
+                direction: d.normalize(),
+                t_min: rng.range(-10.0, 10.0) as f32,
+                t_max: rng.range(10.0, 200.0) as f32,
+            };
+            let boxes = BoxRay::new(&ray, bvh.magnitude);
+            let oct = bvh.cwbvh.new_traversal(Vec3A::from(ray.direction)).oct_inv4;
+            for node in &bvh.cwbvh.nodes {
+                let a = boxes.hitmask_sse(node, oct, ray.t_min, ray.t_max);
+                assert_eq!(a, boxes.hitmask_scalar(node, oct, ray.t_min, ray.t_max));
+                tested += 1;
+                touched += (a != 0) as usize;
+            }
+        }
+        assert!(touched > 100 && touched < tested, "{touched} of {tested}");
     }
 
     #[test]
