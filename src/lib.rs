@@ -9,5 +9,6 @@ pub mod inspect;
 pub mod light;
 pub mod rng;
 pub mod scene;
+pub mod trace;
 
 pub use error::{Error, Result};

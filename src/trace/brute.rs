@@ -1,0 +1,41 @@
+//! The correctness oracle for the BVH: every ray against every triangle with
+//! the same triangle test and the same callback contract, so the two can be
+//! compared hit for hit (SPEC §7).
+
+use super::triangle::{hit_t, PreparedRay};
+use super::{Hit, TraceRay, TraceTriangle};
+
+/// Calls `on_hit` for every triangle the ray crosses with
+/// `t_min <= t <= current t_max`, in input order; `on_hit` returns the new
+/// t_max (a larger or NaN value is ignored). Unusable (NaN, Inf, huge) triangles are skipped,
+/// as [`super::Bvh::build`] skips them.
+pub fn brute_force_hits(
+    triangles: &[TraceTriangle],
+    ray: &TraceRay,
+    mut on_hit: impl FnMut(Hit) -> f32,
+) {
+    let prepared = PreparedRay::new(ray);
+    if !prepared.is_valid() {
+        return;
+    }
+    let t_min = ray.t_min;
+    let mut t_max = ray.t_max;
+    for (index, tri) in triangles.iter().enumerate().take(super::bvh::MAX_TRIANGLES) {
+        if !tri.is_usable() {
+            continue;
+        }
+        if let Some((t, back_facing)) = hit_t(&prepared, tri) {
+            if t >= t_min && t <= t_max {
+                let next = on_hit(Hit {
+                    t,
+                    triangle: index as u32,
+                    caster: tri.caster,
+                    back_facing,
+                });
+                if next < t_max {
+                    t_max = next;
+                }
+            }
+        }
+    }
+}

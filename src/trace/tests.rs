@@ -1,0 +1,701 @@
+//! Surface-crossing counts through shared edges and vertices (the tie rule),
+//! and the BVH against the brute-force oracle.
+
+use super::*;
+use crate::rng::Rng;
+use glam::{vec3, Mat3, Vec3};
+
+fn all_hits_brute(tris: &[TraceTriangle], ray: &TraceRay) -> Vec<Hit> {
+    let mut hits = Vec::new();
+    brute_force_hits(tris, ray, |h| {
+        hits.push(h);
+        f32::INFINITY
+    });
+    sorted(hits)
+}
+
+fn all_hits_bvh(bvh: &Bvh, ray: &TraceRay) -> Vec<Hit> {
+    let mut hits = Vec::new();
+    bvh.for_each_hit(ray, |h| {
+        hits.push(h);
+        f32::INFINITY
+    });
+    sorted(hits)
+}
+
+fn sorted(mut hits: Vec<Hit>) -> Vec<Hit> {
+    hits.sort_by(|a, b| a.t.total_cmp(&b.t).then(a.triangle.cmp(&b.triangle)));
+    hits
+}
+
+/// A ray whose origin is exactly the given point, so it passes exactly
+/// through it whatever its direction; both ways along the line.
+fn line_through(p: Vec3, d: Vec3) -> TraceRay {
+    TraceRay {
+        origin: p,
+        direction: d,
+        t_min: -1e4,
+        t_max: 1e4,
+    }
+}
+
+fn random_unit(rng: &mut Rng) -> Vec3 {
+    loop {
+        let v = vec3(
+            rng.range(-1.0, 1.0) as f32,
+            rng.range(-1.0, 1.0) as f32,
+            rng.range(-1.0, 1.0) as f32,
+        );
+        let l = v.length();
+        if l > 0.1 && l <= 1.0 {
+            return v / l;
+        }
+    }
+}
+
+const AXES: [Vec3; 6] = [
+    Vec3::X,
+    Vec3::NEG_X,
+    Vec3::Y,
+    Vec3::NEG_Y,
+    Vec3::Z,
+    Vec3::NEG_Z,
+];
+
+/// Directions for crossing a surface of normal `n`: the axes that are not
+/// parallel to it, the diagonals, and random ones not within ~3° of grazing.
+fn crossing_directions(n: Vec3, rng: &mut Rng) -> Vec<Vec3> {
+    let mut dirs: Vec<Vec3> = AXES.to_vec();
+    for x in [-1.0f32, 1.0] {
+        for y in [-1.0f32, 1.0] {
+            dirs.push(vec3(x, y, 1.0).normalize());
+            dirs.push(vec3(x, y, -1.0).normalize());
+            dirs.push(vec3(x, 0.0, y).normalize());
+            dirs.push(vec3(0.0, x, y).normalize());
+            dirs.push(vec3(x, y, 0.0).normalize());
+        }
+    }
+    for _ in 0..40 {
+        dirs.push(random_unit(rng));
+    }
+    dirs.retain(|d| d.dot(n.normalize()).abs() > 0.05);
+    dirs
+}
+
+/// An n×n grid of quads over [0,n]² (in the plane's own u, v), mapped by
+/// `map`, each quad split into two triangles with alternating diagonals, all
+/// wound the same way. Returns the triangles and the grid vertex function.
+fn grid(n: i32, map: &dyn Fn(f32, f32) -> Vec3) -> Vec<TraceTriangle> {
+    let mut tris = Vec::new();
+    for i in 0..n {
+        for j in 0..n {
+            let p = |a: i32, b: i32| map(a as f32, b as f32);
+            let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
+            let caster = (i * n + j) as u32;
+            if (i + j) % 2 == 0 {
+                tris.push(TraceTriangle {
+                    vertices: [a, b, c],
+                    caster,
+                });
+                tris.push(TraceTriangle {
+                    vertices: [a, c, d],
+                    caster,
+                });
+            } else {
+                tris.push(TraceTriangle {
+                    vertices: [a, b, d],
+                    caster,
+                });
+                tris.push(TraceTriangle {
+                    vertices: [b, c, d],
+                    caster,
+                });
+            }
+        }
+    }
+    tris
+}
+
+/// Maps grid coordinates (u, v) onto a plane.
+type PlaneMap = Box<dyn Fn(f32, f32) -> Vec3>;
+
+/// The planes the grid tests run on: axis-aligned ones with exact (dyadic)
+/// coordinates, where ties really happen, and rotated, offset ones.
+fn grid_planes() -> Vec<(PlaneMap, Vec3)> {
+    let rot = Mat3::from_euler(glam::EulerRot::XYZ, 0.3, -0.7, 1.1);
+    vec![
+        (Box::new(|u, v| vec3(u, v, 0.0)), Vec3::Z),
+        (Box::new(|u, v| vec3(v, 2.5, u)), Vec3::Y),
+        (Box::new(|u, v| vec3(-3.0, u * 0.5, v * 0.25)), Vec3::X),
+        (
+            Box::new(|u, v| vec3(u * 1000.0 + 4096.0, v * 1000.0 - 8192.0, 512.0)),
+            Vec3::Z,
+        ),
+        (
+            Box::new(move |u, v| rot * vec3(u * 0.7, v * 1.3, 0.0) + vec3(10.1, -3.3, 7.7)),
+            rot * Vec3::Z,
+        ),
+    ]
+}
+
+#[test]
+fn grid_interior_edges_and_vertices_are_crossed_once() {
+    let mut rng = Rng::new(1);
+    let n = 4;
+    for (map, normal) in grid_planes() {
+        let tris = grid(n, &*map);
+        let bvh = Bvh::build(&tris);
+        let dirs = crossing_directions(normal, &mut rng);
+        // Every interior vertex, every interior edge midpoint (incl.
+        // diagonals), and points on edges at a quarter.
+        let mut points = Vec::new();
+        for i in 0..=2 * n {
+            for j in 0..=2 * n {
+                let (u, v) = (i as f32 * 0.5, j as f32 * 0.5);
+                if u > 0.0 && u < n as f32 && v > 0.0 && v < n as f32 {
+                    points.push(map(u, v));
+                }
+            }
+        }
+        for i in 1..n {
+            for j in 0..n {
+                points.push(map(i as f32, j as f32 + 0.25));
+                points.push(map(j as f32 + 0.75, i as f32));
+            }
+        }
+        for &p in &points {
+            for &d in &dirs {
+                let ray = line_through(p, d);
+                let hits = all_hits_brute(&tris, &ray);
+                assert_eq!(hits.len(), 1, "point {p} direction {d}: {hits:?}");
+                assert_eq!(all_hits_bvh(&bvh, &ray), hits);
+                assert_eq!(hits[0].back_facing, d.dot(normal) > 0.0);
+            }
+        }
+    }
+}
+
+#[test]
+fn grid_boundary_is_hit_at_most_once_and_consistently() {
+    let mut rng = Rng::new(2);
+    let n = 3;
+    for (map, normal) in grid_planes() {
+        let tris = grid(n, &*map);
+        let dirs = crossing_directions(normal, &mut rng);
+        let mut points = Vec::new();
+        for k in 0..=2 * n {
+            let s = k as f32 * 0.5;
+            let e = n as f32;
+            points.extend([map(s, 0.0), map(s, e), map(0.0, s), map(e, s)]);
+        }
+        let mut hit_counts = [0usize; 2];
+        for &p in &points {
+            for &d in &dirs {
+                let ray = line_through(p, d);
+                let hits = all_hits_brute(&tris, &ray);
+                assert!(hits.len() <= 1, "point {p} direction {d}: {hits:?}");
+                assert_eq!(all_hits_brute(&tris, &ray), hits, "deterministic");
+                hit_counts[hits.len()] += 1;
+            }
+        }
+        // The rule gives boundary points to the mesh from some directions
+        // and not from others (it is not "always" or "never").
+        assert!(hit_counts[0] > 0 && hit_counts[1] > 0, "{hit_counts:?}");
+    }
+}
+
+/// A fan of 8 triangles around `centre` whose rim is a square's corners and
+/// edge midpoints, in the plane spanned by `u`, `v`.
+fn fan(centre: Vec3, u: Vec3, v: Vec3) -> Vec<TraceTriangle> {
+    let rim = [
+        (1, 0),
+        (1, 1),
+        (0, 1),
+        (-1, 1),
+        (-1, 0),
+        (-1, -1),
+        (0, -1),
+        (1, -1),
+    ]
+    .map(|(a, b)| centre + u * a as f32 + v * b as f32);
+    (0..8)
+        .map(|k| TraceTriangle {
+            vertices: [centre, rim[k], rim[(k + 1) % 8]],
+            caster: k as u32,
+        })
+        .collect()
+}
+
+#[test]
+fn fan_centre_and_spokes_are_crossed_once() {
+    let mut rng = Rng::new(3);
+    let rot = Mat3::from_euler(glam::EulerRot::ZYX, 0.9, 0.2, -0.4);
+    let fans = [
+        (Vec3::ZERO, Vec3::X, Vec3::Y),
+        (vec3(1.0, 2.0, 3.0), Vec3::Z, Vec3::X),
+        (vec3(-5000.0, 250.0, 3000.0), Vec3::Y * 2.0, Vec3::Z * 2.0),
+        (vec3(0.1, 0.2, 0.3), rot * Vec3::X, rot * Vec3::Y),
+    ];
+    for (centre, u, v) in fans {
+        let tris = fan(centre, u, v);
+        let normal = u.cross(v);
+        let bvh = Bvh::build(&tris);
+        let mut points = vec![centre];
+        for (a, b) in [
+            (1, 0),
+            (1, 1),
+            (0, 1),
+            (-1, 1),
+            (-1, 0),
+            (-1, -1),
+            (0, -1),
+            (1, -1),
+        ] {
+            points.push(centre + (u * a as f32 + v * b as f32) * 0.5);
+        }
+        for &p in &points {
+            for d in crossing_directions(normal, &mut rng) {
+                let ray = line_through(p, d);
+                let hits = all_hits_brute(&tris, &ray);
+                assert_eq!(
+                    hits.len(),
+                    1,
+                    "fan at {centre}, point {p}, direction {d}: {hits:?}"
+                );
+                assert_eq!(all_hits_bvh(&bvh, &ray), hits);
+            }
+        }
+    }
+}
+
+/// A closed box, 12 triangles wound outwards, transformed by `map`.
+fn closed_box(map: &dyn Fn(Vec3) -> Vec3) -> Vec<TraceTriangle> {
+    // Corner k has coordinates (k & 1, k >> 1 & 1, k >> 2 & 1), scaled by 2.
+    let c = |k: usize| map(vec3((k & 1) as f32, (k >> 1 & 1) as f32, (k >> 2 & 1) as f32) * 2.0);
+    // Each face as a quad wound counter-clockwise seen from outside.
+    let faces = [
+        [0, 2, 3, 1], // z = 0
+        [4, 5, 7, 6], // z = 2
+        [0, 1, 5, 4], // y = 0
+        [2, 6, 7, 3], // y = 2
+        [0, 4, 6, 2], // x = 0
+        [1, 3, 7, 5], // x = 2
+    ];
+    let mut tris = Vec::new();
+    for (f, q) in faces.iter().enumerate() {
+        tris.push(TraceTriangle {
+            vertices: [c(q[0]), c(q[1]), c(q[2])],
+            caster: f as u32,
+        });
+        tris.push(TraceTriangle {
+            vertices: [c(q[0]), c(q[2]), c(q[3])],
+            caster: f as u32,
+        });
+    }
+    tris
+}
+
+#[test]
+fn closed_box_is_entered_and_left_once_through_corners_and_edges() {
+    let rot = Mat3::from_euler(glam::EulerRot::XYZ, 0.5, 1.2, -0.3);
+    let maps: Vec<Box<dyn Fn(Vec3) -> Vec3>> = vec![
+        Box::new(|p| p),
+        Box::new(|p| p * 3.0 + vec3(-4000.0, 1000.0, 2500.0)),
+        Box::new(move |p| rot * p + vec3(0.3, -7.1, 2.2)),
+    ];
+    let mut rng = Rng::new(4);
+    for map in maps {
+        let tris = closed_box(&*map);
+        // Outward normals must be right for the facing check.
+        let centre = map(Vec3::ONE);
+        for t in &tris {
+            let [a, b, c] = t.vertices;
+            assert!((b - a).cross(c - a).dot(a - centre) > 0.0);
+        }
+        let bvh = Bvh::build(&tris);
+        // Surface points in box coordinates: corners, edge midpoints, face
+        // centres and face-diagonal points, and random face points.
+        let mut surface: Vec<Vec3> = Vec::new();
+        for x in 0..=2 {
+            for y in 0..=2 {
+                for z in 0..=2 {
+                    let p = vec3(x as f32, y as f32, z as f32);
+                    if x != 1 || y != 1 || z != 1 {
+                        surface.push(p);
+                    }
+                }
+            }
+        }
+        for _ in 0..20 {
+            let mut p = vec3(
+                rng.range(0.0, 2.0) as f32,
+                rng.range(0.0, 2.0) as f32,
+                rng.range(0.0, 2.0) as f32,
+            );
+            p[rng.below(3)] = 2.0 * rng.below(2) as f32;
+            surface.push(p);
+        }
+        surface.push(vec3(0.5, 0.5, 0.0)); // on the z = 0 face diagonal
+        let mut checked = 0;
+        for &a in &surface {
+            for &b in &surface {
+                // The segment a–b passes through the interior iff a and b are
+                // not on a common face.
+                let common_face = (0..3).any(|i| a[i] == b[i] && (a[i] == 0.0 || a[i] == 2.0));
+                if common_face {
+                    continue;
+                }
+                let (pa, pb) = (map(a), map(b));
+                let ray = line_through(pa, (pb - pa).normalize());
+                let hits = all_hits_brute(&tris, &ray);
+                assert_eq!(hits.len(), 2, "box through {a} and {b}: {hits:?}");
+                assert!(!hits[0].back_facing && hits[1].back_facing, "{hits:?}");
+                assert_eq!(all_hits_bvh(&bvh, &ray), hits);
+                checked += 1;
+            }
+        }
+        assert!(checked > 500, "{checked}");
+        // Axis-aligned rays through corners and edges (origin outside).
+        if map(Vec3::ZERO) == Vec3::ZERO {
+            for &a in &surface {
+                for axis in 0..3 {
+                    let mut through = a;
+                    through[axis] = 1.0;
+                    // Only lines that pass through the interior.
+                    let interior =
+                        (0..3).all(|i| i == axis || (through[i] > 0.0 && through[i] < 2.0));
+                    if !interior {
+                        continue;
+                    }
+                    let mut d = Vec3::ZERO;
+                    d[axis] = 1.0;
+                    let hits = all_hits_brute(&tris, &line_through(through, d));
+                    assert_eq!(hits.len(), 2, "axis {axis} through {through}: {hits:?}");
+                }
+            }
+        }
+    }
+}
+
+/// Lines exactly through a box's corners, edges and face points in every
+/// direction: through the interior exactly 2 hits; touching only the surface
+/// (silhouette corners and edges, where a front and a back facing triangle
+/// meet) an even count, never 1 or 3 — which needs the tie rule on
+/// orientation-normalised edges.
+#[test]
+fn lines_grazing_a_box_corner_or_edge_cross_it_an_even_number_of_times() {
+    let tris = closed_box(&|p| p);
+    let mut rng = Rng::new(5);
+    let mut dirs: Vec<Vec3> = AXES.to_vec();
+    for x in -1..=1 {
+        for y in -1..=1 {
+            for z in -1..=1 {
+                if (x, y, z) != (0, 0, 0) {
+                    dirs.push(vec3(x as f32, y as f32, z as f32).normalize());
+                }
+            }
+        }
+    }
+    for _ in 0..60 {
+        dirs.push(random_unit(&mut rng));
+    }
+    let mut counts = [0usize; 3];
+    for x in 0..=2 {
+        for y in 0..=2 {
+            for z in 0..=2 {
+                if (x, y, z) == (1, 1, 1) {
+                    continue;
+                }
+                let a = vec3(x as f32, y as f32, z as f32);
+                for &d in &dirs {
+                    // Does the exact line a + t·d meet the open box (0,2)³?
+                    let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+                    for i in 0..3 {
+                        let (o, di) = (a[i] as f64, d[i] as f64);
+                        if di == 0.0 {
+                            if !(o > 0.0 && o < 2.0) {
+                                hi = f64::NEG_INFINITY;
+                            }
+                        } else {
+                            let (t0, t1) = ((0.0 - o) / di, (2.0 - o) / di);
+                            lo = lo.max(t0.min(t1));
+                            hi = hi.min(t0.max(t1));
+                        }
+                    }
+                    let interior = lo < hi;
+                    let hits = all_hits_brute(&tris, &line_through(a, d));
+                    if interior {
+                        assert_eq!(hits.len(), 2, "through {a} along {d}: {hits:?}");
+                    } else {
+                        assert!(
+                            hits.len().is_multiple_of(2),
+                            "grazing {a} along {d}: {hits:?}"
+                        );
+                    }
+                    counts[hits.len().min(2)] += 1;
+                }
+            }
+        }
+    }
+    // Many lines go through, and many only touch.
+    assert!(counts[0] > 100 && counts[2] > 100, "{counts:?}");
+}
+
+/// A random triangle soup of the kinds the bake meets: ordinary triangles,
+/// flat axis-aligned planes (zero-thickness boxes), tiny and huge ones,
+/// coordinates up to ±1e4.
+fn soup(rng: &mut Rng, count: usize) -> Vec<TraceTriangle> {
+    let mut tris = Vec::with_capacity(count);
+    let p = |rng: &mut Rng, s: f64| {
+        vec3(
+            rng.range(-s, s) as f32,
+            rng.range(-s, s) as f32,
+            rng.range(-s, s) as f32,
+        )
+    };
+    while tris.len() < count {
+        let caster = tris.len() as u32;
+        match rng.below(6) {
+            0 | 1 => {
+                let c = p(rng, 100.0);
+                let s = 10f64.powf(rng.range(-1.0, 1.5));
+                tris.push(TraceTriangle {
+                    vertices: [c + p(rng, s), c + p(rng, s), c + p(rng, s)],
+                    caster,
+                });
+            }
+            2 => {
+                // A flat axis-aligned quad pair on an integer plane.
+                let axis = rng.below(3);
+                let level = rng.below(41) as f32 * 5.0 - 100.0;
+                let (x0, y0) = (
+                    rng.below(40) as f32 * 5.0 - 100.0,
+                    rng.below(40) as f32 * 5.0 - 100.0,
+                );
+                let q = |x: f32, y: f32| {
+                    let mut v = Vec3::splat(level);
+                    v[(axis + 1) % 3] = x;
+                    v[(axis + 2) % 3] = y;
+                    v
+                };
+                let (a, b, c, d) = (
+                    q(x0, y0),
+                    q(x0 + 5.0, y0),
+                    q(x0 + 5.0, y0 + 5.0),
+                    q(x0, y0 + 5.0),
+                );
+                tris.push(TraceTriangle {
+                    vertices: [a, b, c],
+                    caster,
+                });
+                tris.push(TraceTriangle {
+                    vertices: [a, c, d],
+                    caster,
+                });
+            }
+            3 => {
+                let c = p(rng, 100.0);
+                let s = 10f64.powf(rng.range(-4.0, -2.0));
+                tris.push(TraceTriangle {
+                    vertices: [c + p(rng, s), c + p(rng, s), c + p(rng, s)],
+                    caster,
+                });
+            }
+            4 => {
+                tris.push(TraceTriangle {
+                    vertices: [p(rng, 1e4), p(rng, 1e4), p(rng, 1e4)],
+                    caster,
+                });
+            }
+            _ => {
+                // Vertical walls (box thin in one axis) and slivers.
+                let a = p(rng, 100.0);
+                let mut b = a + p(rng, 20.0);
+                b.x = a.x;
+                let mut c = a + p(rng, 20.0);
+                c.x = a.x;
+                tris.push(TraceTriangle {
+                    vertices: [a, b, c],
+                    caster,
+                });
+            }
+        }
+    }
+    tris
+}
+
+fn random_rays(rng: &mut Rng, tris: &[TraceTriangle], count: usize) -> Vec<TraceRay> {
+    let mut rays = Vec::with_capacity(count);
+    while rays.len() < count {
+        let tri = tris[rng.below(tris.len())];
+        let vertex = tri.vertices[rng.below(3)];
+        let (origin, direction) = match rng.below(5) {
+            // Random lines through the scene.
+            0 => {
+                let o = vec3(
+                    rng.range(-150.0, 150.0) as f32,
+                    rng.range(-150.0, 150.0) as f32,
+                    rng.range(-150.0, 150.0) as f32,
+                );
+                (o, random_unit(rng))
+            }
+            // Axis-parallel, exactly through a vertex (along box faces).
+            1 => {
+                let axis = rng.below(6);
+                let d = AXES[axis];
+                let mut o = vertex;
+                o[axis / 2] -= d[axis / 2] * 300.0;
+                (o, d)
+            }
+            // Axis-parallel from a random point.
+            2 => {
+                let o = vec3(
+                    rng.range(-120.0, 120.0) as f32,
+                    rng.range(-120.0, 120.0) as f32,
+                    rng.range(-120.0, 120.0) as f32,
+                );
+                (o, AXES[rng.below(6)])
+            }
+            // Aimed at a point inside a triangle, from afar.
+            3 => {
+                let (a, b) = (rng.unit() as f32, rng.unit() as f32);
+                let (a, b) = if a + b > 1.0 {
+                    (1.0 - a, 1.0 - b)
+                } else {
+                    (a, b)
+                };
+                let [v0, v1, v2] = tri.vertices;
+                let target = v0 + (v1 - v0) * a + (v2 - v0) * b;
+                let o = target + random_unit(rng) * rng.range(1.0, 300.0) as f32;
+                (o, (target - o).normalize())
+            }
+            // Starting exactly at a vertex, nearly axis-parallel.
+            _ => {
+                let mut d = AXES[rng.below(6)];
+                d += vec3(1e-9, -3e-8, 2e-7) * rng.range(-1.0, 1.0) as f32;
+                (vertex, d.normalize())
+            }
+        };
+        if !direction.is_finite() {
+            continue;
+        }
+        let (t_min, t_max) = match rng.below(3) {
+            0 => (0.0, f32::INFINITY),
+            1 => (-1e5, 1e5),
+            _ => (rng.range(0.0, 50.0) as f32, rng.range(50.0, 400.0) as f32),
+        };
+        rays.push(TraceRay {
+            origin,
+            direction,
+            t_min,
+            t_max,
+        });
+    }
+    rays
+}
+
+#[test]
+fn bvh_agrees_with_brute_force_on_random_soups() {
+    let mut total_hits = 0;
+    for seed in 0..4 {
+        let mut rng = Rng::new(100 + seed);
+        let tris = soup(&mut rng, 3000);
+        let bvh = Bvh::build(&tris);
+        assert_eq!(bvh.triangle_count(), tris.len());
+        for ray in random_rays(&mut rng, &tris, 1500) {
+            let expected = all_hits_brute(&tris, &ray);
+            assert_eq!(
+                all_hits_bvh(&bvh, &ray),
+                expected,
+                "seed {seed} ray {ray:?}"
+            );
+            total_hits += expected.len();
+
+            // A caller that stops looking 0.5 beyond its nearest hit.
+            let (mut a, mut b) = (Vec::new(), Vec::new());
+            brute_force_hits(&tris, &ray, |h| {
+                a.push(h);
+                h.t + 0.5
+            });
+            bvh.for_each_hit(&ray, |h| {
+                b.push(h);
+                h.t + 0.5
+            });
+            let cutoff = expected.first().map_or(f32::NEG_INFINITY, |h| h.t + 0.5);
+            let keep = |v: Vec<Hit>| sorted(v.into_iter().filter(|h| h.t <= cutoff).collect());
+            let want: Vec<Hit> = expected.iter().copied().filter(|h| h.t <= cutoff).collect();
+            assert_eq!(keep(a), want);
+            assert_eq!(keep(b), want, "shrinking, seed {seed} ray {ray:?}");
+            assert_eq!(bvh.closest_hit(&ray), expected.first().copied());
+        }
+    }
+    assert!(total_hits > 5000, "{total_hits}");
+}
+
+#[test]
+fn hits_do_not_depend_on_threads_or_bvh_shape() {
+    let mut rng = Rng::new(7);
+    let tris = soup(&mut rng, 4000);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let bvh1 = one.install(|| Bvh::build(&tris));
+    let bvh2 = Bvh::build(&tris);
+    // A different shape: the same triangles in reverse order.
+    let reversed: Vec<TraceTriangle> = tris.iter().rev().copied().collect();
+    let bvh3 = Bvh::build(&reversed);
+    let n = tris.len() as u32;
+    for ray in random_rays(&mut rng, &tris, 1000) {
+        let h1 = all_hits_bvh(&bvh1, &ray);
+        assert_eq!(all_hits_bvh(&bvh2, &ray), h1);
+        let h3: Vec<Hit> = all_hits_bvh(&bvh3, &ray)
+            .into_iter()
+            .map(|h| Hit {
+                triangle: n - 1 - h.triangle,
+                ..h
+            })
+            .collect();
+        assert_eq!(sorted(h3), h1);
+    }
+}
+
+#[test]
+fn flat_plane_rays_along_axes_and_box_faces() {
+    // A 20×20 grid on z = 0 (every box zero-thick in z), and rays along the
+    // axes exactly through its vertices, edges and faces, from both sides,
+    // and rays lying in the plane (edge-on: no hits).
+    let tris = grid(20, &|u, v| vec3(u - 10.0, v - 10.0, 0.0));
+    let bvh = Bvh::build(&tris);
+    let mut rng = Rng::new(9);
+    for i in 0..=40 {
+        for j in 0..=40 {
+            let (x, y) = (i as f32 * 0.5 - 10.0, j as f32 * 0.5 - 10.0);
+            for (z, dz) in [(5.0, -1.0), (-5.0, 1.0), (0.0, 1.0)] {
+                let ray = TraceRay {
+                    origin: vec3(x, y, z),
+                    direction: vec3(0.0, 0.0, dz),
+                    t_min: if z == 0.0 { 0.0 } else { 0.5 },
+                    t_max: 100.0,
+                };
+                let hits = all_hits_brute(&tris, &ray);
+                let inside = x.abs() < 10.0 && y.abs() < 10.0;
+                if inside {
+                    assert_eq!(hits.len(), 1, "{ray:?}");
+                    assert_eq!(hits[0].t, z.abs());
+                }
+                assert_eq!(all_hits_bvh(&bvh, &ray), hits, "{ray:?}");
+            }
+            let in_plane = TraceRay {
+                origin: vec3(x, y, 0.0),
+                direction: random_unit(&mut rng) * vec3(1.0, 1.0, 0.0),
+                t_min: -50.0,
+                t_max: 50.0,
+            };
+            if in_plane.direction.length() > 0.1 {
+                assert!(all_hits_brute(&tris, &in_plane).is_empty());
+                assert!(all_hits_bvh(&bvh, &in_plane).is_empty());
+            }
+        }
+    }
+}
