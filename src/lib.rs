@@ -1,6 +1,7 @@
 //! shadowcull: bakes shadow caster culling flags for BigWorld worlds without a
 //! GPU. See ARCHITECTURE.md for the code map.
 
+pub mod bake;
 pub mod classify;
 pub mod error;
 pub mod formats;

@@ -81,6 +81,10 @@ pub struct BakeResult {
 pub enum BakeError {
     #[error("{count} lights: at most 32 fit the 32-bit mask; split the bake into several settings files")]
     TooManyLights { count: usize },
+    /// A light whose grid cannot be made (too large, invalid values): a
+    /// settings mistake, so the bake stops rather than skipping it.
+    #[error(transparent)]
+    Grid(#[from] crate::light::GridError),
 }
 
 pub fn bake(
@@ -133,13 +137,14 @@ pub fn bake(
         };
         let grid = match TexelGrid::new(light, bounds) {
             Ok(grid) => grid,
-            Err(err) => {
+            Err(err @ crate::light::GridError::EmptyWorld { .. }) => {
                 skipped.push(Skipped {
                     what: name,
                     why: err.to_string(),
                 });
                 continue;
             }
+            Err(err) => return Err(err.into()),
         };
         let geometry = geometry::light_geometry(scene, &casters, &grid);
         if geometry.instances_out_of_reach + geometry.blocks_out_of_reach > 0 {
@@ -218,7 +223,11 @@ pub fn bake(
             index,
             name: light.name.clone(),
             kind: light.kind.type_name(),
-            rays: if geometry.triangles.is_empty() { 0 } else { rays },
+            rays: if geometry.triangles.is_empty() {
+                0
+            } else {
+                rays
+            },
             seconds: started.elapsed().as_secs_f64(),
             useful_casters,
             culled_casters: casters.real_casters() - useful_casters,

@@ -85,7 +85,9 @@ pub fn chunk_outputs(
         };
         let changed = match out_dir {
             None => bytes != original,
-            Some(_) => std::fs::read(&target).map(|old| old != bytes).unwrap_or(true),
+            Some(_) => std::fs::read(&target)
+                .map(|old| old != bytes)
+                .unwrap_or(true),
         };
         outputs.push(ChunkOutput {
             source: chunk.file.clone(),
@@ -152,9 +154,23 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
                     InstanceKind::Shell => "shell",
                 }),
                 index: Some(instance.index),
-                resources: Some(instance.resources.iter().map(|r| r.trim().to_string()).collect()),
+                resources: Some(
+                    instance
+                        .resources
+                        .iter()
+                        .map(|r| r.trim().to_string())
+                        .collect(),
+                ),
                 mask: shadow.mask,
-                groups: Some(shadow.render_sets.iter().flatten().flatten().copied().collect()),
+                groups: Some(
+                    shadow
+                        .render_sets
+                        .iter()
+                        .flatten()
+                        .flatten()
+                        .copied()
+                        .collect(),
+                ),
                 receiver_only: !instance.casts_shadow,
             });
         }

@@ -104,7 +104,15 @@ pub fn trace_light(
                 for y in y0..y1 {
                     for x in x0..x1 {
                         trace_texel(
-                            grid, tracer, casters, ground, rules, face, x, y, &mut hits,
+                            grid,
+                            tracer,
+                            casters,
+                            ground,
+                            rules,
+                            face,
+                            x,
+                            y,
+                            &mut hits,
                             &mut useful,
                         );
                     }

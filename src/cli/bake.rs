@@ -55,9 +55,15 @@ pub fn run(args: BakeArgs) -> Result<()> {
     if let Some(mode) = &args.face_culling {
         config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
     }
-    for (value, name) in [(args.height_bias, "--height-bias"), (args.tie_epsilon, "--tie-epsilon")] {
+    for (value, name) in [
+        (args.height_bias, "--height-bias"),
+        (args.tie_epsilon, "--tie-epsilon"),
+    ] {
         if let Some(v) = value {
-            anyhow::ensure!(v.is_finite() && v >= 0.0, "{name} must be a number ≥ 0, got {v}");
+            anyhow::ensure!(
+                v.is_finite() && v >= 0.0,
+                "{name} must be a number ≥ 0, got {v}"
+            );
         }
     }
     if let Some(bias) = args.height_bias {
@@ -98,7 +104,10 @@ fn bake_with(
         if scene.problems.is_empty() {
             String::new()
         } else {
-            format!("; {} problems (see the report's `skipped`)", scene.problems.len())
+            format!(
+                "; {} problems (see the report's `skipped`)",
+                scene.problems.len()
+            )
         }
     );
     for problem in scene.problems.iter().take(5) {
@@ -109,7 +118,8 @@ fn bake_with(
     }
 
     let reporter = Reporter::new();
-    let result = bake::bake(&scene, &config, &reporter)?;
+    let result = bake::bake(&scene, &config, &reporter)
+        .with_context(|| format!("{}", args.settings.settings.display()))?;
     let res_paths = ResPaths::new(res_paths);
     let outputs = output::chunk_outputs(&scene, &result, &res_paths, args.out.as_deref())?;
     let changed = outputs.iter().filter(|o| o.changed).count();
@@ -145,7 +155,11 @@ fn bake_with(
     if skipped_lights > 0 {
         println!("{skipped_lights} light(s) skipped: see the report's `skipped`");
     }
-    let verb = if args.dry_run { "would change" } else { "wrote" };
+    let verb = if args.dry_run {
+        "would change"
+    } else {
+        "wrote"
+    };
     let count = if args.dry_run { changed } else { written };
     println!(
         "{verb} {count} of {} chunk files{}; {:.2} s in all",

@@ -68,7 +68,10 @@ impl Progress for Reporter {
                     .compare_exchange(due, due + total / 4, Ordering::Relaxed, Ordering::Relaxed)
                     .is_ok()
             {
-                eprintln!("light {index}: {}% of rays traced", done * 100 / total.max(1));
+                eprintln!(
+                    "light {index}: {}% of rays traced",
+                    done * 100 / total.max(1)
+                );
             }
         }
     }

@@ -395,9 +395,13 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
                 .node_to_root_index(render_set.first_node)
                 .unwrap_or(DMat4::IDENTITY)
         };
-        geometry_model
-            .layout
-            .push(render_set.geometries.iter().map(|g| g.groups.len()).collect());
+        geometry_model.layout.push(
+            render_set
+                .geometries
+                .iter()
+                .map(|g| g.groups.len())
+                .collect(),
+        );
         for (geometry_index, geometry) in render_set.geometries.iter().enumerate() {
             let split = |name: &str| {
                 visual::split_section_resource(&primitives_file, name).ok_or_else(|| {

@@ -30,8 +30,16 @@ fn occluded_caster_is_culled_and_its_occluder_kept() {
     // only where nothing is above it, and nothing is behind it → culled.
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
-    let a = one(&mut world, cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)), OPAQUE);
-    let b = one(&mut world, cube(Vec3::new(5.0, 0.5, 5.0), Vec3::new(7.0, 1.0, 7.0)), OPAQUE);
+    let a = one(
+        &mut world,
+        cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)),
+        OPAQUE,
+    );
+    let b = one(
+        &mut world,
+        cube(Vec3::new(5.0, 0.5, 5.0), Vec3::new(7.0, 1.0, 7.0)),
+        OPAQUE,
+    );
     let a = place(&mut world, a);
     let b = place(&mut world, b);
     let result = run(&world, &config(vec![directional(DOWN, 0.25)]));
@@ -46,7 +54,11 @@ fn caster_with_nothing_behind_is_culled_unless_faces_are_kept() {
     // face for a light from above. With back-face culling one crossing →
     // culled; with `none` both faces count → useful.
     let mut world = World::new(1, 1);
-    let m = one(&mut world, cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)), OPAQUE);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)),
+        OPAQUE,
+    );
     let i = place(&mut world, m);
     let mut settings = config(vec![directional(DOWN, 0.25)]);
     assert_eq!(instance_masks(&run(&world, &settings), &world, i), vec![0]);
@@ -63,7 +75,11 @@ fn alpha_tested_canopy_does_not_cull_what_is_below() {
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
     let canopy = one(&mut world, quad_up(2.0, 2.0, 10.0, 10.0, 5.0), CANOPY);
-    let bush = one(&mut world, cube(Vec3::new(4.0, 1.0, 4.0), Vec3::new(6.0, 2.0, 6.0)), OPAQUE);
+    let bush = one(
+        &mut world,
+        cube(Vec3::new(4.0, 1.0, 4.0), Vec3::new(6.0, 2.0, 6.0)),
+        OPAQUE,
+    );
     let canopy = place(&mut world, canopy);
     let bush = place(&mut world, bush);
     let result = run(&world, &config(vec![directional(DOWN, 0.25)]));
@@ -81,7 +97,11 @@ fn object_sunk_into_terrain_does_not_make_the_terrain_useful() {
     // useful (the box stays culled: the terrain is in front of it).
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
-    let m = one(&mut world, cube(Vec3::new(4.0, -3.0, 4.0), Vec3::new(8.0, -1.0, 8.0)), OPAQUE);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(4.0, -3.0, 4.0), Vec3::new(8.0, -1.0, 8.0)),
+        OPAQUE,
+    );
     let sunk = place(&mut world, m);
     let mut settings = config(vec![directional(DOWN, 0.25)]);
     let result = run(&world, &settings);
@@ -100,8 +120,16 @@ fn single_sided_quad_seen_from_behind_versus_double_sided() {
     // behind → useful.
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
-    let down = one(&mut world, flipped(quad_up(4.0, 4.0, 8.0, 8.0, 3.0)), OPAQUE);
-    let two = one(&mut world, flipped(quad_up(10.0, 10.0, 14.0, 14.0, 3.0)), TWO_SIDED);
+    let down = one(
+        &mut world,
+        flipped(quad_up(4.0, 4.0, 8.0, 8.0, 3.0)),
+        OPAQUE,
+    );
+    let two = one(
+        &mut world,
+        flipped(quad_up(10.0, 10.0, 14.0, 14.0, 3.0)),
+        TWO_SIDED,
+    );
     let down = place(&mut world, down);
     let two = place(&mut world, two);
     let result = run(&world, &config(vec![directional(DOWN, 0.25)]));
@@ -141,7 +169,11 @@ fn coplanar_casters_tie() {
     let mut world = World::new(1, 1);
     let q1 = one(&mut world, quad_up(1.0, 1.0, 5.0, 5.0, 3.0), OPAQUE);
     let q2 = one(&mut world, quad_up(1.0, 1.0, 5.0, 5.0, 3.0), OPAQUE);
-    let wall = one(&mut world, cube(Vec3::new(8.0, 1.0, 8.0), Vec3::new(14.0, 3.0, 14.0)), OPAQUE);
+    let wall = one(
+        &mut world,
+        cube(Vec3::new(8.0, 1.0, 8.0), Vec3::new(14.0, 3.0, 14.0)),
+        OPAQUE,
+    );
     let decal = one(&mut world, quad_up(10.0, 10.0, 12.0, 12.0, 3.0), OPAQUE);
     let q1 = place(&mut world, q1);
     let q2 = place(&mut world, q2);
@@ -160,7 +192,11 @@ fn receiver_only_instance_receives_but_never_casts() {
     // part of it. Q: first hit with R behind → useful. R: mask 0 always.
     // Without R, Q has nothing behind it → culled.
     let mut world = World::new(1, 1);
-    let r = one(&mut world, cube(Vec3::new(4.0, 0.0, 4.0), Vec3::new(8.0, 1.0, 8.0)), OPAQUE);
+    let r = one(
+        &mut world,
+        cube(Vec3::new(4.0, 0.0, 4.0), Vec3::new(8.0, 1.0, 8.0)),
+        OPAQUE,
+    );
     let q = one(&mut world, quad_up(5.0, 5.0, 7.0, 7.0, 3.0), OPAQUE);
     let receiver = world.place((0, 0), &[r], DMat4::IDENTITY, false);
     let quad = place(&mut world, q);
@@ -182,9 +218,16 @@ fn receiver_in_the_neighbouring_chunk() {
     // through the box land on chunk (1,0)'s terrain → useful.
     let mut world = World::new(2, 1);
     flat(&mut world, (1, 0));
-    let m = one(&mut world, cube(Vec3::new(14.0, 3.0, 6.0), Vec3::new(15.0, 4.0, 10.0)), OPAQUE);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(14.0, 3.0, 6.0), Vec3::new(15.0, 4.0, 10.0)),
+        OPAQUE,
+    );
     let b = place(&mut world, m);
-    let result = run(&world, &config(vec![directional(DVec3::new(1.0, -1.0, 0.0), 0.25)]));
+    let result = run(
+        &world,
+        &config(vec![directional(DVec3::new(1.0, -1.0, 0.0), 0.25)]),
+    );
     assert_eq!(instance_masks(&result, &world, b), vec![1]);
     // Straight down, nothing is under it in its own chunk: culled.
     let result = run(&world, &config(vec![directional(DOWN, 0.25)]));
@@ -201,7 +244,10 @@ fn terrain_shadowing_itself() {
     let light = directional(DVec3::new(1.0, -0.3, 0.0), 0.25);
     let mut world = World::new(1, 1);
     world.terrain((0, 0), hill);
-    assert_eq!(terrain_mask(&run(&world, &config(vec![light.clone()])), 0), 1);
+    assert_eq!(
+        terrain_mask(&run(&world, &config(vec![light.clone()])), 0),
+        1
+    );
     let mut flat_world = World::new(1, 1);
     flat(&mut flat_world, (0, 0));
     assert_eq!(terrain_mask(&run(&flat_world, &config(vec![light])), 0), 0);
@@ -216,7 +262,10 @@ fn multi_group_model_masks_each_group() {
     let m = world.model(Mesh {
         groups: vec![
             (quad_up(4.0, 4.0, 8.0, 8.0, 3.0), OPAQUE),
-            (cube(Vec3::new(5.0, 1.0, 5.0), Vec3::new(7.0, 2.0, 7.0)), OPAQUE),
+            (
+                cube(Vec3::new(5.0, 1.0, 5.0), Vec3::new(7.0, 2.0, 7.0)),
+                OPAQUE,
+            ),
         ],
     });
     let i = place(&mut world, m);
@@ -231,7 +280,11 @@ fn two_resource_instance_masks_parts_in_order() {
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
     let top = one(&mut world, quad_up(4.0, 4.0, 8.0, 8.0, 3.0), OPAQUE);
-    let under = one(&mut world, cube(Vec3::new(5.0, 1.0, 5.0), Vec3::new(7.0, 2.0, 7.0)), OPAQUE);
+    let under = one(
+        &mut world,
+        cube(Vec3::new(5.0, 1.0, 5.0), Vec3::new(7.0, 2.0, 7.0)),
+        OPAQUE,
+    );
     let i = world.place((0, 0), &[top, under], DMat4::IDENTITY, true);
     let result = run(&world, &config(vec![directional(DOWN, 0.25)]));
     assert_eq!(instance_masks(&result, &world, i), vec![1, 0]);
@@ -258,8 +311,16 @@ fn spot_and_point_lights_see_only_what_they_reach() {
     let mut world = World::new(2, 2);
     flat(&mut world, (0, 0));
     flat(&mut world, (1, 1));
-    let a = one(&mut world, cube(Vec3::new(6.0, 1.0, 6.0), Vec3::new(10.0, 2.0, 10.0)), OPAQUE);
-    let b = one(&mut world, cube(Vec3::new(12.0, 1.0, 12.0), Vec3::new(14.0, 2.0, 14.0)), OPAQUE);
+    let a = one(
+        &mut world,
+        cube(Vec3::new(6.0, 1.0, 6.0), Vec3::new(10.0, 2.0, 10.0)),
+        OPAQUE,
+    );
+    let b = one(
+        &mut world,
+        cube(Vec3::new(12.0, 1.0, 12.0), Vec3::new(14.0, 2.0, 14.0)),
+        OPAQUE,
+    );
     let a = place(&mut world, a);
     let b = world.place((1, 1), &[b], DMat4::IDENTITY, true);
     let point = LightSettings {
@@ -288,7 +349,11 @@ fn light_bits_follow_light_order() {
     let mut lights = Vec::new();
     for i in 0..3 {
         flat(&mut world, (i, 0));
-        let m = one(&mut world, cube(Vec3::new(6.0, 1.0, 6.0), Vec3::new(10.0, 2.0, 10.0)), OPAQUE);
+        let m = one(
+            &mut world,
+            cube(Vec3::new(6.0, 1.0, 6.0), Vec3::new(10.0, 2.0, 10.0)),
+            OPAQUE,
+        );
         boxes.push(world.place((i, 0), &[m], DMat4::IDENTITY, true));
         let x = i as f64 * CHUNK + 8.0;
         lights.push(LightSettings {

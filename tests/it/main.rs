@@ -1,8 +1,11 @@
 //! The integration tests, one binary (see ARCHITECTURE.md, "Testing").
 
 mod bad_input;
+mod bake_rules;
+mod bake_world;
 mod cli;
 mod generated;
+mod micro;
 mod packed_real;
 mod primitives_real;
 mod real_scene;

@@ -163,7 +163,13 @@ impl World {
 
     /// Places models in chunk `grid` with a chunk-local transform; returns
     /// the instance's index in the scene.
-    pub fn place(&mut self, grid: (i32, i32), parts: &[usize], local: DMat4, casts_shadow: bool) -> usize {
+    pub fn place(
+        &mut self,
+        grid: (i32, i32),
+        parts: &[usize],
+        local: DMat4,
+        casts_shadow: bool,
+    ) -> usize {
         let chunk = self.chunk_index(grid);
         let world = self.scene.chunks[chunk].transform * local;
         // Keep instances grouped by chunk in chunk order.
@@ -175,7 +181,10 @@ impl World {
                 chunk,
                 index: index_in_chunk,
                 kind: InstanceKind::Model,
-                resources: parts.iter().map(|p| self.scene.models[*p].resource.clone()).collect(),
+                resources: parts
+                    .iter()
+                    .map(|p| self.scene.models[*p].resource.clone())
+                    .collect(),
                 parts: parts.iter().map(|p| Some(*p)).collect(),
                 world,
                 mirrored: world.determinant() < 0.0,

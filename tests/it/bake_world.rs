@@ -1,0 +1,407 @@
+//! Whole bakes: the BVH path against the brute-force oracle on seeded random
+//! worlds, thread-count determinism, idempotent re-bakes, the report and the
+//! command line.
+
+use crate::generated::{fixture_dir, load_world};
+use crate::micro::*;
+use glam::{DMat4, DQuat, DVec3, Vec3};
+use shadowcull::bake::{self, BakeConfig, Silent};
+use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
+use shadowcull::formats::resources::write_tree;
+use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
+use shadowcull::rng::Rng;
+use std::path::Path;
+use std::process::Command;
+
+fn random_light(rng: &mut Rng, centre: DVec3) -> LightSettings {
+    let direction = loop {
+        let d = DVec3::new(
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, -0.1),
+            rng.range(-1.0, 1.0),
+        );
+        if d.length() > 0.1 {
+            break d.normalize();
+        }
+    };
+    let kind = match rng.below(3) {
+        0 => LightKind::Directional {
+            direction,
+            texel_size: rng.range(0.2, 0.5),
+        },
+        1 => LightKind::Spot {
+            position: centre - direction * rng.range(8.0, 20.0),
+            direction,
+            fov_degrees: rng.range(30.0, 120.0),
+            near: 0.1,
+            far: 60.0,
+            resolution: 40,
+        },
+        _ => LightKind::Point {
+            position: centre
+                + DVec3::new(
+                    rng.range(-4.0, 4.0),
+                    rng.range(3.0, 8.0),
+                    rng.range(-4.0, 4.0),
+                ),
+            near: 0.1,
+            far: rng.range(10.0, 40.0),
+            resolution: 20,
+        },
+    };
+    LightSettings {
+        name: format!("random{}", rng.below(1000)),
+        kind,
+    }
+}
+
+/// A random 2×2-chunk world: hilly terrain on some chunks, boxes and cards
+/// with random flags, rotations, scales and mirrors, some receiver-only,
+/// some sunk, some two-part.
+fn random_world(seed: u64) -> World {
+    let mut rng = Rng::new(seed);
+    let mut world = World::new(2, 2);
+    for grid in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        if rng.below(4) != 0 {
+            let (a, b, c) = (
+                rng.range(0.5, 3.0),
+                rng.range(0.2, 0.6),
+                rng.range(0.2, 0.6),
+            );
+            world.terrain(grid, move |x, z| a * (b * x).sin() * (c * z).cos());
+        }
+    }
+    let mut models = Vec::new();
+    for _ in 0..6 {
+        let size = Vec3::new(
+            rng.range(0.5, 3.0) as f32,
+            rng.range(0.5, 3.0) as f32,
+            rng.range(0.5, 3.0) as f32,
+        );
+        let flags = Flags {
+            alpha_tested: rng.below(4) == 0,
+            double_sided: rng.below(3) == 0,
+        };
+        let mesh = if rng.below(3) == 0 {
+            Mesh {
+                groups: vec![(quad_up(-size.x, -size.z, size.x, size.z, 0.0), flags)],
+            }
+        } else {
+            Mesh {
+                groups: vec![
+                    (cube(-size, size), flags),
+                    (
+                        quad_up(-size.x, -size.z, size.x, size.z, size.y + 0.5),
+                        OPAQUE,
+                    ),
+                ],
+            }
+        };
+        models.push(world.model(mesh));
+    }
+    for _ in 0..14 {
+        let grid = (rng.below(2) as i32, rng.below(2) as i32);
+        let rotation = DQuat::from_euler(
+            glam::EulerRot::YXZ,
+            rng.range(0.0, 6.3),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        );
+        let mut scale = DVec3::new(
+            rng.range(0.5, 2.0),
+            rng.range(0.5, 2.0),
+            rng.range(0.5, 2.0),
+        );
+        if rng.below(4) == 0 {
+            scale.x = -scale.x;
+        }
+        let position = DVec3::new(
+            rng.range(1.0, CHUNK - 1.0),
+            rng.range(-2.0, 6.0),
+            rng.range(1.0, CHUNK - 1.0),
+        );
+        let local = DMat4::from_scale_rotation_translation(scale, rotation, position);
+        let mut parts = vec![models[rng.below(models.len())]];
+        if rng.below(5) == 0 {
+            parts.push(models[rng.below(models.len())]);
+        }
+        world.place(grid, &parts, local, rng.below(6) != 0);
+    }
+    world
+}
+
+#[test]
+fn bvh_equals_brute_force_on_seeded_random_worlds() {
+    for seed in 0..12 {
+        let world = random_world(seed);
+        let mut rng = Rng::new(1000 + seed);
+        let centre = DVec3::new(CHUNK, 0.0, CHUNK);
+        let lights = (0..3).map(|_| random_light(&mut rng, centre)).collect();
+        let mut settings = config(lights);
+        settings.face_culling =
+            [FaceCulling::Back, FaceCulling::Front, FaceCulling::None][seed as usize % 3];
+        // `run` bakes with the BVH and with brute force and asserts equality.
+        let result = run(&world, &settings);
+        assert!(
+            result.masks.iter().any(|m| *m != 0),
+            "seed {seed}: nothing useful at all"
+        );
+    }
+}
+
+#[test]
+fn bvh_equals_brute_force_on_a_generated_world() {
+    let world = generate(Preset::Small, 4);
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &world.files).unwrap();
+    let scene = load_world(&dir.path().join(SETTINGS_FILE));
+    let settings =
+        shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE)).unwrap();
+    // Coarser grids than the file's, so the oracle stays quick.
+    let lights = settings
+        .lights
+        .iter()
+        .map(|l| {
+            let mut l = l.clone();
+            match &mut l.kind {
+                LightKind::Directional { texel_size, .. } => *texel_size *= 4.0,
+                LightKind::Spot { resolution, .. } | LightKind::Point { resolution, .. } => {
+                    *resolution = 48
+                }
+            }
+            l
+        })
+        .collect();
+    let config = BakeConfig {
+        face_culling: settings.face_culling,
+        height_bias: settings.height_bias,
+        tie_epsilon: settings.tie_epsilon,
+        lights,
+        brute_force: false,
+    };
+    let fast = bake::bake(&scene, &config, &Silent).unwrap();
+    let oracle = bake::bake(
+        &scene,
+        &BakeConfig {
+            brute_force: true,
+            ..config
+        },
+        &Silent,
+    )
+    .unwrap();
+    assert_eq!(fast.masks, oracle.masks);
+    assert!(fast.masks.iter().filter(|m| **m != 0).count() > 5);
+}
+
+#[test]
+fn masks_are_the_same_for_any_thread_count() {
+    let world = random_world(99);
+    let mut rng = Rng::new(5);
+    let lights: Vec<_> = (0..4)
+        .map(|_| random_light(&mut rng, DVec3::new(CHUNK, 0.0, CHUNK)))
+        .collect();
+    let settings = config(lights);
+    let masks: Vec<Vec<u32>> = [1, 2, 3, 5]
+        .into_iter()
+        .map(|threads| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| bake::bake(&world.scene, &settings, &Silent).unwrap().masks)
+        })
+        .collect();
+    for other in &masks[1..] {
+        assert_eq!(&masks[0], other);
+    }
+}
+
+fn shadowcull(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_shadowcull"))
+        .args(args)
+        .output()
+        .expect("run shadowcull")
+}
+
+fn copy_fixture(preset: Preset, to: &Path) {
+    write_tree(to, &generate(preset, crate::generated::FIXTURE_SEED).files).unwrap();
+}
+
+fn snapshot(dir: &Path) -> Vec<(std::path::PathBuf, Vec<u8>)> {
+    shadowcull::formats::resources::find_files(dir, ".chunk")
+        .unwrap()
+        .into_iter()
+        .map(|p| {
+            let bytes = std::fs::read(&p).unwrap();
+            (p, bytes)
+        })
+        .collect()
+}
+
+#[test]
+fn bake_in_place_is_idempotent_and_deterministic_across_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_fixture(Preset::Village, dir.path());
+    let settings = dir.path().join(SETTINGS_FILE);
+    let settings = settings.to_str().unwrap();
+    let before = snapshot(dir.path());
+
+    let dry = shadowcull(&["bake", settings, "--dry-run"]);
+    assert!(
+        dry.status.success(),
+        "{}",
+        String::from_utf8_lossy(&dry.stderr)
+    );
+    assert_eq!(snapshot(dir.path()), before, "--dry-run wrote nothing");
+    assert!(String::from_utf8_lossy(&dry.stdout).contains("would change 9 of 9"));
+
+    let first = shadowcull(&["bake", settings, "--threads", "1"]);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    let baked = snapshot(dir.path());
+    assert_ne!(baked, before);
+    let second = shadowcull(&["bake", settings, "--threads", "2"]);
+    assert!(second.status.success());
+    assert!(String::from_utf8_lossy(&second.stdout).contains("wrote 0 of 9"));
+    assert_eq!(
+        snapshot(dir.path()),
+        baked,
+        "a second bake leaves every file byte-identical"
+    );
+
+    // --out from the pristine fixture with another thread count gives the
+    // same bytes as the in-place bake.
+    let out = tempfile::tempdir().unwrap();
+    let fixture = fixture_dir(Preset::Village).join(SETTINGS_FILE);
+    let to_out = shadowcull(&[
+        "bake",
+        fixture.to_str().unwrap(),
+        "--out",
+        out.path().to_str().unwrap(),
+        "--threads",
+        "3",
+    ]);
+    assert!(
+        to_out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&to_out.stderr)
+    );
+    for (path, bytes) in &baked {
+        let relative = path.strip_prefix(dir.path()).unwrap();
+        assert_eq!(
+            &std::fs::read(out.path().join(relative)).unwrap(),
+            bytes,
+            "{}",
+            relative.display()
+        );
+    }
+}
+
+#[test]
+fn report_follows_the_schema() {
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.json");
+    let fixture = fixture_dir(Preset::Small).join(SETTINGS_FILE);
+    let out = shadowcull(&[
+        "bake",
+        fixture.to_str().unwrap(),
+        "--dry-run",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let value: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let lights = value["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), 3);
+    for (i, light) in lights.iter().enumerate() {
+        assert_eq!(light["index"], i);
+        for field in ["rays", "useful_casters", "culled_casters"] {
+            assert!(light[field].is_u64(), "{field}");
+        }
+        assert!(
+            light["seconds"].is_f64() && light["name"].is_string() && light["kind"].is_string()
+        );
+    }
+    let casters = value["casters"].as_array().unwrap();
+    let keys: Vec<(String, String, u64)> = casters
+        .iter()
+        .map(|c| {
+            (
+                c["chunk"].as_str().unwrap().to_string(),
+                c["kind"].as_str().unwrap().to_string(),
+                c["index"].as_u64().unwrap_or(0),
+            )
+        })
+        .collect();
+    let mut sorted = keys.clone();
+    sorted.sort();
+    assert_eq!(keys, sorted, "casters sorted by chunk, kind, index");
+    let expected = generate(Preset::Small, crate::generated::FIXTURE_SEED).expected;
+    let models = casters.iter().filter(|c| c["kind"] == "model").count() as u64;
+    let terrain = casters.iter().filter(|c| c["kind"] == "terrain").count() as u64;
+    assert_eq!(
+        (models, terrain),
+        (expected.instances, expected.terrain_blocks)
+    );
+    for caster in casters.iter().filter(|c| c["kind"] == "model") {
+        let groups = caster["groups"].as_array().unwrap();
+        let or = groups.iter().fold(0, |a, g| a | g.as_u64().unwrap());
+        assert_eq!(caster["mask"].as_u64().unwrap(), or);
+        assert!(caster["resources"]
+            .as_array()
+            .is_some_and(|r| !r.is_empty()));
+        if caster["receiver_only"] == true {
+            assert_eq!(
+                caster["mask"], 0,
+                "receiver-only instances are listed with mask 0"
+            );
+        }
+    }
+    assert_eq!(
+        casters
+            .iter()
+            .filter(|c| c["receiver_only"] == true)
+            .count() as u64,
+        expected.receiver_only_instances
+    );
+    assert!(value["skipped"].is_array());
+}
+
+#[test]
+fn bake_errors_exit_1_and_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_fixture(Preset::Small, dir.path());
+    let settings = dir.path().join(SETTINGS_FILE);
+    let text = std::fs::read_to_string(&settings).unwrap();
+    let lights: String = (0..33)
+        .map(|i| format!("\t\t<light>\t<name>\tl{i}\t</name>\t<type>\tdirectional\t</type>\t<direction>\t0 -1 0\t</direction>\t<texelSize>\t1\t</texelSize>\t</light>\n"))
+        .collect();
+    let start = text.find("<lights>").unwrap() + "<lights>".len();
+    let end = text.find("</lights>").unwrap();
+    std::fs::write(
+        &settings,
+        format!("{}\n{lights}\t{}", &text[..start], &text[end..]),
+    )
+    .unwrap();
+    let out = shadowcull(&["bake", settings.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let message = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        message.contains("bake.xml") && message.contains("32"),
+        "{message}"
+    );
+    assert_eq!(
+        shadowcull(&["bake", settings.to_str().unwrap(), "--threads", "0"])
+            .status
+            .code(),
+        Some(2)
+    );
+}
