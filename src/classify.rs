@@ -78,7 +78,7 @@ pub fn classify_ray(hits: &[RayHit], epsilon: f32, which: Passes, mut useful: im
         let Some(t1) = nearest_caster(hits, pass) else {
             continue;
         };
-        if crossings_from(hits, pass, t1 - epsilon, epsilon, 2).count < 2 {
+        if crossings_from(hits, pass, t1 - epsilon, epsilon).count < 2 {
             continue;
         }
         for hit in hits {
@@ -104,7 +104,7 @@ pub fn cutoff(hits: &[RayHit], epsilon: f32, which: Passes) -> f32 {
         let Some(t1) = nearest_caster(hits, pass) else {
             return f32::INFINITY;
         };
-        let crossings = crossings_from(hits, pass, t1 - epsilon, epsilon, 2);
+        let crossings = crossings_from(hits, pass, t1 - epsilon, epsilon);
         if crossings.count < 2 {
             return f32::INFINITY;
         }
@@ -128,22 +128,27 @@ struct Crossings {
 }
 
 /// Surface crossings among the pass's hits at `t >= from`, counting up to
-/// `limit`: hits on one caster within `epsilon` of its run's first hit are
-/// one crossing.
-fn crossings_from(hits: &[RayHit], pass: Pass, from: f32, epsilon: f32, limit: usize) -> Crossings {
-    // (caster, t of the first hit of its current run); lists are short.
-    let mut runs: Vec<(u32, f32)> = Vec::new();
+/// two (all the rules need): hits on one caster within `epsilon` of its
+/// run's first hit are one crossing. Runs on the hot path of every hit, so
+/// no allocation: at most two runs can be open before the count reaches 2.
+fn crossings_from(hits: &[RayHit], pass: Pass, from: f32, epsilon: f32) -> Crossings {
+    // (caster, t of the first hit of its current run).
+    let mut runs = [(0u32, 0.0f32); 2];
     let mut count = 0;
     let mut reached_at = f32::NEG_INFINITY;
     for hit in hits.iter().filter(|h| h.t >= from && pass.keeps(h)) {
-        match runs.iter_mut().find(|(caster, _)| *caster == hit.caster) {
-            Some((_, start)) if hit.t - *start <= epsilon => continue,
-            Some((_, start)) => *start = hit.t,
-            None => runs.push((hit.caster, hit.t)),
+        if let Some((_, start)) = runs[..count]
+            .iter()
+            .find(|(caster, _)| *caster == hit.caster)
+        {
+            if hit.t - *start <= epsilon {
+                continue;
+            }
         }
+        runs[count] = (hit.caster, hit.t);
         count += 1;
         reached_at = hit.t;
-        if count >= limit {
+        if count == runs.len() {
             break;
         }
     }

@@ -373,3 +373,44 @@ fn light_bits_follow_light_order() {
         assert_eq!(instance_masks(&result, &world, *b), vec![1 << i], "box {i}");
     }
 }
+
+#[test]
+fn light_whose_frustum_holds_nothing_is_skipped_and_reported() {
+    // A spot light pointing up, away from the only box: nothing in reach,
+    // no rays traced, the box keeps mask 0, `skipped` says why.
+    let mut world = World::new(1, 1);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(4.0, 0.0, 4.0), Vec3::new(8.0, 1.0, 8.0)),
+        OPAQUE,
+    );
+    let b = place(&mut world, m);
+    let up = spot("up", DVec3::new(6.0, 5.0, 6.0), DVec3::Y);
+    let result = run(&world, &config(vec![up]));
+    assert_eq!(instance_masks(&result, &world, b), vec![0]);
+    assert_eq!(result.lights[0].rays, 0);
+    assert!(
+        result
+            .skipped
+            .iter()
+            .any(|s| s.why.contains("holds no geometry")),
+        "{:?}",
+        result.skipped
+    );
+}
+
+#[test]
+fn empty_world_skips_directional_lights_and_33_lights_are_refused() {
+    let world = World::new(1, 1);
+    let result = run(&world, &config(vec![directional(DOWN, 1.0)]));
+    assert!(result.lights.is_empty());
+    assert!(
+        result.skipped.iter().any(|s| s.what.contains("sun")),
+        "{:?}",
+        result.skipped
+    );
+    let lights = (0..33).map(|_| directional(DOWN, 1.0)).collect();
+    let err = shadowcull::bake::bake(&world.scene, &config(lights), &shadowcull::bake::Silent)
+        .unwrap_err();
+    assert!(err.to_string().contains("at most 32"), "{err}");
+}

@@ -143,6 +143,72 @@ fn every_real_model_loads_with_its_index_header_counts() {
 }
 
 #[test]
+fn a_world_of_real_models_bakes_identically_with_the_oracle() {
+    // Every real model in a row over a thin ground slab (the real unit cube
+    // scaled), lit from above at an angle: BVH and brute force must agree
+    // on real geometry (skinned, nodefull, alpha-tested, double-sided).
+    let Some(root) = realdata("a_world_of_real_models_bakes_identically_with_the_oracle") else {
+        return;
+    };
+    let res = root.join("bigworld-14.4.1/res");
+    let models = real_model_names(&res);
+    let mut files = world_placing(&models);
+    let chunk = String::from_utf8(files[0].1.clone()).unwrap();
+    let ground = "\t<model>\n\t\t<resource>\thelpers/models/unit_cube.model\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t90.000000 0.000000 0.000000\t</row0>\n\t\t\t<row1>\t0.000000 0.100000 0.000000\t</row1>\n\t\t\t<row2>\t0.000000 0.000000 20.000000\t</row2>\n\t\t\t<row3>\t-5.000000 -0.100000 40.000000\t</row3>\n\t\t</transform>\n\t</model>\n</root>\n";
+    files[0].1 = chunk.replace("</root>\n", ground).into_bytes();
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &files).unwrap();
+    let scene = load_scene(&LoadConfig {
+        res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res.clone()]),
+        space: "spaces/real".into(),
+    })
+    .unwrap();
+    assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
+    let mut config = shadowcull::bake::BakeConfig {
+        face_culling: shadowcull::formats::bake_settings::FaceCulling::Back,
+        height_bias: 0.05,
+        tie_epsilon: 1e-4,
+        lights: vec![shadowcull::formats::bake_settings::LightSettings {
+            name: "sun".into(),
+            kind: shadowcull::formats::bake_settings::LightKind::Directional {
+                direction: glam::DVec3::new(0.3, -1.0, 0.2).normalize(),
+                texel_size: 0.1,
+            },
+        }],
+        brute_force: false,
+    };
+    let fast = shadowcull::bake::bake(&scene, &config, &shadowcull::bake::Silent).unwrap();
+    // The oracle tests every triangle per ray: compare on a coarser grid.
+    if let shadowcull::formats::bake_settings::LightKind::Directional { texel_size, .. } =
+        &mut config.lights[0].kind
+    {
+        *texel_size = 0.7;
+    }
+    let coarse = shadowcull::bake::bake(&scene, &config, &shadowcull::bake::Silent).unwrap();
+    config.brute_force = true;
+    let oracle = shadowcull::bake::bake(&scene, &config, &shadowcull::bake::Silent).unwrap();
+    assert_eq!(coarse.masks, oracle.masks);
+    // Everything standing on the slab shadows it somewhere.
+    let useful_instances = (0..models.len())
+        .filter(|&i| {
+            let first = fast.casters.first_of_instance[i].unwrap() as usize;
+            let groups: usize = scene.instances[i]
+                .parts
+                .iter()
+                .flatten()
+                .map(|m| scene.models[*m].groups.len())
+                .sum();
+            fast.masks[first..first + groups].iter().any(|m| *m != 0)
+        })
+        .count();
+    assert!(
+        useful_instances >= 20,
+        "only {useful_instances} of {} useful",
+        models.len()
+    );
+}
+
+#[test]
 fn arctic_loads_and_lists_every_missing_resource() {
     let Some(root) = realdata("arctic_loads_and_lists_every_missing_resource") else {
         return;
