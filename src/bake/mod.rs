@@ -36,6 +36,9 @@ pub struct BakeConfig {
 
 /// Where a bake reports progress; the library never prints.
 pub trait Progress: Sync {
+    /// Before the BVH build, which takes seconds on large worlds.
+    fn light_preparing(&self, _index: usize, _light: &LightSettings, _triangles: usize) {}
+    /// Before the rays are traced.
     fn light_started(&self, _index: usize, _light: &LightSettings, _rays: u64) {}
     /// Called from worker threads with the running total of rays traced.
     fn rays_traced(&self, _index: usize, _done: &AtomicU64) {}
@@ -52,7 +55,11 @@ pub struct LightReport {
     pub name: String,
     pub kind: &'static str,
     pub rays: u64,
+    /// Wall time for the light in all: geometry + BVH + tracing.
     pub seconds: f64,
+    pub geometry_seconds: f64,
+    pub bvh_seconds: f64,
+    pub trace_seconds: f64,
     pub useful_casters: usize,
     pub culled_casters: usize,
     /// Triangles in this light's BVH.
@@ -175,7 +182,8 @@ pub fn bake(
             Passes::AllOnly
         };
         let rays = grid.texel_count();
-        progress.light_started(index, light, rays);
+        let geometry_seconds = started.elapsed().as_secs_f64();
+        let (mut bvh_seconds, mut trace_seconds) = (0.0, 0.0);
         let useful = if geometry.triangles.is_empty() {
             skipped.push(Skipped {
                 what: name.clone(),
@@ -183,6 +191,8 @@ pub fn bake(
             });
             CasterSet::new(casters.len())
         } else {
+            progress.light_preparing(index, light, geometry.triangles.len());
+            let build_started = Instant::now();
             let bvh;
             let tracer = if config.brute_force {
                 Tracer::BruteForce(&geometry.triangles)
@@ -190,6 +200,9 @@ pub fn bake(
                 bvh = Bvh::build(&geometry.triangles);
                 Tracer::Bvh(&bvh)
             };
+            bvh_seconds = build_started.elapsed().as_secs_f64();
+            progress.light_started(index, light, rays);
+            let trace_started = Instant::now();
             let rules = RayRules {
                 face_culling: config.face_culling,
                 height_bias: config.height_bias,
@@ -210,6 +223,7 @@ pub fn bake(
                 rules,
                 &reporter,
             );
+            trace_seconds = trace_started.elapsed().as_secs_f64();
             useful
         };
         let mut useful_casters = 0;
@@ -229,6 +243,9 @@ pub fn bake(
                 rays
             },
             seconds: started.elapsed().as_secs_f64(),
+            geometry_seconds,
+            bvh_seconds,
+            trace_seconds,
             useful_casters,
             culled_casters: casters.real_casters() - useful_casters,
             triangles: geometry.triangles.len(),

@@ -135,18 +135,29 @@ fn bake_with(
     }
 
     println!(
-        "{:<3} {:<16} {:<12} {:>11} {:>9} {:>8} {:>8} {:>8}",
-        "#", "light", "kind", "rays", "seconds", "Mrays/s", "useful", "culled"
+        "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9} {:>9} {:>8} {:>8} {:>8}",
+        "#",
+        "light",
+        "kind",
+        "rays",
+        "triangles",
+        "bvh s",
+        "trace s",
+        "Mrays/s",
+        "useful",
+        "culled"
     );
     for light in &result.lights {
         println!(
-            "{:<3} {:<16} {:<12} {:>11} {:>9.3} {:>8.2} {:>8} {:>8}",
+            "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9.3} {:>9.3} {:>8.2} {:>8} {:>8}",
             light.index,
             light.name,
             light.kind,
             light.rays,
-            light.seconds,
-            light.rays as f64 / light.seconds.max(1e-9) / 1e6,
+            light.triangles,
+            light.bvh_seconds,
+            light.trace_seconds,
+            light.rays as f64 / light.trace_seconds.max(1e-9) / 1e6,
             light.useful_casters,
             light.culled_casters
         );

@@ -28,13 +28,22 @@ impl Reporter {
 }
 
 impl Progress for Reporter {
+    fn light_preparing(&self, index: usize, light: &LightSettings, triangles: usize) {
+        // A bar cannot move during the build; one line says what happens.
+        eprintln!(
+            "light {index} {} ({}): building the BVH over {triangles} triangles",
+            light.name,
+            light.kind.type_name()
+        );
+    }
+
     fn light_started(&self, index: usize, light: &LightSettings, rays: u64) {
         let label = format!("light {index} {} ({})", light.name, light.kind.type_name());
         if self.terminal {
             let bar = ProgressBar::new(rays);
             bar.set_style(
                 ProgressStyle::with_template(
-                    "{prefix} [{bar:40}] {pos}/{len} rays {per_sec} eta {eta}",
+                    "{prefix} [{bar:40}] {human_pos}/{human_len} rays, eta {eta}",
                 )
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
