@@ -405,3 +405,45 @@ fn bake_errors_exit_1_and_name_the_file() {
         Some(2)
     );
 }
+
+/// The masks of a whole fixture bake, as the report's `casters` list.
+fn fixture_casters(preset: Preset) -> serde_json::Value {
+    let settings_file = fixture_dir(preset).join(SETTINGS_FILE);
+    let scene = load_world(&settings_file);
+    let settings = shadowcull::formats::read_bake_settings(&settings_file).unwrap();
+    let config = BakeConfig {
+        face_culling: settings.face_culling,
+        height_bias: settings.height_bias,
+        tie_epsilon: settings.tie_epsilon,
+        lights: settings.lights,
+        brute_force: false,
+    };
+    let result = bake::bake(&scene, &config, &Silent).unwrap();
+    serde_json::to_value(bake::output::report(&scene, &result).casters).unwrap()
+}
+
+#[test]
+fn fixture_bakes_match_the_blessed_masks() {
+    // A regression guard, not a correctness proof (that is the oracle and
+    // the rule tests): a change of any mask in the fixtures must be a
+    // deliberate one, re-blessed with SHADOWCULL_BLESS=1.
+    for preset in [Preset::Small, Preset::Village] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("fixtures/expected")
+            .join(format!("{}-casters.json", preset.name()));
+        let got = fixture_casters(preset);
+        if std::env::var_os("SHADOWCULL_BLESS").is_some() {
+            let text = serde_json::to_string_pretty(&got).unwrap() + "\n";
+            shadowcull::formats::resources::write_atomic(&path, text.as_bytes()).unwrap();
+        }
+        let blessed: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; bless with SHADOWCULL_BLESS=1", path.display())),
+        )
+        .unwrap();
+        assert!(
+            got == blessed,
+            "{} differs from this bake; if the change is intended, re-bless with SHADOWCULL_BLESS=1 cargo test fixture",
+            path.display()
+        );
+    }
+}
