@@ -42,6 +42,7 @@ fn config(settings: &BakeSettings) -> BakeConfig {
         tie_epsilon: settings.tie_epsilon,
         lights: settings.lights.clone(),
         brute_force: false,
+        ..Default::default()
     }
 }
 
@@ -93,6 +94,7 @@ fn bake_bench(c: &mut Criterion) {
                     &casters,
                     ground.as_ref(),
                     rules,
+                    1,
                     &NoCount,
                 )
             })

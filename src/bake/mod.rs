@@ -7,6 +7,7 @@ pub mod casters;
 pub mod geometry;
 pub mod ground;
 pub mod output;
+pub mod refine;
 pub mod trace_light;
 
 use crate::classify::Passes;
@@ -32,6 +33,42 @@ pub struct BakeConfig {
     /// Trace every ray against every triangle instead of the BVH (the
     /// oracle; slow).
     pub brute_force: bool,
+    /// Rays per texel side: 1 traces texel centres, k a k×k pattern of
+    /// sub-texel centres (the same rays as a k× denser grid).
+    pub supersample: u32,
+    /// Refinement: rays aimed at this many points of every caster's own
+    /// surface that the grid did not prove useful (0: off).
+    pub refine_samples: u32,
+}
+
+impl BakeConfig {
+    /// The settings file's values; no supersampling, no refinement.
+    pub fn from_settings(settings: &crate::formats::bake_settings::BakeSettings) -> BakeConfig {
+        BakeConfig {
+            face_culling: settings.face_culling,
+            height_bias: settings.height_bias,
+            tie_epsilon: settings.tie_epsilon,
+            lights: settings.lights.clone(),
+            brute_force: false,
+            supersample: 1,
+            refine_samples: 0,
+        }
+    }
+}
+
+impl Default for BakeConfig {
+    /// SPEC §3 defaults and no lights.
+    fn default() -> Self {
+        BakeConfig {
+            face_culling: FaceCulling::Back,
+            height_bias: 0.05,
+            tie_epsilon: 1e-4,
+            lights: Vec::new(),
+            brute_force: false,
+            supersample: 1,
+            refine_samples: 0,
+        }
+    }
 }
 
 /// Where a bake reports progress; the library never prints.
@@ -54,7 +91,10 @@ pub struct LightReport {
     pub index: usize,
     pub name: String,
     pub kind: &'static str,
+    /// Texel rays (texels × supersample²) plus refinement rays.
     pub rays: u64,
+    /// Of `rays`, those aimed at casters' own surfaces (`refine`).
+    pub refine_rays: u64,
     /// Wall time for the light in all: geometry + BVH + tracing.
     pub seconds: f64,
     pub geometry_seconds: f64,
@@ -181,7 +221,9 @@ pub fn bake(
             });
             Passes::AllOnly
         };
-        let rays = grid.texel_count();
+        let supersample = config.supersample.max(1);
+        let mut rays = grid.texel_count() * (supersample as u64).pow(2);
+        let mut refine_rays = 0;
         let geometry_seconds = started.elapsed().as_secs_f64();
         let (mut bvh_seconds, mut trace_seconds) = (0.0, 0.0);
         let useful = if geometry.triangles.is_empty() {
@@ -215,14 +257,31 @@ pub fn bake(
                 index,
                 done: &done,
             };
-            let useful = trace_light::trace_light(
+            let mut useful = trace_light::trace_light(
                 &grid,
                 &tracer,
                 &casters,
                 ground.as_ref(),
                 rules,
+                supersample,
                 &reporter,
             );
+            if config.refine_samples > 0 {
+                let (refined, traced) = refine::refine(
+                    &grid,
+                    index,
+                    &geometry.triangles,
+                    &tracer,
+                    &casters,
+                    ground.as_ref(),
+                    rules,
+                    &useful,
+                    config.refine_samples,
+                );
+                useful = useful.union(&refined);
+                refine_rays = traced;
+                rays += traced;
+            }
             trace_seconds = trace_started.elapsed().as_secs_f64();
             useful
         };
@@ -242,6 +301,7 @@ pub fn bake(
             } else {
                 rays
             },
+            refine_rays,
             seconds: started.elapsed().as_secs_f64(),
             geometry_seconds,
             bvh_seconds,

@@ -7,7 +7,7 @@ use super::casters::CasterTable;
 use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
-use crate::light::TexelGrid;
+use crate::light::{TexelGrid, TexelRay};
 use crate::trace::{Bvh, Hit, TraceRay, TraceTriangle};
 use rayon::prelude::*;
 
@@ -77,16 +77,20 @@ impl Tracer<'_> {
     }
 }
 
-/// Traces every texel of `grid`; `rays_done` hears of every finished tile so
-/// a caller can show progress.
+/// Traces every texel of `grid` with `samples`² rays each (1: the texel
+/// centre; k: a k×k pattern of sub-texel centres); `rays_done` hears of
+/// every finished tile so a caller can show progress.
 pub fn trace_light(
     grid: &TexelGrid,
     tracer: &Tracer<'_>,
     casters: &CasterTable,
     ground: Option<&Ground<'_>>,
     rules: RayRules,
+    samples: u32,
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
+    let samples = samples.max(1);
+    let step = 1.0 / samples as f64;
     let tiles_x = grid.width().div_ceil(TILE);
     let tiles_y = grid.height().div_ceil(TILE);
     let tiles = grid.faces() as u64 * tiles_x as u64 * tiles_y as u64;
@@ -103,21 +107,28 @@ pub fn trace_light(
                 let y1 = (y0 + TILE).min(grid.height());
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        trace_texel(
-                            grid,
-                            tracer,
-                            casters,
-                            ground,
-                            rules,
-                            face,
-                            x,
-                            y,
-                            &mut hits,
-                            &mut useful,
-                        );
+                        for sy in 0..samples {
+                            for sx in 0..samples {
+                                let ray = grid.ray_through(
+                                    face,
+                                    x as f64 + (sx as f64 + 0.5) * step,
+                                    y as f64 + (sy as f64 + 0.5) * step,
+                                );
+                                trace_ray(
+                                    &ray,
+                                    grid.reference_point(),
+                                    tracer,
+                                    casters,
+                                    ground,
+                                    rules,
+                                    &mut hits,
+                                    &mut useful,
+                                );
+                            }
+                        }
                     }
                 }
-                rays_done.add(((x1 - x0) * (y1 - y0)) as u64);
+                rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
                 (useful, hits)
             },
         )
@@ -125,22 +136,21 @@ pub fn trace_light(
         .reduce(|| CasterSet::new(casters.len()), |a, b| a.union(&b))
 }
 
+/// One ray of the light: its hits filtered by face culling and the
+/// below-ground test, classified, and the useful casters added to `useful`.
+/// `reference` is the light's f32 frame origin (`TexelGrid::reference_point`).
 #[allow(clippy::too_many_arguments)]
-fn trace_texel(
-    grid: &TexelGrid,
+pub fn trace_ray(
+    ray: &TexelRay,
+    reference: glam::DVec3,
     tracer: &Tracer<'_>,
     casters: &CasterTable,
     ground: Option<&Ground<'_>>,
     rules: RayRules,
-    face: usize,
-    x: u32,
-    y: u32,
     hits: &mut Vec<RayHit>,
     useful: &mut CasterSet,
 ) {
-    let ray = grid.ray(face, x, y);
-    let reference = grid.reference_point();
-    let trace_ray = TraceRay {
+    let traced = TraceRay {
         origin: (ray.origin - reference).as_vec3(),
         direction: ray.direction.as_vec3(),
         t_min: ray.t_min as f32,
@@ -151,8 +161,8 @@ fn trace_texel(
         },
     };
     hits.clear();
-    let mut limit = trace_ray.t_max;
-    tracer.for_each_hit(&trace_ray, |hit| {
+    let mut limit = traced.t_max;
+    tracer.for_each_hit(&traced, |hit| {
         let caster = &casters.casters[hit.caster as usize];
         let culled = !caster.double_sided
             && match rules.face_culling {

@@ -37,6 +37,16 @@ pub struct BakeArgs {
     /// Override <tieEpsilon> (metres along a ray).
     #[arg(long, value_name = "M")]
     tie_epsilon: Option<f64>,
+    /// Rays per texel side: k traces a k×k pattern per texel.
+    #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    supersample: u32,
+    /// After the grid, aim extra rays at the surfaces of casters not yet
+    /// useful (catches casters smaller than a texel).
+    #[arg(long)]
+    refine: bool,
+    /// Rays per caster for --refine.
+    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    refine_samples: u32,
     /// Trace every ray against every triangle instead of the BVH (the
     /// correctness oracle; slow).
     #[arg(long, hide = true)]
@@ -46,11 +56,10 @@ pub struct BakeArgs {
 pub fn run(args: BakeArgs) -> Result<()> {
     let settings = load_settings(&args.settings)?;
     let mut config = BakeConfig {
-        face_culling: settings.face_culling,
-        height_bias: settings.height_bias,
-        tie_epsilon: settings.tie_epsilon,
-        lights: settings.lights.clone(),
         brute_force: args.brute_force,
+        supersample: args.supersample,
+        refine_samples: if args.refine { args.refine_samples } else { 0 },
+        ..BakeConfig::from_settings(&settings)
     };
     if let Some(mode) = &args.face_culling {
         config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;

@@ -366,8 +366,13 @@ impl TexelGrid {
             self.width,
             self.height
         );
-        let cx = x as f64 + 0.5;
-        let cy = y as f64 + 0.5;
+        self.ray_through(face, x as f64 + 0.5, y as f64 + 0.5)
+    }
+
+    /// The ray through grid position (`cx`, `cy`) of `face`, in texel units
+    /// (texel (x, y) spans [x, x+1) × [y, y+1); its centre is (x+0.5,
+    /// y+0.5)): supersampling traces several per texel.
+    pub fn ray_through(&self, face: usize, cx: f64, cy: f64) -> TexelRay {
         match &self.projection {
             Projection::Orthographic {
                 direction,
@@ -409,6 +414,76 @@ impl TexelGrid {
                     t_min: *near,
                     t_max: *far,
                 }
+            }
+        }
+    }
+
+    /// The light's ray through world point `p` (for refinement rays aimed at
+    /// a caster's own surface), or `None` when the shadow map does not cover
+    /// `p`: outside a directional grid's extent, outside a spot light's
+    /// pyramid, or not between `near` and `far`. The ray starts where the
+    /// texel rays start (the origin plane, or the light position), so it is
+    /// filtered and classified exactly like them.
+    pub fn ray_toward(&self, p: DVec3) -> Option<TexelRay> {
+        if !p.is_finite() {
+            return None;
+        }
+        match &self.projection {
+            Projection::Orthographic {
+                direction,
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                w_origin,
+                t_max,
+            } => {
+                let (pu, pv) = (p.dot(*u), p.dot(*v));
+                let inside = |value: f64, min: f64, count: u32| {
+                    value >= min && value <= min + count as f64 * texel_size
+                };
+                if !inside(pu, *u_min, self.width) || !inside(pv, *v_min, self.height) {
+                    return None;
+                }
+                let origin = *u * pu + *v * pv + *direction * *w_origin;
+                Some(TexelRay {
+                    origin,
+                    direction: *direction,
+                    t_min: 0.0,
+                    t_max: *t_max,
+                })
+            }
+            Projection::Perspective {
+                position,
+                near,
+                far,
+                half_extent,
+                frame,
+                cube,
+            } => {
+                let offset = p - *position;
+                let distance = offset.length();
+                if !(distance >= *near && distance <= *far) {
+                    return None;
+                }
+                let direction = offset / distance;
+                if !*cube {
+                    let (forward, u, v) = *frame;
+                    let depth = direction.dot(forward);
+                    if depth <= 0.0
+                        || direction.dot(u).abs() > half_extent * depth
+                        || direction.dot(v).abs() > half_extent * depth
+                    {
+                        return None;
+                    }
+                }
+                Some(TexelRay {
+                    origin: *position,
+                    direction,
+                    t_min: *near,
+                    t_max: *far,
+                })
             }
         }
     }

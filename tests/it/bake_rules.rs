@@ -414,3 +414,32 @@ fn empty_world_skips_directional_lights_and_33_lights_are_refused() {
         .unwrap_err();
     assert!(err.to_string().contains("at most 32"), "{err}");
 }
+
+#[test]
+fn casters_smaller_than_a_texel_need_supersampling_or_refinement() {
+    // 1 m texels over a 16 m block straight down: centres at x, z = k + 0.5.
+    // A 15 cm box spanning 0.80..0.95 lies between centres: the plain grid
+    // misses it (culled). 2×2 sub-centres (k + 0.25, k + 0.75) miss it too;
+    // 4×4 (k + 0.125 … k + 0.875) hit it at 0.875 → useful (terrain
+    // behind). Refinement aims rays at its own faces → useful as well.
+    let mut world = World::new(1, 1);
+    flat(&mut world, (0, 0));
+    let m = one(&mut world, cube(Vec3::new(0.8, 1.0, 0.8), Vec3::new(0.95, 1.2, 0.95)), OPAQUE);
+    let small = place(&mut world, m);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    assert_eq!(instance_masks(&run(&world, &settings), &world, small), vec![0]);
+    settings.supersample = 2;
+    assert_eq!(instance_masks(&run(&world, &settings), &world, small), vec![0]);
+    settings.supersample = 4;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, small), vec![1]);
+    assert_eq!(result.lights[0].rays, 16 * 16 * 16);
+    settings.supersample = 1;
+    settings.refine_samples = 8;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, small), vec![1]);
+    // Refinement rays go only to casters the grid did not prove useful:
+    // the box (8 samples) and the terrain block (8 samples), never useful.
+    assert_eq!(result.lights[0].refine_rays, 16);
+    assert_eq!(terrain_mask(&result, 0), 0);
+}

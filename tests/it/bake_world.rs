@@ -178,6 +178,7 @@ fn bvh_equals_brute_force_on_a_generated_world() {
         tie_epsilon: settings.tie_epsilon,
         lights,
         brute_force: false,
+        ..Default::default()
     };
     let fast = bake::bake(&scene, &config, &Silent).unwrap();
     let oracle = bake::bake(
@@ -417,6 +418,7 @@ fn fixture_casters(preset: Preset) -> serde_json::Value {
         tie_epsilon: settings.tie_epsilon,
         lights: settings.lights,
         brute_force: false,
+        ..Default::default()
     };
     let result = bake::bake(&scene, &config, &Silent).unwrap();
     serde_json::to_value(bake::output::report(&scene, &result).casters).unwrap()
@@ -436,10 +438,11 @@ fn fixture_bakes_match_the_blessed_masks() {
             let text = serde_json::to_string_pretty(&got).unwrap() + "\n";
             shadowcull::formats::resources::write_atomic(&path, text.as_bytes()).unwrap();
         }
-        let blessed: serde_json::Value = serde_json::from_slice(
-            &std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; bless with SHADOWCULL_BLESS=1", path.display())),
-        )
-        .unwrap();
+        let blessed: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&path).unwrap_or_else(|e| {
+                panic!("{}: {e}; bless with SHADOWCULL_BLESS=1", path.display())
+            }))
+            .unwrap();
         assert!(
             got == blessed,
             "{} differs from this bake; if the change is intended, re-bless with SHADOWCULL_BLESS=1 cargo test fixture",

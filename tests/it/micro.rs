@@ -251,6 +251,7 @@ pub fn config(lights: Vec<LightSettings>) -> BakeConfig {
         tie_epsilon: 1e-4,
         lights,
         brute_force: false,
+        ..Default::default()
     }
 }
 

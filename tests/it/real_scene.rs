@@ -176,6 +176,7 @@ fn a_world_of_real_models_bakes_identically_with_the_oracle() {
             },
         }],
         brute_force: false,
+        ..Default::default()
     };
     let fast = shadowcull::bake::bake(&scene, &config, &shadowcull::bake::Silent).unwrap();
     // The oracle tests every triangle per ray: compare on a coarser grid.

@@ -1,0 +1,111 @@
+//! Refinement (`--refine`): after the texel grid, every caster not yet
+//! useful for a light gets extra rays aimed at points of its own surface.
+//! The grid samples the light's view at texel centres, so a caster smaller
+//! than a texel, or a thin one between centres, can be missed; rays through
+//! its own triangles look where it actually is. Any ray that proves a
+//! caster useful keeps it (the rays are fixed before tracing and the results
+//! OR-ed, so the outcome does not depend on order or threads).
+
+use super::casters::CasterTable;
+use super::ground::Ground;
+use super::trace_light::{trace_ray, CasterSet, RayRules, Tracer};
+use crate::light::TexelGrid;
+use crate::rng::{mix, Rng};
+use crate::trace::TraceTriangle;
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// Barycentric coordinates stay this far from the edges, so a sample lies
+/// inside its triangle and its ray crosses that triangle, not a neighbour.
+const EDGE_MARGIN: f64 = 0.02;
+
+/// Extra rays for every caster (id) of `triangles` that is neither useful
+/// yet nor receiver-only: `samples` points per caster, area-weighted over its
+/// triangles, deterministic per (light, caster). Returns the casters the
+/// rays prove useful and how many rays were traced.
+#[allow(clippy::too_many_arguments)]
+pub fn refine(
+    grid: &TexelGrid,
+    light_index: usize,
+    triangles: &[TraceTriangle],
+    tracer: &Tracer<'_>,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+    already_useful: &CasterSet,
+    samples: u32,
+) -> (CasterSet, u64) {
+    // Triangles arrive caster by caster (scene order), so each caster's are
+    // one contiguous run.
+    let mut runs: Vec<(u32, std::ops::Range<usize>)> = Vec::new();
+    for (index, triangle) in triangles.iter().enumerate() {
+        match runs.last_mut() {
+            Some((caster, range)) if *caster == triangle.caster && range.end == index => {
+                range.end = index + 1
+            }
+            _ => runs.push((triangle.caster, index..index + 1)),
+        }
+    }
+    runs.retain(|(caster, _)| {
+        !already_useful.contains(*caster) && !casters.casters[*caster as usize].receiver_only
+    });
+    let reference = grid.reference_point();
+    runs.par_iter()
+        .fold(
+            || (CasterSet::new(casters.len()), Vec::new(), 0u64),
+            |(mut useful, mut hits, mut rays), (caster, range)| {
+                let run = &triangles[range.clone()];
+                let areas: Vec<f64> = run.iter().map(area).collect();
+                let total: f64 = areas.iter().sum();
+                if !(total > 0.0) {
+                    return (useful, hits, rays);
+                }
+                let mut rng = Rng::new(mix(((light_index as u64) << 32) | *caster as u64));
+                for _ in 0..samples {
+                    let pick = rng.unit() * total;
+                    let mut chosen = run.len() - 1;
+                    let mut sum = 0.0;
+                    for (i, a) in areas.iter().enumerate() {
+                        sum += a;
+                        if pick < sum {
+                            chosen = i;
+                            break;
+                        }
+                    }
+                    let p = reference + sample_point(&run[chosen], &mut rng);
+                    if let Some(ray) = grid.ray_toward(p) {
+                        rays += 1;
+                        trace_ray(
+                            &ray,
+                            reference,
+                            tracer,
+                            casters,
+                            ground,
+                            rules,
+                            &mut hits,
+                            &mut useful,
+                        );
+                    }
+                }
+                (useful, hits, rays)
+            },
+        )
+        .map(|(useful, _, rays)| (useful, rays))
+        .reduce(
+            || (CasterSet::new(casters.len()), 0),
+            |(a, ra), (b, rb)| (a.union(&b), ra + rb),
+        )
+}
+
+fn area(triangle: &TraceTriangle) -> f64 {
+    let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
+    0.5 * (b - a).cross(c - a).length()
+}
+
+/// A uniform point of the triangle (light-relative), away from its edges.
+fn sample_point(triangle: &TraceTriangle, rng: &mut Rng) -> DVec3 {
+    let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
+    let squeeze = |r: f64| EDGE_MARGIN + (1.0 - 2.0 * EDGE_MARGIN) * r;
+    let (r1, r2) = (squeeze(rng.unit()).sqrt(), squeeze(rng.unit()));
+    a * (1.0 - r1) + b * (r1 * (1.0 - r2)) + c * (r1 * r2)
+}
