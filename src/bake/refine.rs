@@ -57,7 +57,7 @@ pub fn refine(
                 let run = &triangles[range.clone()];
                 let areas: Vec<f64> = run.iter().map(area).collect();
                 let total: f64 = areas.iter().sum();
-                if !(total > 0.0) {
+                if total.is_nan() || total <= 0.0 {
                     return (useful, hits, rays);
                 }
                 let mut rng = Rng::new(mix(((light_index as u64) << 32) | *caster as u64));
