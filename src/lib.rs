@@ -10,6 +10,7 @@ pub mod inspect;
 pub mod light;
 pub mod rng;
 pub mod scene;
+pub mod sweep;
 pub mod trace;
 
 pub use error::{Error, Result};

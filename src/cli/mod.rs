@@ -3,6 +3,7 @@
 
 mod bake;
 mod progress;
+mod sweep;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -39,6 +40,8 @@ pub(crate) struct SettingsArgs {
 enum Command {
     /// Bake every light and write the masks into the chunk files.
     Bake(bake::BakeArgs),
+    /// Classification error against run time over a ladder of settings.
+    Sweep(sweep::SweepArgs),
     /// Print what the world holds, without baking.
     Inspect {
         #[command(flatten)]
@@ -83,6 +86,7 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
+        Command::Sweep(args) => sweep::run(args),
         Command::Inspect { settings, json } => {
             let settings = load_settings(&settings)?;
             let scene = scene::load_scene(&load_config(&settings))?;

@@ -424,12 +424,22 @@ fn casters_smaller_than_a_texel_need_supersampling_or_refinement() {
     // behind). Refinement aims rays at its own faces → useful as well.
     let mut world = World::new(1, 1);
     flat(&mut world, (0, 0));
-    let m = one(&mut world, cube(Vec3::new(0.8, 1.0, 0.8), Vec3::new(0.95, 1.2, 0.95)), OPAQUE);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(0.8, 1.0, 0.8), Vec3::new(0.95, 1.2, 0.95)),
+        OPAQUE,
+    );
     let small = place(&mut world, m);
     let mut settings = config(vec![directional(DOWN, 1.0)]);
-    assert_eq!(instance_masks(&run(&world, &settings), &world, small), vec![0]);
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, small),
+        vec![0]
+    );
     settings.supersample = 2;
-    assert_eq!(instance_masks(&run(&world, &settings), &world, small), vec![0]);
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, small),
+        vec![0]
+    );
     settings.supersample = 4;
     let result = run(&world, &settings);
     assert_eq!(instance_masks(&result, &world, small), vec![1]);

@@ -11,6 +11,7 @@ mod primitives_real;
 mod real_scene;
 mod shadow_write_real;
 mod support;
+mod sweep;
 mod terrain_real;
 mod visual_real;
 mod xml_real;

@@ -1,0 +1,431 @@
+//! Accuracy against run time (`shadowcull sweep`): the same world baked on a
+//! ladder of settings — texel density ×¼ … ×4, k×k supersampling, and
+//! refinement — each compared, per (caster, light) pair, with a much denser
+//! reference bake. A bake is a sampled answer; this shows how wrong each
+//! setting can be and what more accuracy costs.
+//!
+//! Every caster a bake keeps was proven useful by a ray, so a *false keep*
+//! (kept here, culled by the reference) is a caster the reference missed;
+//! the error that costs shadows in game is the *false cull*.
+
+use crate::bake::{self, BakeConfig, BakeError, BakeResult, Silent};
+use crate::formats::bake_settings::{LightKind, LightSettings};
+use crate::scene::Scene;
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::time::Instant;
+
+/// What to compare against, and how refinement samples.
+#[derive(Debug, Clone)]
+pub struct SweepConfig {
+    /// The reference is the configured grid this many times denser (per
+    /// side), plus refinement with `reference_refine_samples`.
+    pub reference_density: f64,
+    pub reference_refine_samples: u32,
+    /// Samples per caster of the ladder's refinement rows.
+    pub refine_samples: u32,
+}
+
+impl Default for SweepConfig {
+    fn default() -> Self {
+        SweepConfig {
+            reference_density: 8.0,
+            reference_refine_samples: 64,
+            refine_samples: 16,
+        }
+    }
+}
+
+/// One setting of the ladder.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Setting {
+    /// Texel density relative to the settings file, per side.
+    pub density: f64,
+    /// k: k×k rays per texel.
+    pub supersample: u32,
+    /// Refinement samples per caster (0: none).
+    pub refine_samples: u32,
+}
+
+impl Setting {
+    pub fn label(&self) -> String {
+        let mut label = format!("density x{}", fraction(self.density));
+        if self.supersample > 1 {
+            let _ = write!(label, ", {0}x{0} samples", self.supersample);
+        }
+        if self.refine_samples > 0 {
+            let _ = write!(label, ", refine {}", self.refine_samples);
+        }
+        label
+    }
+}
+
+fn fraction(value: f64) -> String {
+    match value {
+        v if (v - 0.25).abs() < 1e-12 => "1/4".into(),
+        v if (v - 0.5).abs() < 1e-12 => "1/2".into(),
+        v => format!("{v}"),
+    }
+}
+
+/// The ladder: density ×¼ … ×4, 2×2 and 4×4 supersampling at ×1, and
+/// refinement at ×¼, ×½ and ×1.
+pub fn ladder(config: &SweepConfig) -> Vec<Setting> {
+    let plain = |density| Setting {
+        density,
+        supersample: 1,
+        refine_samples: 0,
+    };
+    let mut settings: Vec<Setting> = [0.25, 0.5, 1.0, 2.0, 4.0].map(plain).to_vec();
+    for k in [2, 4] {
+        settings.push(Setting {
+            supersample: k,
+            ..plain(1.0)
+        });
+    }
+    for density in [0.25, 0.5, 1.0] {
+        settings.push(Setting {
+            refine_samples: config.refine_samples,
+            ..plain(density)
+        });
+    }
+    settings
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub label: String,
+    #[serde(flatten)]
+    pub setting: Setting,
+    pub rays: u64,
+    pub seconds: f64,
+    /// Useful in the reference, culled here: a missing shadow in game.
+    pub false_culls: u64,
+    /// Culled in the reference, kept here: wasted shadow-pass work (or a
+    /// caster the reference missed).
+    pub false_keeps: u64,
+    /// (caster, light) pairs compared.
+    pub pairs: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SweepReport {
+    pub reference: Row,
+    pub rows: Vec<Row>,
+}
+
+/// A light with its grid `density` times denser per side.
+pub fn scale_light(light: &LightSettings, density: f64) -> LightSettings {
+    let mut light = light.clone();
+    match &mut light.kind {
+        LightKind::Directional { texel_size, .. } => *texel_size /= density,
+        LightKind::Spot { resolution, .. } | LightKind::Point { resolution, .. } => {
+            *resolution = ((*resolution as f64 * density).round() as u32).max(1)
+        }
+    }
+    light
+}
+
+fn bake_setting(
+    scene: &Scene,
+    base: &BakeConfig,
+    setting: Setting,
+) -> Result<(BakeResult, f64), BakeError> {
+    let config = BakeConfig {
+        lights: base
+            .lights
+            .iter()
+            .map(|l| scale_light(l, setting.density))
+            .collect(),
+        supersample: setting.supersample,
+        refine_samples: setting.refine_samples,
+        ..base.clone()
+    };
+    let started = Instant::now();
+    let result = bake::bake(scene, &config, &Silent)?;
+    Ok((result, started.elapsed().as_secs_f64()))
+}
+
+fn row(setting: Setting, result: &BakeResult, seconds: f64, reference: &BakeResult) -> Row {
+    let lights = reference.lights.len().max(result.lights.len());
+    let (mut false_culls, mut false_keeps, mut pairs) = (0, 0, 0);
+    for (id, caster) in result.casters.casters.iter().enumerate() {
+        if caster.receiver_only {
+            continue;
+        }
+        let (here, truth) = (result.masks[id], reference.masks[id]);
+        for light in 0..lights {
+            let bit = 1u32 << light;
+            pairs += 1;
+            false_culls += u64::from(truth & bit != 0 && here & bit == 0);
+            false_keeps += u64::from(truth & bit == 0 && here & bit != 0);
+        }
+    }
+    Row {
+        label: setting.label(),
+        setting,
+        rays: result.lights.iter().map(|l| l.rays).sum(),
+        seconds,
+        false_culls,
+        false_keeps,
+        pairs,
+    }
+}
+
+/// Bakes the reference and every setting of the ladder. `on_row` hears of
+/// each finished row (for progress).
+pub fn sweep(
+    scene: &Scene,
+    base: &BakeConfig,
+    config: &SweepConfig,
+    mut on_row: impl FnMut(&Row),
+) -> Result<SweepReport, BakeError> {
+    let reference_setting = Setting {
+        density: config.reference_density,
+        supersample: 1,
+        refine_samples: config.reference_refine_samples,
+    };
+    let (reference, reference_seconds) = bake_setting(scene, base, reference_setting)?;
+    let reference_row = row(reference_setting, &reference, reference_seconds, &reference);
+    on_row(&reference_row);
+    let mut rows = Vec::new();
+    for setting in ladder(config) {
+        let (result, seconds) = bake_setting(scene, base, setting)?;
+        let row = row(setting, &result, seconds, &reference);
+        on_row(&row);
+        rows.push(row);
+    }
+    Ok(SweepReport {
+        reference: reference_row,
+        rows,
+    })
+}
+
+impl SweepReport {
+    pub fn to_csv(&self) -> String {
+        let mut out = String::from(
+            "label,density,supersample,refine_samples,rays,seconds,false_culls,false_keeps,pairs\n",
+        );
+        for row in std::iter::once(&self.reference).chain(&self.rows) {
+            let _ = writeln!(
+                out,
+                "\"{}{}\",{},{},{},{},{:.6},{},{},{}",
+                if std::ptr::eq(row, &self.reference) {
+                    "reference: "
+                } else {
+                    ""
+                },
+                row.label,
+                row.setting.density,
+                row.setting.supersample,
+                row.setting.refine_samples,
+                row.rays,
+                row.seconds,
+                row.false_culls,
+                row.false_keeps,
+                row.pairs
+            );
+        }
+        out
+    }
+
+    pub fn to_table(&self) -> String {
+        let mut out = format!(
+            "reference: {} ({} rays, {:.2} s)\n{:<34} {:>12} {:>9} {:>11} {:>11} {:>8}\n",
+            self.reference.label,
+            self.reference.rays,
+            self.reference.seconds,
+            "setting",
+            "rays",
+            "seconds",
+            "false culls",
+            "false keeps",
+            "pairs"
+        );
+        for row in &self.rows {
+            let _ = writeln!(
+                out,
+                "{:<34} {:>12} {:>9.3} {:>11} {:>11} {:>8}",
+                row.label, row.rays, row.seconds, row.false_culls, row.false_keeps, row.pairs
+            );
+        }
+        out
+    }
+
+    /// Both errors against seconds (log scale), one labelled point per
+    /// setting, as a self-contained SVG.
+    pub fn to_svg(&self) -> String {
+        let (width, height, margin) = (760.0, 460.0, 70.0);
+        let seconds: Vec<f64> = self.rows.iter().map(|r| r.seconds.max(1e-4)).collect();
+        let (lo, hi) = seconds.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), s| {
+            (lo.min(*s), hi.max(*s))
+        });
+        let (lo, hi) = (
+            lo.log10().floor(),
+            hi.log10().ceil().max(lo.log10().floor() + 1.0),
+        );
+        let max_error = self
+            .rows
+            .iter()
+            .map(|r| r.false_culls.max(r.false_keeps))
+            .max()
+            .unwrap_or(0)
+            .max(1) as f64;
+        // log(1 + e): zero stays on the axis, small counts stay apart.
+        let top = (1.0 + max_error).log10().ceil().max(1.0);
+        let x = |s: f64| margin + (s.max(1e-4).log10() - lo) / (hi - lo) * (width - 2.0 * margin);
+        let y = |e: f64| height - margin - (1.0 + e).log10() / top * (height - 2.0 * margin);
+        let mut svg = format!(
+            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width}\" height=\"{height}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n"
+        );
+        let _ = writeln!(
+            svg,
+            "<text x=\"{}\" y=\"24\" font-size=\"14\" text-anchor=\"middle\">classification error against bake time (reference: {})</text>",
+            width / 2.0,
+            self.reference.label
+        );
+        // Axes, decade ticks and error ticks.
+        let _ = writeln!(
+            svg,
+            "<line x1=\"{margin}\" y1=\"{0}\" x2=\"{1}\" y2=\"{0}\" stroke=\"black\"/><line x1=\"{margin}\" y1=\"{margin}\" x2=\"{margin}\" y2=\"{0}\" stroke=\"black\"/>",
+            height - margin,
+            width - margin
+        );
+        let mut decade = lo;
+        while decade <= hi {
+            let px = x(10f64.powf(decade));
+            let _ = writeln!(
+                svg,
+                "<line x1=\"{px}\" y1=\"{0}\" x2=\"{px}\" y2=\"{1}\" stroke=\"black\"/><text x=\"{px}\" y=\"{2}\" text-anchor=\"middle\">{3} s</text>",
+                height - margin,
+                height - margin + 5.0,
+                height - margin + 18.0,
+                10f64.powf(decade)
+            );
+            decade += 1.0;
+        }
+        for e in std::iter::once(0.0).chain((0..=top as i32).map(|p| 10f64.powi(p))) {
+            let _ = writeln!(
+                svg,
+                "<text x=\"{}\" y=\"{}\" text-anchor=\"end\">{}</text>",
+                margin - 6.0,
+                y(e) + 4.0,
+                e
+            );
+        }
+        let _ = writeln!(
+            svg,
+            "<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">seconds (log scale)</text><text x=\"16\" y=\"{}\" transform=\"rotate(-90 16 {})\" text-anchor=\"middle\">(caster, light) pairs, log scale</text>",
+            width / 2.0,
+            height - 24.0,
+            height / 2.0,
+            height / 2.0
+        );
+        for (series, colour, value) in [
+            ("false culls", "#c0392b", 0usize),
+            ("false keeps", "#2471a3", 1usize),
+        ] {
+            let points: Vec<(f64, f64, &Row)> = self
+                .rows
+                .iter()
+                .map(|r| {
+                    let e = if value == 0 {
+                        r.false_culls
+                    } else {
+                        r.false_keeps
+                    } as f64;
+                    (x(r.seconds), y(e), r)
+                })
+                .collect();
+            for (i, (px, py, row)) in points.iter().enumerate() {
+                let marker = if row.setting.refine_samples > 0 {
+                    format!(
+                        "<rect x=\"{}\" y=\"{}\" width=\"8\" height=\"8\" fill=\"{colour}\"/>",
+                        px - 4.0,
+                        py - 4.0
+                    )
+                } else {
+                    format!("<circle cx=\"{px}\" cy=\"{py}\" r=\"4\" fill=\"{colour}\"/>")
+                };
+                let _ = writeln!(svg, "{marker}");
+                if value == 0 {
+                    // Alternate above and below so neighbours stay legible.
+                    let dy = if i % 2 == 0 { -8.0 } else { 16.0 };
+                    let _ = writeln!(
+                        svg,
+                        "<text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
+                        px + 6.0,
+                        py + dy,
+                        row.label
+                    );
+                }
+            }
+            let legend_y = margin + 14.0 * value as f64;
+            let _ = writeln!(
+                svg,
+                "<circle cx=\"{}\" cy=\"{}\" r=\"4\" fill=\"{colour}\"/><text x=\"{}\" y=\"{}\">{series}</text>",
+                width - margin - 120.0,
+                legend_y,
+                width - margin - 110.0,
+                legend_y + 4.0
+            );
+        }
+        let _ = writeln!(
+            svg,
+            "<text x=\"{}\" y=\"{}\" fill=\"#555\">squares: with refinement</text>\n</svg>",
+            width - margin - 124.0,
+            margin + 32.0
+        );
+        svg
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn scaling_a_light_densifies_its_grid() {
+        let sun = LightSettings {
+            name: "sun".into(),
+            kind: LightKind::Directional {
+                direction: DVec3::NEG_Y,
+                texel_size: 1.0,
+            },
+        };
+        match scale_light(&sun, 4.0).kind {
+            LightKind::Directional { texel_size, .. } => assert_eq!(texel_size, 0.25),
+            _ => unreachable!(),
+        }
+        let point = LightSettings {
+            name: "p".into(),
+            kind: LightKind::Point {
+                position: DVec3::ZERO,
+                near: 0.1,
+                far: 10.0,
+                resolution: 6,
+            },
+        };
+        for (density, expected) in [(0.25, 2), (0.1, 1), (2.0, 12)] {
+            match scale_light(&point, density).kind {
+                LightKind::Point { resolution, .. } => assert_eq!(resolution, expected),
+                _ => unreachable!(),
+            }
+        }
+    }
+
+    #[test]
+    fn ladder_has_the_densities_supersampling_and_refinement() {
+        let ladder = ladder(&SweepConfig::default());
+        let densities: Vec<f64> = ladder
+            .iter()
+            .filter(|s| s.supersample == 1 && s.refine_samples == 0)
+            .map(|s| s.density)
+            .collect();
+        assert_eq!(densities, [0.25, 0.5, 1.0, 2.0, 4.0]);
+        assert!(ladder.iter().any(|s| s.supersample == 2));
+        assert_eq!(ladder.iter().filter(|s| s.refine_samples > 0).count(), 3);
+        assert_eq!(ladder[0].label(), "density x1/4");
+    }
+}
