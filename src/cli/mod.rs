@@ -3,6 +3,7 @@
 
 mod bake;
 mod progress;
+mod render;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -47,6 +48,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Draw what the bake decides for one light: its shadow map or a camera view (PNG + legend).
+    Render(render::RenderArgs),
     /// Write a synthetic world (BigWorld formats) and its settings file bake.xml.
     Gen {
         /// Output folder (created; existing files of the same names are replaced).
@@ -83,6 +86,7 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
+        Command::Render(args) => render::run(args),
         Command::Inspect { settings, json } => {
             let settings = load_settings(&settings)?;
             let scene = scene::load_scene(&load_config(&settings))?;
