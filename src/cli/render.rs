@@ -164,21 +164,3 @@ fn command_line() -> String {
         .collect::<Vec<_>>()
         .join(" ")
 }
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn vectors_and_sizes_parse_or_say_why_not() {
-        assert_eq!(parse_vec3("1 -2.5 3").unwrap(), DVec3::new(1.0, -2.5, 3.0));
-        assert_eq!(parse_vec3("1,2,3").unwrap(), DVec3::new(1.0, 2.0, 3.0));
-        assert!(parse_vec3("1 2").unwrap_err().contains("three numbers"));
-        assert!(parse_vec3("1 a 3").unwrap_err().contains("`a`"));
-        assert!(parse_vec3("1 inf 3").is_err());
-        assert_eq!(parse_size("640x480").unwrap(), (640, 480));
-        assert!(parse_size("0x480").unwrap_err().contains("1 to"));
-        assert!(parse_size("640").unwrap_err().contains("WxH"));
-        assert!(parse_size("ax3").is_err());
-    }
-}

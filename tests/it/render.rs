@@ -378,14 +378,16 @@ fn cli_bad_arguments_give_clear_errors_and_exit_codes() {
         assert_eq!(bad.status.code(), Some(2), "--size {size}");
         assert!(stderr(&bad).contains("--size"), "{}", stderr(&bad));
     }
-    let bad_vector = shadowcull(&[
-        "render", settings, "--light", "sun", "--view", "camera", "--camera", "1 2", "-o", out,
-    ]);
-    assert_eq!(bad_vector.status.code(), Some(2));
+    for (vector, why) in [("1 2", "three numbers"), ("1 a 3", "`a` is not a number")] {
+        let bad_vector = shadowcull(&[
+            "render", settings, "--light", "sun", "--view", "camera", "--camera", vector, "-o", out,
+        ]);
+        assert_eq!(bad_vector.status.code(), Some(2), "--camera {vector}");
+        assert!(stderr(&bad_vector).contains(why), "{}", stderr(&bad_vector));
+    }
     assert!(
-        stderr(&bad_vector).contains("three numbers"),
-        "{}",
-        stderr(&bad_vector)
+        !std::path::Path::new(out).exists(),
+        "no picture after a usage error"
     );
 
     // A folder path that runs through a regular file cannot be created.
