@@ -8,6 +8,7 @@ pub mod formats;
 pub mod gen;
 pub mod inspect;
 pub mod light;
+pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod sweep;

@@ -81,7 +81,25 @@ fn degenerate(v: &[Vec3; 3]) -> bool {
 }
 
 pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) -> LightGeometry {
-    let reference = grid.reference_point();
+    geometry_in_reach(scene, casters, grid.reference_point(), |min, max| {
+        grid.reaches(min, max)
+    })
+}
+
+/// Every caster's triangles, with nothing left out for reach (a camera that
+/// looks at the world, not a light), relative to `reference`.
+pub fn all_geometry(scene: &Scene, casters: &CasterTable, reference: DVec3) -> LightGeometry {
+    geometry_in_reach(scene, casters, reference, |_, _| true)
+}
+
+/// The triangles of every caster some of whose box `reaches` accepts, in
+/// scene order (instances, then terrain blocks).
+fn geometry_in_reach(
+    scene: &Scene,
+    casters: &CasterTable,
+    reference: DVec3,
+    reaches: impl Fn(DVec3, DVec3) -> bool + Sync,
+) -> LightGeometry {
     let model_bounds: Vec<Option<(DVec3, DVec3)>> = scene
         .models
         .iter()
@@ -102,7 +120,7 @@ pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) ->
             let in_reach = instance.parts.iter().flatten().any(|&model| {
                 model_bounds[model].is_some_and(|(min, max)| {
                     let (min, max) = transform_box(&instance.world, min, max);
-                    grid.reaches(min, max)
+                    reaches(min, max)
                 })
             });
             if !in_reach {
@@ -148,7 +166,7 @@ pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) ->
         .map(|(index, block)| {
             let mut out = LightGeometry::default();
             let (min, max) = block.bounds();
-            if !grid.reaches(min, max) {
+            if !reaches(min, max) {
                 out.blocks_out_of_reach = 1;
                 return out;
             }
@@ -156,7 +174,7 @@ pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) ->
             for triangle in block.triangles() {
                 let lo = triangle[0].min(triangle[1]).min(triangle[2]);
                 let hi = triangle[0].max(triangle[1]).max(triangle[2]);
-                if !grid.reaches(lo, hi) {
+                if !reaches(lo, hi) {
                     continue;
                 }
                 let v = triangle.map(|p| relative(p, reference));

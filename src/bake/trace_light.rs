@@ -9,6 +9,7 @@ use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
 use crate::trace::{Bvh, Hit, TraceRay, TraceTriangle};
+use glam::DVec3;
 use rayon::prelude::*;
 
 /// Receives the number of rays traced, tile by tile, from worker threads.
@@ -142,7 +143,7 @@ pub fn trace_light(
 #[allow(clippy::too_many_arguments)]
 pub fn trace_ray(
     ray: &TexelRay,
-    reference: glam::DVec3,
+    reference: DVec3,
     tracer: &Tracer<'_>,
     casters: &CasterTable,
     ground: Option<&Ground<'_>>,
@@ -150,7 +151,28 @@ pub fn trace_ray(
     hits: &mut Vec<RayHit>,
     useful: &mut CasterSet,
 ) {
-    let traced = TraceRay {
+    let traced = to_trace_ray(ray, reference);
+    hits.clear();
+    let mut limit = traced.t_max;
+    tracer.for_each_hit(&traced, |hit| {
+        if hit.t > limit {
+            return limit;
+        }
+        let Some(kept) = filter_hit(&hit, ray, casters, ground, rules) else {
+            return limit;
+        };
+        hits.push(kept);
+        classify::sort_hits(hits);
+        limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
+        limit
+    });
+    hits.retain(|h| h.t <= limit);
+    classify::classify_ray(hits, rules.tie_epsilon, rules.passes, |c| useful.insert(c));
+}
+
+/// A texel's ray in the tracer's light-relative f32 frame.
+fn to_trace_ray(ray: &TexelRay, reference: DVec3) -> TraceRay {
+    TraceRay {
         origin: (ray.origin - reference).as_vec3(),
         direction: ray.direction.as_vec3(),
         t_min: ray.t_min as f32,
@@ -159,39 +181,78 @@ pub fn trace_ray(
         } else {
             f32::INFINITY
         },
-    };
-    hits.clear();
-    let mut limit = traced.t_max;
-    tracer.for_each_hit(&traced, |hit| {
-        let caster = &casters.casters[hit.caster as usize];
-        let culled = !caster.double_sided
-            && match rules.face_culling {
-                FaceCulling::Back => hit.back_facing,
-                FaceCulling::Front => !hit.back_facing,
-                FaceCulling::None => false,
-            };
-        if culled || hit.t > limit {
+    }
+}
+
+/// The per-hit rules every consumer of a light's rays applies before
+/// classification: face culling (double-sided groups exempt; mirrored
+/// instances were re-wound when the geometry was built) and the below-ground
+/// test for non-terrain hits. `None`: the hit does not count.
+fn filter_hit(
+    hit: &Hit,
+    ray: &TexelRay,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+) -> Option<RayHit> {
+    let caster = casters.casters.get(hit.caster as usize)?;
+    let culled = !caster.double_sided
+        && match rules.face_culling {
+            FaceCulling::Back => hit.back_facing,
+            FaceCulling::Front => !hit.back_facing,
+            FaceCulling::None => false,
+        };
+    if culled {
+        return None;
+    }
+    if let Some(ground) = ground.filter(|_| !caster.is_terrain()) {
+        let p = ray.origin + ray.direction * hit.t as f64;
+        if ground
+            .height(p.x, p.z)
+            .is_some_and(|h| p.y < h - rules.height_bias)
+        {
+            return None;
+        }
+    }
+    Some(RayHit {
+        t: hit.t,
+        caster: hit.caster,
+        receiver_only: caster.receiver_only,
+        alpha_tested: caster.alpha_tested,
+    })
+}
+
+/// The front surface of texel `(face, x, y)` as the bake's All pass sees it:
+/// the nearest hit that survives the same filter as the bake's rays (face
+/// culling, double-sided, mirrored, below ground), whatever its caster —
+/// receiver-only and alpha-tested groups included. Equal distances go to
+/// the lowest caster id, the bake's canonical hit order. `None`: the ray
+/// meets nothing that counts. `t` is metres from the ray's origin.
+#[allow(clippy::too_many_arguments)]
+pub fn front_hit(
+    grid: &TexelGrid,
+    tracer: &Tracer<'_>,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+    face: usize,
+    x: u32,
+    y: u32,
+) -> Option<RayHit> {
+    let ray = grid.ray(face, x, y);
+    let trace_ray = to_trace_ray(&ray, grid.reference_point());
+    let mut best: Option<RayHit> = None;
+    tracer.for_each_hit(&trace_ray, |hit| {
+        let limit = best.map_or(trace_ray.t_max, |b| b.t);
+        if hit.t > limit {
             return limit;
         }
-        if let Some(ground) = ground.filter(|_| !caster.is_terrain()) {
-            let p = ray.origin + ray.direction * hit.t as f64;
-            if ground
-                .height(p.x, p.z)
-                .is_some_and(|h| p.y < h - rules.height_bias)
-            {
-                return limit;
+        if let Some(kept) = filter_hit(&hit, &ray, casters, ground, rules) {
+            if best.is_none_or(|b| (kept.t, kept.caster) < (b.t, b.caster)) {
+                best = Some(kept);
             }
         }
-        hits.push(RayHit {
-            t: hit.t,
-            caster: hit.caster,
-            receiver_only: caster.receiver_only,
-            alpha_tested: caster.alpha_tested,
-        });
-        classify::sort_hits(hits);
-        limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
-        limit
+        best.map_or(trace_ray.t_max, |b| b.t)
     });
-    hits.retain(|h| h.t <= limit);
-    classify::classify_ray(hits, rules.tie_epsilon, rules.passes, |c| useful.insert(c));
+    best
 }

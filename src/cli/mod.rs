@@ -3,6 +3,7 @@
 
 mod bake;
 mod progress;
+mod render;
 mod sweep;
 
 use anyhow::{Context, Result};
@@ -50,6 +51,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Draw what the bake decides for one light: its shadow map or a camera view (PNG + legend).
+    Render(render::RenderArgs),
     /// Write a synthetic world (BigWorld formats) and its settings file bake.xml.
     Gen {
         /// Output folder (created; existing files of the same names are replaced).
@@ -87,6 +90,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
         Command::Sweep(args) => sweep::run(args),
+        Command::Render(args) => render::run(args),
         Command::Inspect { settings, json } => {
             let settings = load_settings(&settings)?;
             let scene = scene::load_scene(&load_config(&settings))?;

@@ -1,0 +1,290 @@
+//! The camera view: the whole world in perspective, each surface coloured
+//! by its caster's verdict for one light and lit by that light, so an
+//! artist sees which objects the light would skip. One primary ray per
+//! pixel centre through a BVH of every caster (a camera reaches
+//! everything); the nearest triangle wins whatever its facing (a picture of
+//! the world, not of the light's filter), equal distances to the lowest
+//! triangle index. Shade: `AMBIENT + (1 − AMBIENT)·max(0, n·l)` with `n`
+//! the triangle's normal turned towards the camera and `l` towards the
+//! light (directional: against its direction; spot and point: from the
+//! point to the light); no shadows. Sky: dark blue.
+
+use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
+use crate::bake::geometry::{all_geometry, world_bounds};
+use crate::bake::BakeConfig;
+use crate::formats::bake_settings::LightKind;
+use crate::scene::Scene;
+use crate::trace::{Bvh, TraceRay};
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// Light reaching surfaces that face away from the light, so their shape
+/// and colour still read.
+const AMBIENT: f64 = 0.3;
+const SKY: [u8; 3] = [18, 24, 48];
+/// Direction from the world's centre to the default camera: above, from
+/// the −z side and a little +x, so the default picture looks north-east
+/// and down at about 40°.
+const OVERVIEW_FROM: DVec3 = DVec3::new(0.45, 0.85, -0.9);
+
+/// Where the camera is and what it draws. `position` / `look_at` `None`:
+/// the overview (see [`CameraSpec::resolve`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraSpec {
+    pub position: Option<DVec3>,
+    pub look_at: Option<DVec3>,
+    /// Vertical field of view, degrees, in (0, 180).
+    pub fov_degrees: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Default for CameraSpec {
+    fn default() -> Self {
+        CameraSpec {
+            position: None,
+            look_at: None,
+            fov_degrees: 60.0,
+            width: 800,
+            height: 600,
+        }
+    }
+}
+
+impl CameraSpec {
+    /// The camera position and target for a world of `bounds`: the target
+    /// defaults to the bounds' centre; the position to the nearest point in
+    /// direction [`OVERVIEW_FROM`] from the target from which all eight
+    /// corners of the bounds are in the picture, moved 5 % further out.
+    pub fn resolve(&self, (min, max): (DVec3, DVec3)) -> (DVec3, DVec3) {
+        let centre = (min + max) * 0.5;
+        let target = self.look_at.unwrap_or(centre);
+        let position = self.position.unwrap_or_else(|| {
+            let from = OVERVIEW_FROM.normalize();
+            let corners: Vec<DVec3> = (0..8)
+                .map(|i| {
+                    DVec3::new(
+                        if i & 1 == 0 { min.x } else { max.x },
+                        if i & 2 == 0 { min.y } else { max.y },
+                        if i & 4 == 0 { min.z } else { max.z },
+                    )
+                })
+                .collect();
+            let frame = Frame::new(-from, self.fov_degrees, self.width, self.height);
+            let sees_all = |distance: f64| {
+                let eye = target + from * distance;
+                corners.iter().all(|c| frame.contains(*c - eye))
+            };
+            // Far enough to see every corner: past the farthest corner by
+            // the distance at which a sphere around them fits the view.
+            let radius = corners
+                .iter()
+                .map(|c| (*c - target).length())
+                .fold(1.0, f64::max);
+            let (mut near, mut far) = (0.0, radius * 2.0 / frame.half_min().sin() + radius);
+            if !sees_all(far) {
+                return target + from * far;
+            }
+            for _ in 0..60 {
+                let mid = (near + far) * 0.5;
+                if sees_all(mid) {
+                    far = mid;
+                } else {
+                    near = mid;
+                }
+            }
+            target + from * far * 1.05
+        });
+        (position, target)
+    }
+}
+
+/// The camera's axes and image-plane half extents at distance 1.
+struct Frame {
+    forward: DVec3,
+    right: DVec3,
+    up: DVec3,
+    half_w: f64,
+    half_h: f64,
+}
+
+impl Frame {
+    /// `forward` must be unit length; the picture's up is as near world +Y
+    /// as `forward` allows (+Z when looking straight up or down).
+    fn new(forward: DVec3, fov_degrees: f64, width: u32, height: u32) -> Frame {
+        let up_hint = if forward.y.abs() > 0.999 {
+            DVec3::Z
+        } else {
+            DVec3::Y
+        };
+        let right = forward.cross(up_hint).normalize();
+        let up = right.cross(forward);
+        let half_h = (fov_degrees.to_radians() * 0.5).tan();
+        let half_w = half_h * width as f64 / height.max(1) as f64;
+        Frame {
+            forward,
+            right,
+            up,
+            half_w,
+            half_h,
+        }
+    }
+
+    /// Half of the narrower field of view, radians.
+    fn half_min(&self) -> f64 {
+        self.half_w.min(self.half_h).atan()
+    }
+
+    /// Whether a point at `offset` from the camera is in front of it and
+    /// inside the picture.
+    fn contains(&self, offset: DVec3) -> bool {
+        let depth = offset.dot(self.forward);
+        depth > 0.0
+            && offset.dot(self.right).abs() <= self.half_w * depth
+            && offset.dot(self.up).abs() <= self.half_h * depth
+    }
+
+    /// The unit direction through picture point `(sx, sy)` in [-1, 1]²
+    /// (x right, y up).
+    fn direction(&self, sx: f64, sy: f64) -> DVec3 {
+        (self.forward + self.right * (sx * self.half_w) + self.up * (sy * self.half_h)).normalize()
+    }
+}
+
+/// Draws the world seen by `camera`, coloured by light `light`'s verdicts.
+pub fn camera_view(
+    scene: &Scene,
+    config: &BakeConfig,
+    light: usize,
+    camera: &CameraSpec,
+) -> Result<Picture, RenderError> {
+    check_size(camera.width, camera.height)?;
+    if !(camera.fov_degrees > 0.0 && camera.fov_degrees < 180.0) {
+        return Err(RenderError::BadCamera(format!(
+            "field of view must be in (0, 180) degrees, got {}",
+            camera.fov_degrees
+        )));
+    }
+    for (name, v) in [("camera", camera.position), ("look-at", camera.look_at)] {
+        if v.is_some_and(|v| !v.is_finite()) {
+            return Err(RenderError::BadCamera(format!(
+                "{name} point must be finite"
+            )));
+        }
+    }
+    let verdicts = verdicts(scene, config, light)?;
+    let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
+    let (position, target) = camera.resolve(bounds);
+    let forward = (target - position).normalize_or_zero();
+    if forward == DVec3::ZERO || !forward.is_finite() {
+        return Err(RenderError::BadCamera(format!(
+            "camera {position} and look-at {target} are the same point: no direction to look in"
+        )));
+    }
+    let frame = Frame::new(forward, camera.fov_degrees, camera.width, camera.height);
+
+    let reference = (bounds.0 + bounds.1) * 0.5;
+    let geometry = all_geometry(scene, &verdicts.casters, reference);
+    let bvh = Bvh::build(&geometry.triangles);
+    let light_kind = &config.lights[light].kind;
+    let origin = (position - reference).as_vec3();
+
+    let rows: Vec<Vec<(Class, [u8; 3])>> = (0..camera.height)
+        .into_par_iter()
+        .map(|row| {
+            let sy = 1.0 - (row as f64 + 0.5) / camera.height as f64 * 2.0;
+            (0..camera.width)
+                .map(|column| {
+                    let sx = (column as f64 + 0.5) / camera.width as f64 * 2.0 - 1.0;
+                    let direction = frame.direction(sx, sy);
+                    let ray = TraceRay {
+                        origin,
+                        direction: direction.as_vec3(),
+                        t_min: 0.0,
+                        t_max: f32::INFINITY,
+                    };
+                    let Some(hit) = bvh.closest_hit(&ray) else {
+                        return (Class::Nothing, SKY);
+                    };
+                    let Some(triangle) = geometry.triangles.get(hit.triangle as usize) else {
+                        return (Class::Nothing, SKY);
+                    };
+                    let class = verdicts
+                        .classes
+                        .get(hit.caster as usize)
+                        .copied()
+                        .unwrap_or(Class::Nothing);
+                    let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
+                    let mut normal = (b - a).cross(c - a).normalize_or_zero();
+                    if normal.dot(direction) > 0.0 {
+                        normal = -normal;
+                    }
+                    let point = position + direction * hit.t as f64;
+                    let to_light = match light_kind {
+                        LightKind::Directional { direction, .. } => -*direction,
+                        LightKind::Spot { position, .. } | LightKind::Point { position, .. } => {
+                            *position - point
+                        }
+                    }
+                    .normalize_or_zero();
+                    let lambert = normal.dot(to_light).max(0.0);
+                    (class, shaded(class, AMBIENT + (1.0 - AMBIENT) * lambert))
+                })
+                .collect()
+        })
+        .collect();
+    let mut rgb = Vec::with_capacity(camera.width as usize * camera.height as usize * 3);
+    let mut classes = Vec::with_capacity(camera.width as usize * camera.height as usize);
+    for (class, colour) in rows.into_iter().flatten() {
+        classes.push(class);
+        rgb.extend(colour);
+    }
+    let notes = vec![
+        format!(
+            "camera view: from ({:.2}, {:.2}, {:.2}) looking at ({:.2}, {:.2}, {:.2}), vertical field of view {}°",
+            position.x, position.y, position.z, target.x, target.y, target.z, camera.fov_degrees
+        ),
+        format!(
+            "surfaces lit by the light's direction (Lambert, {:.0} % ambient, no shadows); sky dark blue",
+            AMBIENT * 100.0
+        ),
+        "casters outside the light's reach are never useful for it, so they show as culled".to_string(),
+    ];
+    Ok(Picture {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        classes,
+        light: verdicts.light,
+        notes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overview_frames_the_bounds() {
+        let spec = CameraSpec::default();
+        let bounds = (DVec3::new(0.0, 0.0, 0.0), DVec3::new(100.0, 10.0, 100.0));
+        let (position, target) = spec.resolve(bounds);
+        assert_eq!(target, DVec3::new(50.0, 5.0, 50.0));
+        // Every corner in the picture, and (the 5 % margin) not all of them
+        // from 10 % nearer.
+        let frame = Frame::new((target - position).normalize(), 60.0, 800, 600);
+        let corners =
+            [0.0, 100.0].map(|x| [0.0, 10.0].map(|y| [0.0, 100.0].map(|z| DVec3::new(x, y, z))));
+        let corners: Vec<DVec3> = corners.into_iter().flatten().flatten().collect();
+        assert!(corners.iter().all(|c| frame.contains(*c - position)));
+        let nearer = target + (position - target) * 0.9;
+        assert!(!corners.iter().all(|c| frame.contains(*c - nearer)));
+        assert!(position.y > bounds.1.y);
+        let given = CameraSpec {
+            position: Some(DVec3::ONE),
+            look_at: Some(DVec3::ZERO),
+            ..spec
+        };
+        assert_eq!(given.resolve(bounds), (DVec3::ONE, DVec3::ZERO));
+    }
+}

@@ -1,0 +1,201 @@
+//! The light view: the shadow map as the light sees it. Each pixel is one
+//! texel's front surface after the bake's own hit filter (face culling,
+//! double-sided groups, mirrored instances, the below-ground test; the All
+//! pass, so alpha-tested and receiver-only surfaces show where they are
+//! first), coloured by its caster's verdict and shaded by distance.
+//!
+//! Layout: texel `(x, y)` is column `x`, row `height − 1 − y`, so the grid's
+//! `v` axis points up the picture. A point light's six faces stand side by
+//! side in the order +X, −X, +Y, −Y, +Z, −Z (`light::CUBE_FACE_NAMES`), each
+//! `resolution` pixels wide. A map larger than the requested size is shown
+//! smaller by picking, for each pixel, the texel under the pixel's centre
+//! (no blending, so every pixel is one class and the counts stay counts of
+//! texels); only those texels are traced.
+
+use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
+use crate::bake::geometry::{light_geometry, world_bounds};
+use crate::bake::ground::Ground;
+use crate::bake::trace_light::{front_hit, RayRules, Tracer};
+use crate::bake::BakeConfig;
+use crate::classify::Passes;
+use crate::light::{TexelGrid, CUBE_FACE_NAMES};
+use crate::scene::Scene;
+use crate::trace::Bvh;
+use rayon::prelude::*;
+
+/// Largest light view drawn when the caller gives no size.
+pub const DEFAULT_MAX_LIGHT_SIZE: (u32, u32) = (2048, 2048);
+
+/// Darkest shade, for the farthest surface in the picture; the nearest is
+/// at full brightness.
+const FAR_SHADE: f64 = 0.3;
+
+/// Draws light `light` of `config`. `max_size` (width, height) bounds the
+/// picture; the map is shown 1:1 when it fits, else reduced (aspect kept) to
+/// fit. `None`: [`DEFAULT_MAX_LIGHT_SIZE`].
+pub fn light_view(
+    scene: &Scene,
+    config: &BakeConfig,
+    light: usize,
+    max_size: Option<(u32, u32)>,
+) -> Result<Picture, RenderError> {
+    let (max_w, max_h) = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
+    check_size(max_w, max_h)?;
+    let verdicts = verdicts(scene, config, light)?;
+    let settings = &config.lights[light];
+    let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
+    let grid = TexelGrid::new(settings, bounds)?;
+    let geometry = light_geometry(scene, &verdicts.casters, &grid);
+    let bvh = Bvh::build(&geometry.triangles);
+    let tracer = Tracer::Bvh(&bvh);
+    let ground = Ground::new(scene);
+    let rules = RayRules {
+        face_culling: config.face_culling,
+        height_bias: config.height_bias,
+        tie_epsilon: config.tie_epsilon as f32,
+        // front_hit does not classify; the value is not used.
+        passes: Passes::AllOnly,
+    };
+
+    // At most 6 × 65536 columns: fits u64 arithmetic with room to spare.
+    let native_w = grid.faces() as u64 * grid.width() as u64;
+    let native_h = grid.height() as u64;
+    let (width, height) = fit((native_w, native_h), (max_w, max_h));
+    let rows: Vec<Vec<(Class, f32)>> = (0..height)
+        .into_par_iter()
+        .map(|row| {
+            let native_row = centre_sample(row, height, native_h);
+            let y = (native_h - 1 - native_row) as u32;
+            (0..width)
+                .map(|column| {
+                    let native_column = centre_sample(column, width, native_w);
+                    let face = (native_column / grid.width() as u64) as usize;
+                    let x = (native_column % grid.width() as u64) as u32;
+                    match front_hit(
+                        &grid,
+                        &tracer,
+                        &verdicts.casters,
+                        ground.as_ref(),
+                        rules,
+                        face,
+                        x,
+                        y,
+                    ) {
+                        Some(hit) => (
+                            verdicts
+                                .classes
+                                .get(hit.caster as usize)
+                                .copied()
+                                .unwrap_or(Class::Nothing),
+                            hit.t,
+                        ),
+                        None => (Class::Nothing, f32::NAN),
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let pixels: Vec<(Class, f32)> = rows.into_iter().flatten().collect();
+
+    let (near, far) = pixels
+        .iter()
+        .filter(|(class, _)| *class != Class::Nothing)
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (_, t)| {
+            (lo.min(*t), hi.max(*t))
+        });
+    let range = (far - near) as f64;
+    let mut rgb = Vec::with_capacity(pixels.len() * 3);
+    for (class, t) in &pixels {
+        let shade = if range > 0.0 {
+            1.0 - (1.0 - FAR_SHADE) * ((t - near) as f64 / range)
+        } else {
+            1.0
+        };
+        rgb.extend(shaded(*class, shade));
+    }
+
+    let mut notes = vec![format!(
+        "light view: shadow map {} × {} texels{}, shown at {} × {} ({})",
+        grid.width(),
+        grid.height(),
+        if grid.faces() == 6 {
+            format!(
+                " per face, six faces side by side ({})",
+                CUBE_FACE_NAMES.join(" ")
+            )
+        } else {
+            String::new()
+        },
+        width,
+        height,
+        if (width as u64, height as u64) == (native_w, native_h) {
+            "1:1, one pixel per texel".to_string()
+        } else {
+            "each pixel is the texel under its centre".to_string()
+        }
+    )];
+    notes.push(
+        "each pixel: the texel's front surface after the bake's hit filter (face culling, \
+         double-sided, mirrored, below ground; All pass), brighter = nearer the light"
+            .to_string(),
+    );
+    if near.is_finite() {
+        notes.push(format!(
+            "distance range along the rays: {near:.3} m (full brightness) to {far:.3} m ({:.0} %)",
+            FAR_SHADE * 100.0
+        ));
+    }
+    Ok(Picture {
+        width,
+        height,
+        rgb,
+        classes: pixels.into_iter().map(|(class, _)| class).collect(),
+        light: verdicts.light,
+        notes,
+    })
+}
+
+/// The picture size for a `native` map within `max`: native when it fits,
+/// else the largest size with the same aspect (rounded down, at least 1).
+fn fit((native_w, native_h): (u64, u64), (max_w, max_h): (u32, u32)) -> (u32, u32) {
+    let (max_w, max_h) = (max_w as u64, max_h as u64);
+    if native_w <= max_w && native_h <= max_h {
+        return (native_w as u32, native_h as u32);
+    }
+    // Width-limited when native_w / native_h >= max_w / max_h.
+    if native_w * max_h >= native_h * max_w {
+        (max_w as u32, (native_h * max_w / native_w).max(1) as u32)
+    } else {
+        ((native_w * max_h / native_h).max(1) as u32, max_h as u32)
+    }
+}
+
+/// The native index under the centre of picture index `i` of `n`, for a
+/// native axis of `native` (≥ n) entries.
+fn centre_sample(i: u32, n: u32, native: u64) -> u64 {
+    ((2 * i as u64 + 1) * native / (2 * n as u64)).min(native - 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fit_keeps_native_size_or_aspect() {
+        assert_eq!(fit((100, 50), (800, 600)), (100, 50));
+        assert_eq!(fit((1000, 500), (100, 100)), (100, 50));
+        assert_eq!(fit((500, 1000), (100, 100)), (50, 100));
+        assert_eq!(fit((6 * 256, 256), (640, 480)), (640, 106));
+        assert_eq!(fit((100_000, 1), (10, 10)), (10, 1));
+    }
+
+    #[test]
+    fn centre_sampling_is_identity_at_one_to_one_and_spreads_otherwise() {
+        for i in 0..7 {
+            assert_eq!(centre_sample(i, 7, 7), i as u64);
+        }
+        // 10 texels into 4 pixels: centres at 1.25, 3.75, 6.25, 8.75.
+        let picked: Vec<u64> = (0..4).map(|i| centre_sample(i, 4, 10)).collect();
+        assert_eq!(picked, vec![1, 3, 6, 8]);
+    }
+}

@@ -1,0 +1,334 @@
+//! Pictures of what the bake decided, for artists who check a bake by
+//! looking rather than by reading masks (the GPU tool this replaces showed
+//! its verdicts in a window; shadowcull is headless, so it draws them).
+//!
+//! Two views of one light's verdicts:
+//! - [`light_view`]: the light's own shadow map, one pixel per texel, each
+//!   coloured by the texel's front caster ([`crate::bake::trace_light::front_hit`],
+//!   the bake's own hit filter) and shaded by its distance;
+//! - [`camera_view`]: a perspective picture of the whole world, each surface
+//!   coloured by its caster's verdict and lit by the light (Lambert).
+//!
+//! The verdicts come from [`crate::bake::bake`] run for that light alone, so
+//! the picture shows exactly the masks a bake writes (bit 0 here = the
+//! light's bit there: lights are baked independently). Pictures are plain
+//! RGB buffers (rows top to bottom); `formats::png_write` writes them. Every
+//! pixel is a pure function of its position, so the bytes are the same for
+//! any thread count.
+
+mod camera;
+mod light_view;
+
+pub use camera::{camera_view, CameraSpec};
+pub use light_view::{light_view, DEFAULT_MAX_LIGHT_SIZE};
+
+use crate::bake::casters::{Caster, CasterTable};
+use crate::bake::{self, BakeConfig, BakeError, Silent};
+use crate::formats::bake_settings::LightSettings;
+use crate::light::GridError;
+use crate::scene::Scene;
+
+/// Largest picture side either view draws: a 16384² RGB buffer is 800 MB.
+pub const MAX_SIDE: u32 = 16384;
+
+/// What a pixel shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Class {
+    /// A model group whose bit is set for the light.
+    Useful,
+    /// A model group whose bit is clear (including groups outside the
+    /// light's reach, which the bake never sees and so never keeps).
+    Culled,
+    TerrainUseful,
+    TerrainCulled,
+    /// A group of a `castsShadow` false instance: hit, never a caster.
+    ReceiverOnly,
+    /// No surface (light view: no hit that counts; camera view: sky).
+    Nothing,
+}
+
+impl Class {
+    pub const ALL: [Class; 6] = [
+        Class::Useful,
+        Class::Culled,
+        Class::TerrainUseful,
+        Class::TerrainCulled,
+        Class::ReceiverOnly,
+        Class::Nothing,
+    ];
+
+    /// Full-brightness colour; pixels are this times a shade in (0, 1], so
+    /// the hue identifies the class. Terrain gets warm tints of its own so a
+    /// green or red model stands out against the ground.
+    pub fn colour(self) -> [u8; 3] {
+        match self {
+            Class::Useful => [40, 210, 60],
+            Class::Culled => [225, 40, 35],
+            Class::TerrainUseful => [235, 205, 50],
+            Class::TerrainCulled => [150, 105, 60],
+            Class::ReceiverOnly => [165, 165, 165],
+            Class::Nothing => [0, 0, 0],
+        }
+    }
+
+    pub fn label(self) -> &'static str {
+        match self {
+            Class::Useful => "useful caster (green)",
+            Class::Culled => "culled caster (red)",
+            Class::TerrainUseful => "useful terrain (yellow)",
+            Class::TerrainCulled => "culled terrain (brown)",
+            Class::ReceiverOnly => "receiver-only (grey)",
+            Class::Nothing => "nothing (black; camera: dark blue sky)",
+        }
+    }
+
+    fn of(caster: &Caster, useful: bool) -> Class {
+        match (caster.receiver_only, caster.is_terrain(), useful) {
+            (true, _, _) => Class::ReceiverOnly,
+            (false, true, true) => Class::TerrainUseful,
+            (false, true, false) => Class::TerrainCulled,
+            (false, false, true) => Class::Useful,
+            (false, false, false) => Class::Culled,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("no light named `{name}` in the settings; known lights: {}", known.join(", "))]
+    UnknownLight { name: String, known: Vec<String> },
+    #[error("the world has no geometry (no loaded model or terrain block): nothing to draw")]
+    EmptyWorld,
+    #[error("{0}")]
+    BadCamera(String),
+    #[error("picture size {width}×{height}: each side must be 1 to {MAX_SIDE} pixels")]
+    BadSize { width: u32, height: u32 },
+    #[error(transparent)]
+    Bake(#[from] BakeError),
+    #[error(transparent)]
+    Grid(#[from] GridError),
+}
+
+/// The light a picture is about, and the bake's totals for it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightSummary {
+    pub name: String,
+    pub kind: &'static str,
+    pub useful_casters: usize,
+    pub culled_casters: usize,
+    pub receiver_only_groups: usize,
+}
+
+/// A rendered picture: `rgb` is `width × height × 3` bytes, rows top to
+/// bottom; `classes` says what each pixel shows.
+#[derive(Debug, Clone)]
+pub struct Picture {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<u8>,
+    pub classes: Vec<Class>,
+    pub light: LightSummary,
+    /// How the picture was made (layout, sampling, camera), for the legend.
+    pub notes: Vec<String>,
+}
+
+impl Picture {
+    /// Pixels per class, in [`Class::ALL`] order.
+    pub fn counts(&self) -> [u64; 6] {
+        let mut counts = [0u64; 6];
+        for class in &self.classes {
+            if let Some(i) = Class::ALL.iter().position(|c| c == class) {
+                counts[i] += 1;
+            }
+        }
+        counts
+    }
+
+    /// The legend written beside the picture: light, bake totals, pixels per
+    /// colour, how it was drawn, and `command` (how to make it again).
+    pub fn legend(&self, command: &str) -> String {
+        let mut out = format!(
+            "light `{}` ({})\nbake verdicts: {} useful casters, {} culled casters, {} receiver-only groups\n\
+             picture: {} × {} pixels\n\npixels per colour (RGB at full brightness):\n",
+            self.light.name,
+            self.light.kind,
+            self.light.useful_casters,
+            self.light.culled_casters,
+            self.light.receiver_only_groups,
+            self.width,
+            self.height
+        );
+        for (class, count) in Class::ALL.iter().zip(self.counts()) {
+            let [r, g, b] = class.colour();
+            out += &format!(
+                "  {:<40} {:>3} {:>3} {:>3}  {count:>10}\n",
+                class.label(),
+                r,
+                g,
+                b
+            );
+        }
+        out += "\n";
+        for note in &self.notes {
+            out += note;
+            out += "\n";
+        }
+        out += &format!("\ncommand: {command}\n");
+        out
+    }
+}
+
+/// The index of the light called `name`, or an error listing the known ones.
+pub fn find_light(lights: &[LightSettings], name: &str) -> Result<usize, RenderError> {
+    lights
+        .iter()
+        .position(|l| l.name == name)
+        .ok_or_else(|| RenderError::UnknownLight {
+            name: name.to_string(),
+            known: lights.iter().map(|l| l.name.clone()).collect(),
+        })
+}
+
+/// The bake's verdict for light `light` of `config`: per caster, its class.
+struct Verdicts {
+    casters: CasterTable,
+    classes: Vec<Class>,
+    light: LightSummary,
+}
+
+fn verdicts(scene: &Scene, config: &BakeConfig, light: usize) -> Result<Verdicts, RenderError> {
+    let settings = config
+        .lights
+        .get(light)
+        .ok_or_else(|| RenderError::UnknownLight {
+            name: format!("#{light}"),
+            known: config.lights.iter().map(|l| l.name.clone()).collect(),
+        })?;
+    let single = BakeConfig {
+        lights: vec![settings.clone()],
+        ..config.clone()
+    };
+    let result = bake::bake(scene, &single, &Silent)?;
+    let classes = result
+        .casters
+        .casters
+        .iter()
+        .zip(&result.masks)
+        .map(|(caster, mask)| Class::of(caster, mask & 1 != 0))
+        .collect();
+    let useful_casters = result.masks.iter().filter(|m| *m & 1 != 0).count();
+    let receiver_only_groups = result
+        .casters
+        .casters
+        .iter()
+        .filter(|c| c.receiver_only)
+        .count();
+    Ok(Verdicts {
+        light: LightSummary {
+            name: settings.name.clone(),
+            kind: settings.kind.type_name(),
+            useful_casters,
+            culled_casters: result.casters.real_casters() - useful_casters,
+            receiver_only_groups,
+        },
+        casters: result.casters,
+        classes,
+    })
+}
+
+/// `colour × shade`, rounded, for `shade` in [0, 1].
+fn shaded(class: Class, shade: f64) -> [u8; 3] {
+    let shade = if shade.is_finite() {
+        shade.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
+    class
+        .colour()
+        .map(|c| (c as f64 * shade).round().clamp(0.0, 255.0) as u8)
+}
+
+fn check_size(width: u32, height: u32) -> Result<(), RenderError> {
+    if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {
+        return Err(RenderError::BadSize { width, height });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bake::casters::Owner;
+
+    #[test]
+    fn classes_have_distinct_hues_that_survive_shading() {
+        // A test (and a reader) tells classes apart by hue: no two colours
+        // may be multiples of each other.
+        for a in Class::ALL {
+            for b in Class::ALL {
+                if a == b || a == Class::Nothing || b == Class::Nothing {
+                    continue;
+                }
+                let (ca, cb) = (a.colour().map(f64::from), b.colour().map(f64::from));
+                let ratio = ca[0] / cb[0];
+                let parallel =
+                    (ca[1] - cb[1] * ratio).abs() < 1.0 && (ca[2] - cb[2] * ratio).abs() < 1.0;
+                assert!(!parallel, "{a:?} and {b:?} differ only in brightness");
+            }
+        }
+        assert_eq!(shaded(Class::Useful, 0.5), [20, 105, 30]);
+        assert_eq!(shaded(Class::Culled, f64::NAN), Class::Culled.colour());
+    }
+
+    #[test]
+    fn verdict_classes_follow_owner_and_flags() {
+        let group = Caster {
+            owner: Owner::Group {
+                instance: 0,
+                part: 0,
+                group: 0,
+            },
+            alpha_tested: false,
+            double_sided: false,
+            receiver_only: false,
+        };
+        let terrain = Caster {
+            owner: Owner::Terrain { block: 0 },
+            ..group
+        };
+        let receiver = Caster {
+            receiver_only: true,
+            ..group
+        };
+        assert_eq!(Class::of(&group, true), Class::Useful);
+        assert_eq!(Class::of(&group, false), Class::Culled);
+        assert_eq!(Class::of(&terrain, true), Class::TerrainUseful);
+        assert_eq!(Class::of(&terrain, false), Class::TerrainCulled);
+        assert_eq!(Class::of(&receiver, true), Class::ReceiverOnly);
+    }
+
+    #[test]
+    fn unknown_light_lists_the_known_ones() {
+        let light = |name: &str| LightSettings {
+            name: name.into(),
+            kind: crate::formats::bake_settings::LightKind::Directional {
+                direction: glam::DVec3::NEG_Y,
+                texel_size: 1.0,
+            },
+        };
+        let lights = [light("sun"), light("moon")];
+        assert_eq!(find_light(&lights, "moon").unwrap(), 1);
+        let message = find_light(&lights, "star").unwrap_err().to_string();
+        assert!(
+            message.contains("`star`") && message.contains("sun, moon"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn sizes_outside_the_limits_are_refused() {
+        assert!(check_size(0, 10).is_err());
+        assert!(check_size(10, MAX_SIDE + 1).is_err());
+        assert!(check_size(1, 1).is_ok());
+    }
+}
