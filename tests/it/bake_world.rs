@@ -436,10 +436,11 @@ fn fixture_bakes_match_the_blessed_masks() {
             let text = serde_json::to_string_pretty(&got).unwrap() + "\n";
             shadowcull::formats::resources::write_atomic(&path, text.as_bytes()).unwrap();
         }
-        let blessed: serde_json::Value = serde_json::from_slice(
-            &std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; bless with SHADOWCULL_BLESS=1", path.display())),
-        )
-        .unwrap();
+        let blessed: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&path).unwrap_or_else(|e| {
+                panic!("{}: {e}; bless with SHADOWCULL_BLESS=1", path.display())
+            }))
+            .unwrap();
         assert!(
             got == blessed,
             "{} differs from this bake; if the change is intended, re-bless with SHADOWCULL_BLESS=1 cargo test fixture",

@@ -9,6 +9,7 @@ mod micro;
 mod packed_real;
 mod primitives_real;
 mod real_scene;
+mod robustness;
 mod shadow_write_real;
 mod support;
 mod terrain_real;
