@@ -79,6 +79,10 @@ struct TieWorld {
     floating: usize,
     /// Box straddling the border of chunks (1,0) and (1,1).
     straddling: usize,
+    /// A 1/64 m cube on flat terrain around a texel centre of the sun: far
+    /// smaller than f32's spacing at 1e6 m (1/16 m), so it survives only
+    /// because geometry is made light-relative in f64 before the f32 trace.
+    pebble: usize,
 }
 
 fn tie_world(offset: DVec3) -> TieWorld {
@@ -117,6 +121,12 @@ fn tie_world(offset: DVec3) -> TieWorld {
         at(6.0, 0.0, 14.0) * DMat4::from_scale(DVec3::new(2.0, 1.5, 4.0)),
         true,
     );
+    let pebble = world.place(
+        (1, 0),
+        &[unit_box],
+        at(2.1171875, 0.0, 10.1171875) * DMat4::from_scale(DVec3::splat(1.0 / 64.0)),
+        true,
+    );
     // Receiver-only box under an alpha-tested canopy, and a bush under it.
     world.place((1, 1), &[unit_box], at(2.0, 0.0, 8.0), false);
     world.place((1, 1), &[canopy], at(1.0, 4.0, 7.0), true);
@@ -133,6 +143,7 @@ fn tie_world(offset: DVec3) -> TieWorld {
         sunk,
         floating,
         straddling,
+        pebble,
     }
 }
 
@@ -180,6 +191,7 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
     assert_eq!(masks(base.sunk), vec![0]);
     assert_eq!(masks(base.floating)[0] & 1, 0);
     assert_eq!(masks(base.straddling)[0] & 1, 1);
+    assert_eq!(masks(base.pebble)[0] & 1, 1);
     assert!(at_origin.masks.iter().any(|m| *m == 0b1111));
 
     for offset in [
@@ -430,7 +442,10 @@ fn fans_hit_exactly_on_shared_edges_and_vertices_count_once() {
     // culled, single-sided, double-sided, or double-sided with mixed
     // winding (the tie rule normalises the edge direction per facing, so
     // the two sides of a shared edge still split it). With flat terrain
-    // below, each triangle is first somewhere with ground behind → useful.
+    // and a box B (x, z 1..8, y 1..2) below, each triangle is first somewhere
+    // with something behind → useful; and no ray leaks through an edge or
+    // vertex (a rule that gave a shared edge to neither triangle), so B,
+    // entirely under the fan, is never first → culled.
     for kind in [Fan::Up, Fan::TwoSided, Fan::MixedTwoSided] {
         for ground in [false, true] {
             let mut world = World::new(1, 1);
@@ -441,6 +456,14 @@ fn fans_hit_exactly_on_shared_edges_and_vertices_count_once() {
             world.place((0, 0), &[marker], DMat4::IDENTITY, true);
             let f = world.model(fan(kind));
             let f = world.place((0, 0), &[f], DMat4::IDENTITY, true);
+            let under = ground.then(|| {
+                let b = one(
+                    &mut world,
+                    cube(Vec3::new(1.0, 1.0, 1.0), Vec3::new(8.0, 2.0, 8.0)),
+                    OPAQUE,
+                );
+                world.place((0, 0), &[b], DMat4::IDENTITY, true)
+            });
             let result = run(&world, &config(vec![directional(DOWN, 1.0)]));
             let expected = if ground { 1 } else { 0 };
             assert_eq!(
@@ -448,6 +471,13 @@ fn fans_hit_exactly_on_shared_edges_and_vertices_count_once() {
                 vec![expected; 8],
                 "{kind:?} fan, ground: {ground}"
             );
+            if let Some(under) = under {
+                assert_eq!(
+                    instance_masks(&result, &world, under),
+                    vec![0],
+                    "{kind:?} fan: a ray leaked through it"
+                );
+            }
         }
     }
 }
@@ -698,7 +728,7 @@ fn one_by_one_grids() {
 /// per caster) and one reused hit list, and the sets are OR-ed at the end —
 /// there is no per-texel buffer anywhere. The full 16384² case was measured
 /// by hand on the release binary (see the report of issue 5).
-const LARGE_GRID: u32 = 2048;
+const LARGE_GRID: u32 = 4096;
 
 #[test]
 fn large_spot_grid_streams_tiles() {
