@@ -556,7 +556,8 @@ fn degenerate_and_non_finite_triangles_are_left_out_and_counted() {
     for light in ["light 0", "light 1"] {
         assert!(
             result.skipped.iter().any(|s| s.what.starts_with(light)
-                && s.why.starts_with("10 zero-area or non-finite triangles")),
+                && s.why
+                    .starts_with("10 zero-area, non-finite or absurdly far")),
             "{light}: {:?}",
             result.skipped
         );
@@ -903,5 +904,54 @@ fn point_light_whose_reach_holds_nothing() {
     assert!(
         why.iter().any(|w| w.contains("holds no geometry")),
         "{why:?}"
+    );
+}
+
+#[test]
+fn absurd_finite_vertices_and_scales_are_left_out_not_fatal() {
+    // SPEC §6: a damaged file can hold a finite but absurd vertex (1e30 m)
+    // or a placement scaled by 1e20. Such geometry can never be traced in
+    // f32 (the trace drops anything beyond MAX_COORDINATE = 1e15 m), so it
+    // is left out and counted like a NaN triangle — and it must not stretch
+    // the world bounds: before this was fixed, one such vertex made the sun's
+    // grid "18446744073709551615 texels wide" and the whole bake failed.
+    // Here: a card over flat terrain whose group also holds a triangle with
+    // a 1e30 vertex, and a unit box placed with scale 1e20 (12 triangles).
+    // The sun's grid is the 16 m world's (64² at 0.25 m), the card is useful,
+    // and the sun counts 1 + 12 triangles left out.
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let mut card = quad_up(4.0, 4.0, 8.0, 8.0, 3.0);
+    card.push([
+        Vec3::new(5.0, 3.0, 5.0),
+        Vec3::new(1e30, 3.0, 5.0),
+        Vec3::new(5.0, 3.0, 6.0),
+    ]);
+    let card = one(&mut world, card, OPAQUE);
+    let unit_box = one(&mut world, cube(Vec3::ZERO, Vec3::ONE), OPAQUE);
+    let card = world.place((0, 0), &[card], DMat4::IDENTITY, true);
+    let huge = world.place(
+        (0, 0),
+        &[unit_box],
+        at(12.0, 0.0, 12.0) * DMat4::from_scale(DVec3::splat(1e20)),
+        true,
+    );
+    let result = run(
+        &world,
+        &config(vec![
+            directional(DOWN, 0.25),
+            spot(DVec3::new(6.0, 8.0, 6.0), DOWN, 60.0, 0.1, 20.0, 16),
+        ]),
+    );
+    assert_eq!(result.lights[0].rays, 64 * 64);
+    assert_eq!(instance_masks(&result, &world, card), vec![0b11]);
+    assert_eq!(instance_masks(&result, &world, huge), vec![0]);
+    assert_eq!(terrain_mask(&result, 0), 0);
+    assert!(
+        result.skipped.iter().any(|s| s.what.starts_with("light 0 ")
+            && s.why
+                .starts_with("13 zero-area, non-finite or absurdly far (> 1e15 m)")),
+        "{:?}",
+        result.skipped
     );
 }
