@@ -192,7 +192,7 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
     assert_eq!(masks(base.floating)[0] & 1, 0);
     assert_eq!(masks(base.straddling)[0] & 1, 1);
     assert_eq!(masks(base.pebble)[0] & 1, 1);
-    assert!(at_origin.masks.iter().any(|m| *m == 0b1111));
+    assert!(at_origin.masks.contains(&0b1111));
 
     for offset in [
         DVec3::new(1e5, 0.0, 1e5),
@@ -675,7 +675,7 @@ fn nan_zero_scale_and_singular_transforms_are_skipped_and_reported_by_the_bake()
         2,
         "{skipped:#?}"
     );
-    assert!(result.masks.iter().any(|m| *m == 1), "the rest still bakes");
+    assert!(result.masks.contains(&1), "the rest still bakes");
 }
 
 // ---------------------------------------------------------------------------
