@@ -152,6 +152,10 @@ fn far_world_lights(offset: DVec3) -> Vec<LightSettings> {
     vec![
         directional(DOWN, 0.25),
         directional(DVec3::new(1.0, -2.0, 0.5), 0.25),
+        directional(
+            DVec3::new(1f64.to_radians().cos(), -(1f64.to_radians().sin()), 0.0),
+            0.25,
+        ),
         spot(
             centre + DVec3::new(0.0, 20.0, 0.0),
             DOWN,
@@ -192,7 +196,7 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
     assert_eq!(masks(base.floating)[0] & 1, 0);
     assert_eq!(masks(base.straddling)[0] & 1, 1);
     assert_eq!(masks(base.pebble)[0] & 1, 1);
-    assert!(at_origin.masks.contains(&0b1111));
+    assert!(at_origin.masks.contains(&0b11111));
 
     for offset in [
         DVec3::new(1e5, 0.0, 1e5),
@@ -217,7 +221,7 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
 #[test]
 fn light_exactly_along_plus_and_minus_x_grazes_flat_terrain() {
     // SPEC §4: the basis must be robust for a light parallel to any axis.
-    // A wall (x 2..3, y 0..4, z 4..12) and a box B behind it (x 10..12,
+    // A wall (x 5..6, y 0..4, z 4..12) and a box B behind it (x 11..13,
     // y 0..2, z 6..10) on flat terrain. With texelSize 0.5 and the world's
     // lowest point at y = −0.25 (a sunk marker), texel centres lie at
     // y = 0, 0.5, …, 2, …: rays exactly in the terrain's plane and along the
@@ -231,12 +235,12 @@ fn light_exactly_along_plus_and_minus_x_grazes_flat_terrain() {
     world.terrain((0, 0), |_, _| 0.0);
     let wall = one(
         &mut world,
-        cube(Vec3::new(2.0, 0.0, 4.0), Vec3::new(3.0, 4.0, 12.0)),
+        cube(Vec3::new(5.0, 0.0, 4.0), Vec3::new(6.0, 4.0, 12.0)),
         OPAQUE,
     );
     let b = one(
         &mut world,
-        cube(Vec3::new(10.0, 0.0, 6.0), Vec3::new(12.0, 2.0, 10.0)),
+        cube(Vec3::new(11.0, 0.0, 6.0), Vec3::new(13.0, 2.0, 10.0)),
         OPAQUE,
     );
     let marker = one(
@@ -247,15 +251,30 @@ fn light_exactly_along_plus_and_minus_x_grazes_flat_terrain() {
     let wall = world.place((0, 0), &[wall], DMat4::IDENTITY, true);
     let b = world.place((0, 0), &[b], DMat4::IDENTITY, true);
     let marker = world.place((0, 0), &[marker], DMat4::IDENTITY, true);
+    // Spots pointing exactly along ±x (lights 2 and 3): +x, from (−10, 1, 8),
+    // sees B only through the wall (B's lit faces project inside the wall's
+    // face, y 0.29..1.71, z 6.6..9.4) → B culled, wall useful (B and the
+    // ground beyond it behind). −x, from (24, 3, 8): B first with ground
+    // behind → useful; the wall, seen past B's side (z 11.3..12) low enough
+    // (y < 0.75) that the ray lands on the ground beyond it → useful.
     let result = run(
         &world,
         &config(vec![
             directional(DVec3::X, 0.5),
             directional(DVec3::NEG_X, 0.5),
+            spot(DVec3::new(-10.0, 1.0, 8.0), DVec3::X, 60.0, 0.1, 100.0, 128),
+            spot(
+                DVec3::new(24.0, 3.0, 8.0),
+                DVec3::NEG_X,
+                60.0,
+                0.1,
+                100.0,
+                128,
+            ),
         ]),
     );
-    assert_eq!(instance_masks(&result, &world, wall), vec![0b01]);
-    assert_eq!(instance_masks(&result, &world, b), vec![0b10]);
+    assert_eq!(instance_masks(&result, &world, wall), vec![0b1101]);
+    assert_eq!(instance_masks(&result, &world, b), vec![0b1010]);
     assert_eq!(instance_masks(&result, &world, marker), vec![0]);
     assert_eq!(terrain_mask(&result, 0), 0);
 }
