@@ -543,7 +543,7 @@ fn degenerate_and_non_finite_triangles_are_left_out_and_counted() {
     // one with a NaN and one with an infinite vertex. Group 1 holds the same
     // 5 alone. So 10 are left out per light and reported in `skipped`; the
     // card is useful as if they were not there; group 1 is never hit →
-    // culled.
+    // culled, and so is group 2, which has no triangles at all.
     let p = Vec3::new(5.125, 2.0, 5.125);
     let junk = vec![
         [p, p, p],
@@ -561,7 +561,7 @@ fn degenerate_and_non_finite_triangles_are_left_out_and_counted() {
     let mut world = World::new(1, 1);
     world.terrain((0, 0), |_, _| 0.0);
     let m = world.model(Mesh {
-        groups: vec![(card, OPAQUE), (junk, OPAQUE)],
+        groups: vec![(card, OPAQUE), (junk, OPAQUE), (Vec::new(), OPAQUE)],
     });
     let i = world.place((0, 0), &[m], DMat4::IDENTITY, true);
     let result = run(
@@ -571,7 +571,7 @@ fn degenerate_and_non_finite_triangles_are_left_out_and_counted() {
             spot(DVec3::new(6.0, 8.0, 6.0), DOWN, 60.0, 0.1, 20.0, 16),
         ]),
     );
-    assert_eq!(instance_masks(&result, &world, i), vec![0b11, 0]);
+    assert_eq!(instance_masks(&result, &world, i), vec![0b11, 0, 0]);
     for light in ["light 0", "light 1"] {
         assert!(
             result.skipped.iter().any(|s| s.what.starts_with(light)
@@ -812,6 +812,15 @@ fn thirty_two_lights_set_bit_31() {
     assert_eq!(instance_masks(&result, &world, a), vec![PATTERN]);
     assert_eq!(instance_masks(&result, &world, b), vec![!PATTERN]);
     assert_eq!(result.lights[31].useful_casters, 1);
+    // Written into A's chunk, the mask is the unsigned decimal of PATTERN
+    // (not a negative i32) on the instance and its one group.
+    let shadows = bake::output::chunk_shadows(&world.scene, &result, 0);
+    let original = b"<root>\n\t<model>\n\t\t<resource>\tmicro/0.model\t</resource>\n\t</model>\n\t<terrain>\n\t\t<resource>\t0000.cdata\t</resource>\n\t</terrain>\n</root>\n";
+    let written = shadowcull::formats::shadow_write::write_shadows(original, &shadows)
+        .expect("write the masks");
+    let text = String::from_utf8(written).unwrap();
+    assert_eq!(text.matches("2781024129").count(), 2, "{text}");
+    assert!(!text.contains('-'), "{text}");
 }
 
 #[test]
