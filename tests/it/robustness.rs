@@ -63,10 +63,15 @@ fn quad_neg_x(x: f32, y0: f32, z0: f32, y1: f32, z1: f32) -> Vec<[Vec3; 3]> {
 // Worlds far from the origin.
 
 /// A 2×2-chunk world full of ties and edge cases, moved by `offset`:
-/// hilly terrain (0,0), flat terrain (1,0) and (1,1), void (0,1). Every
-/// coordinate is a dyadic number, so the world at the origin and the moved one
-/// have the same light-relative f64 coordinates (geometry is traced relative
-/// to the light's reference point, README "Tolerances").
+/// hilly terrain (0,0), flat terrain (1,0) and (1,1), void (0,1).
+/// Offsets are whole numbers of metres and the boxes' coordinates dyadic, so
+/// world coordinates (and the hill's f32 heights plus the offset) are exact
+/// in f64 and the light-relative coordinates the trace sees (README
+/// "Tolerances") are the same bits at the origin and far from it. The
+/// exceptions are the rotated box and the oblique lights' grid axes, whose
+/// products round at ~1e−10 m near 1e6 m — a million times below f32's
+/// spacing at the world's scale, so they only matter for a vertex or texel
+/// centre within that of a rounding boundary (none here).
 struct TieWorld {
     world: World,
     /// Box standing on flat terrain (bottom face coplanar with the ground).
@@ -127,13 +132,14 @@ fn tie_world(offset: DVec3) -> TieWorld {
         at(2.1171875, 0.0, 10.1171875) * DMat4::from_scale(DVec3::splat(1.0 / 64.0)),
         true,
     );
-    // Receiver-only box under an alpha-tested canopy, and a bush under it.
+    // An alpha-tested canopy (x 1..5, z 7..11, y 4) over a receiver-only
+    // box and a small bush.
     world.place((1, 1), &[unit_box], at(2.0, 0.0, 8.0), false);
     world.place((1, 1), &[canopy], at(1.0, 4.0, 7.0), true);
     world.place(
         (1, 1),
         &[unit_box],
-        at(10.0, 0.0, 8.0) * DMat4::from_scale(DVec3::new(0.5, 0.5, 0.5)),
+        at(3.5, 0.0, 9.5) * DMat4::from_scale(DVec3::new(0.5, 0.5, 0.5)),
         true,
     );
     TieWorld {
@@ -181,8 +187,8 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
     // SPEC §7 "worlds far from the origin": geometry is made light-relative
     // in f64 before the f32 trace, so moving the whole world (chunk grid by
     // whole chunks in x and z, chunk transforms in y, lights with it) must
-    // not change one mask. Translations are exact in f64 here, so equality
-    // is exact, ties and edge texels included.
+    // not change one mask (see `TieWorld` on why equality can be exact,
+    // ties and edge texels included).
     let base = tie_world(DVec3::ZERO);
     let at_origin = run(&base.world, &config(far_world_lights(DVec3::ZERO)));
     // The design, so the comparison is about a world that has answers: the
@@ -201,6 +207,9 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
     for offset in [
         DVec3::new(1e5, 0.0, 1e5),
         DVec3::new(-1e5, 1e5, 1e5),
+        // 62 500 chunks of 16 m: past BigWorld's 16-bit chunk grid (real
+        // spaces reach 1e6 m with 100 m chunks), but the scene keeps grid
+        // numbers as i32 and only the chunk names (labels here) wrap.
         DVec3::new(1e6, 1e6, -1e6),
     ] {
         let moved = tie_world(offset);
