@@ -607,6 +607,11 @@ fn ten_km_triangles_next_to_a_tenth_of_a_millimetre() {
     // with its three central texels (≤ 0.046 mm off axis) → useful for it
     // too. Relative to each light's reference point, the card's f32
     // coordinates keep it 1e−4 m wide (f32 spacing at 250 m is 1.5e−5 m).
+    // The limit of tracing in f32: the same card placed (in f64) at
+    // (4750, 1, 4750), also on a texel centre but 6.7 km from the sun's
+    // reference point (the world's centre), where f32 spacing is 4.9e−4 m,
+    // collapses to zero area: the sun leaves its 2 triangles out and counts
+    // them (the spot does not reach it).
     let h = 5e-5f32;
     let mut world = World::new(1, 1);
     let floor = one(
@@ -619,8 +624,10 @@ fn ten_km_triangles_next_to_a_tenth_of_a_millimetre() {
         quad_up(250.0 - h, 250.0 - h, 250.0 + h, 250.0 + h, 1.0),
         OPAQUE,
     );
+    let centred = one(&mut world, quad_up(-h, -h, h, h, 0.0), OPAQUE);
     let floor = world.place((0, 0), &[floor], DMat4::IDENTITY, true);
     let tiny = world.place((0, 0), &[tiny], DMat4::IDENTITY, true);
+    let far = world.place((0, 0), &[centred], at(4750.0, 1.0, 4750.0), true);
     let result = run(
         &world,
         &config(vec![
@@ -631,6 +638,21 @@ fn ten_km_triangles_next_to_a_tenth_of_a_millimetre() {
     assert_eq!(result.lights[0].rays, 400);
     assert_eq!(instance_masks(&result, &world, tiny), vec![0b11]);
     assert_eq!(instance_masks(&result, &world, floor), vec![0]);
+    assert_eq!(instance_masks(&result, &world, far), vec![0]);
+    assert!(
+        result.skipped.iter().any(|s| s.what.starts_with("light 0 ")
+            && s.why.starts_with("2 zero-area, non-finite or absurdly far")),
+        "{:?}",
+        result.skipped
+    );
+    assert!(
+        !result
+            .skipped
+            .iter()
+            .any(|s| s.what.starts_with("light 1 ") && s.why.contains("zero-area")),
+        "{:?}",
+        result.skipped
+    );
 }
 
 // ---------------------------------------------------------------------------
