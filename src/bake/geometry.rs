@@ -6,12 +6,16 @@
 use super::casters::CasterTable;
 use crate::light::TexelGrid;
 use crate::scene::Scene;
-use crate::trace::TraceTriangle;
+use crate::trace::{TraceTriangle, MAX_COORDINATE};
 use glam::{DMat4, DVec3, Vec3};
 use rayon::prelude::*;
 
 /// World bounds of everything that can be hit (instances and terrain), or
-/// `None` for a world with no geometry.
+/// `None` for a world with no geometry. A box that is not finite or reaches
+/// beyond [`MAX_COORDINATE`] (an absurd but finite transform, e.g. a scale
+/// of 1e20 from a damaged chunk) is left out: its triangles are never
+/// traced (see [`degenerate`]) and it must not stretch a directional
+/// light's grid past any possible size.
 pub fn world_bounds(scene: &Scene) -> Option<(DVec3, DVec3)> {
     let model_bounds: Vec<Option<(DVec3, DVec3)>> = scene
         .models
@@ -20,6 +24,10 @@ pub fn world_bounds(scene: &Scene) -> Option<(DVec3, DVec3)> {
         .collect();
     let mut bounds: Option<(DVec3, DVec3)> = None;
     let mut add = |min: DVec3, max: DVec3| {
+        let limit = f64::from(MAX_COORDINATE);
+        if !(min.is_finite() && max.is_finite()) || min.abs().max(max.abs()).max_element() > limit {
+            return;
+        }
         bounds = Some(match bounds {
             Some((a, b)) => (a.min(min), b.max(max)),
             None => (min, max),
@@ -63,7 +71,8 @@ pub struct LightGeometry {
     /// Instances / terrain blocks entirely outside the light's reach.
     pub instances_out_of_reach: usize,
     pub blocks_out_of_reach: usize,
-    /// Zero-area or non-finite triangles, never hit, left out.
+    /// Zero-area, non-finite or absurdly far (beyond [`MAX_COORDINATE`])
+    /// triangles, never hit, left out.
     pub degenerate_triangles: usize,
     /// Some included triangle belongs to an alpha-tested group.
     pub reaches_alpha_tested: bool,
@@ -74,10 +83,15 @@ fn relative(p: DVec3, reference: DVec3) -> Vec3 {
     (p - reference).as_vec3()
 }
 
-/// Zero area in f32 (the triangle test would never report it) or not finite.
+/// Zero area in f32 (the triangle test would never report it), not finite,
+/// or beyond [`MAX_COORDINATE`] from the light's reference point (the trace
+/// would drop it silently; here it is counted).
 fn degenerate(v: &[Vec3; 3]) -> bool {
     let n = (v[1] - v[0]).cross(v[2] - v[0]);
-    !v.iter().all(|p| p.is_finite()) || n == Vec3::ZERO || !n.is_finite()
+    !v.iter()
+        .all(|p| p.is_finite() && p.abs().max_element() <= MAX_COORDINATE)
+        || n == Vec3::ZERO
+        || !n.is_finite()
 }
 
 pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) -> LightGeometry {

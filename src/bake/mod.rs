@@ -207,8 +207,9 @@ pub fn bake(
             skipped.push(Skipped {
                 what: name.clone(),
                 why: format!(
-                    "{} zero-area or non-finite triangles left out (they can never be hit)",
-                    geometry.degenerate_triangles
+                    "{} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
+                    geometry.degenerate_triangles,
+                    crate::trace::MAX_COORDINATE
                 ),
             });
         }

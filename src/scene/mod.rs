@@ -98,14 +98,17 @@ pub struct Model {
 
 impl Model {
     /// Model-space bounds of the vertices the triangles use, or `None` when
-    /// the model has no (finite) triangle.
+    /// the model has no (finite) triangle. Vertices that are not finite or
+    /// lie beyond [`crate::trace::MAX_COORDINATE`] (a damaged file: the bake
+    /// leaves their triangles out and counts them) do not count, so one of
+    /// them cannot blow the world's bounds up to an impossible shadow map.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let mut bounds: Option<(Vec3, Vec3)> = None;
         for &index in self.triangles.iter().flatten() {
             let Some(&p) = self.positions.get(index as usize) else {
                 continue;
             };
-            if !p.is_finite() {
+            if !p.is_finite() || p.abs().max_element() > crate::trace::MAX_COORDINATE {
                 continue;
             }
             bounds = Some(match bounds {
@@ -171,5 +174,38 @@ impl Scene {
         }
         stats.models = used.iter().filter(|u| **u).count();
         stats
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn model_bounds_ignore_unusable_vertices() {
+        // Triangle 0 is sane; triangle 1 has a NaN, an infinite and a
+        // 1e30 m vertex (beyond trace::MAX_COORDINATE) besides a sane one.
+        let model = Model {
+            positions: vec![
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(1.0, 2.0, 0.0),
+                Vec3::new(0.0, 0.0, 3.0),
+                Vec3::new(f32::NAN, 0.0, 0.0),
+                Vec3::new(0.0, f32::INFINITY, 0.0),
+                Vec3::new(1e30, 0.0, 0.0),
+                Vec3::new(-1.0, 0.5, 0.5),
+            ],
+            triangles: vec![[0, 1, 2], [3, 4, 5], [5, 6, 3]],
+            ..Model::default()
+        };
+        assert_eq!(
+            model.bounds(),
+            Some((Vec3::new(-1.0, 0.0, 0.0), Vec3::new(1.0, 2.0, 3.0)))
+        );
+        let only_bad = Model {
+            triangles: vec![[3, 4, 5]],
+            ..model
+        };
+        assert_eq!(only_bad.bounds(), None);
     }
 }

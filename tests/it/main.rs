@@ -10,6 +10,7 @@ mod packed_real;
 mod primitives_real;
 mod real_scene;
 mod render;
+mod robustness;
 mod shadow_write_real;
 mod support;
 mod sweep;

@@ -79,21 +79,40 @@ pub fn flipped(triangles: Vec<[Vec3; 3]>) -> Vec<[Vec3; 3]> {
 
 pub struct World {
     pub scene: Scene,
+    /// Grid of the chunk that tests call (0, 0): non-zero for a translated
+    /// copy of a world (see [`World::new_at`]).
+    origin: (i32, i32),
 }
 
 impl World {
     /// An empty world of `nx` × `nz` chunks starting at grid (0, 0).
     pub fn new(nx: i32, nz: i32) -> World {
+        World::new_at(nx, nz, DVec3::ZERO)
+    }
+
+    /// The same empty world moved by `offset`: x and z by whole chunks (so
+    /// the chunk grid and the below-ground lookup move with it; they must be
+    /// multiples of [`CHUNK`]), y through the chunk transforms. Tests keep
+    /// calling the chunks (0, 0), (1, 0), …: the offset is applied here, so
+    /// one build function makes the world at the origin and far from it.
+    pub fn new_at(nx: i32, nz: i32, offset: DVec3) -> World {
+        let gx = offset.x / CHUNK;
+        let gz = offset.z / CHUNK;
+        assert!(
+            gx.fract() == 0.0 && gz.fract() == 0.0,
+            "offset {offset} is not a whole number of chunks"
+        );
+        let origin = (gx as i32, gz as i32);
         let mut chunks = Vec::new();
-        for x in 0..nx {
-            for z in 0..nz {
+        for x in origin.0..origin.0 + nx {
+            for z in origin.1..origin.1 + nz {
                 chunks.push(Chunk {
                     name: shadowcull::formats::space_settings::outdoor_chunk_name(x, z),
                     file: format!("{x}_{z}.chunk").into(),
                     grid: Some((x, z)),
                     transform: DMat4::from_translation(DVec3::new(
                         x as f64 * CHUNK,
-                        0.0,
+                        offset.y,
                         z as f64 * CHUNK,
                     )),
                     instances: 0..0,
@@ -107,10 +126,10 @@ impl World {
             scene: Scene {
                 space_dir: "micro".into(),
                 settings: SpaceSettings {
-                    min_x: 0,
-                    max_x: nx - 1,
-                    min_z: 0,
-                    max_z: nz - 1,
+                    min_x: origin.0,
+                    max_x: origin.0 + nx - 1,
+                    min_z: origin.1,
+                    max_z: origin.1 + nz - 1,
                     chunk_size: CHUNK,
                     single_dir: false,
                     terrain_version: Some(200),
@@ -122,10 +141,12 @@ impl World {
                 terrain: Vec::new(),
                 problems: Vec::new(),
             },
+            origin,
         }
     }
 
     fn chunk_index(&self, grid: (i32, i32)) -> usize {
+        let grid = (grid.0 + self.origin.0, grid.1 + self.origin.1);
         self.scene
             .chunks
             .iter()
@@ -228,6 +249,7 @@ impl World {
             holes: None,
         };
         let origin = self.scene.chunks[chunk].transform.w_axis.truncate();
+        // Heights are chunk-local; the chunk's own y lifts the block.
         let block = TerrainBlock::new(&data, origin, CHUNK).expect("valid block");
         self.scene.chunks[chunk].terrain = Some(self.scene.terrain.len());
         self.scene.terrain.push(block);
