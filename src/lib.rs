@@ -8,6 +8,8 @@ pub mod formats;
 pub mod gen;
 pub mod inspect;
 pub mod light;
+#[cfg(feature = "raster")]
+pub mod raster;
 pub mod render;
 pub mod rng;
 pub mod scene;

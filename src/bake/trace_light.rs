@@ -151,6 +151,24 @@ pub fn trace_ray(
     hits: &mut Vec<RayHit>,
     useful: &mut CasterSet,
 ) {
+    trace_ray_each(ray, reference, tracer, casters, ground, rules, hits, |c| {
+        useful.insert(c)
+    });
+}
+
+/// [`trace_ray`] handing each useful caster to `on_useful` (a caster useful
+/// in both passes is handed twice): the cross-check counts texels per caster.
+#[allow(clippy::too_many_arguments)]
+pub fn trace_ray_each(
+    ray: &TexelRay,
+    reference: DVec3,
+    tracer: &Tracer<'_>,
+    casters: &CasterTable,
+    ground: Option<&Ground<'_>>,
+    rules: RayRules,
+    hits: &mut Vec<RayHit>,
+    on_useful: impl FnMut(u32),
+) {
     let traced = to_trace_ray(ray, reference);
     hits.clear();
     let mut limit = traced.t_max;
@@ -167,7 +185,7 @@ pub fn trace_ray(
         limit
     });
     hits.retain(|h| h.t <= limit);
-    classify::classify_ray(hits, rules.tie_epsilon, rules.passes, |c| useful.insert(c));
+    classify::classify_ray(hits, rules.tie_epsilon, rules.passes, on_useful);
 }
 
 /// A texel's ray in the tracer's light-relative f32 frame.

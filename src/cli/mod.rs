@@ -5,6 +5,7 @@ mod bake;
 mod progress;
 mod render;
 mod sweep;
+mod xcheck;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -53,6 +54,8 @@ enum Command {
     },
     /// Draw what the bake decides for one light: its shadow map or a camera view (PNG + legend).
     Render(render::RenderArgs),
+    /// Compare the ray-cast bake with the rasterized method (cargo feature `raster`).
+    Xcheck(xcheck::XcheckArgs),
     /// Write a synthetic world (BigWorld formats) and its settings file bake.xml.
     Gen {
         /// Output folder (created; existing files of the same names are replaced).
@@ -91,6 +94,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bake(args) => bake::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
+        Command::Xcheck(args) => xcheck::run(args),
         Command::Inspect { settings, json } => {
             let settings = load_settings(&settings)?;
             let scene = scene::load_scene(&load_config(&settings))?;

@@ -1,0 +1,70 @@
+//! `shadowcull xcheck`: the ray-cast bake against the rasterized method
+//! (cargo feature `raster`); without the feature it says how to get it.
+
+use super::{load_config, load_settings, SettingsArgs};
+use anyhow::{bail, Result};
+use std::path::PathBuf;
+
+#[derive(Debug, clap::Args)]
+pub struct XcheckArgs {
+    #[command(flatten)]
+    settings: SettingsArgs,
+    /// Write the comparison as JSON (pairs, agreeing, unexplained, disagreements).
+    #[arg(long, value_name = "FILE")]
+    report: Option<PathBuf>,
+}
+
+#[cfg(not(feature = "raster"))]
+pub fn run(_args: XcheckArgs) -> Result<()> {
+    bail!("xcheck needs the rasterized method: rebuild with `cargo build --release --features raster` (and Mesa's libegl1 libegl-mesa0 libgl1-mesa-dri, or a GPU driver)")
+}
+
+#[cfg(feature = "raster")]
+pub fn run(args: XcheckArgs) -> Result<()> {
+    use shadowcull::bake::BakeConfig;
+    use shadowcull::raster;
+    let settings = load_settings(&args.settings)?;
+    let scene = shadowcull::scene::load_scene(&load_config(&settings))?;
+    let config = BakeConfig::from_settings(&settings);
+    let result = raster::raster(&scene, &config, raster::DEFAULT_MAX_TILE)
+        .map_err(|e| anyhow::anyhow!("the rasterized method could not run: {e}"))?;
+    let report = raster::xcheck::compare(&scene, &config, &result);
+    println!("renderer: {}", report.renderer);
+    for note in &report.notes {
+        println!("note: {note}");
+    }
+    for l in &report.lights {
+        println!(
+            "light {}: useful texels ray cast {} raster {} ({:.2} s ray cast, {:.2} s raster)",
+            l.light, l.ray_cast, l.raster, l.ray_seconds, l.raster_seconds
+        );
+    }
+    println!(
+        "{} of {} (caster, light) pairs agree; {} disagreements, {} unexplained",
+        report.agreeing,
+        report.pairs,
+        report.disagreements.len(),
+        report.unexplained
+    );
+    for d in &report.disagreements {
+        println!(
+            "  {} {} {:?} group {:?} light {}: ray cast {} raster {}: {}",
+            d.chunk,
+            d.kind,
+            d.index,
+            d.group,
+            d.light,
+            d.ray_cast,
+            d.raster,
+            d.cause.as_deref().unwrap_or("UNEXPLAINED")
+        );
+    }
+    if let Some(path) = &args.report {
+        let json = serde_json::to_string_pretty(&report)?;
+        shadowcull::formats::resources::write_atomic(path, json.as_bytes())?;
+    }
+    if report.unexplained > 0 {
+        bail!("{} disagreements stay unexplained", report.unexplained);
+    }
+    Ok(())
+}
