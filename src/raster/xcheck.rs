@@ -213,6 +213,7 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
         notes: raster.ground_note.iter().cloned().collect(),
     };
     let mut supersampled: Vec<Option<Vec<u64>>> = vec![None; config.lights.len()];
+    #[allow(clippy::needless_range_loop)]
     for light in 0..config.lights.len() {
         report.lights.push(LightTexels {
             light,

@@ -8,6 +8,8 @@ mod generated;
 mod micro;
 mod packed_real;
 mod primitives_real;
+#[cfg(feature = "raster")]
+mod raster;
 mod real_scene;
 mod render;
 mod robustness;

@@ -9,7 +9,7 @@ use shadowcull::scene::{load_scene, LoadConfig};
 use std::collections::BTreeMap;
 use std::path::Path;
 
-fn real_model_names(res: &Path) -> Vec<String> {
+pub(crate) fn real_model_names(res: &Path) -> Vec<String> {
     let mut names: Vec<String> = shadowcull::formats::resources::find_files(res, ".model")
         .unwrap()
         .into_iter()
@@ -25,7 +25,7 @@ fn real_model_names(res: &Path) -> Vec<String> {
 }
 
 /// A one-chunk space placing every given model once, 10 m apart.
-fn world_placing(models: &[String]) -> Vec<(String, Vec<u8>)> {
+pub(crate) fn world_placing(models: &[String]) -> Vec<(String, Vec<u8>)> {
     let mut chunk = String::from("<root>\n");
     for (i, model) in models.iter().enumerate() {
         chunk += &format!(
