@@ -1,7 +1,7 @@
 //! `shadowcull xcheck`: the ray-cast bake against the rasterized method
 //! (cargo feature `raster`); without the feature it says how to get it.
 
-use super::{load_config, load_settings, SettingsArgs};
+use super::SettingsArgs;
 use anyhow::{bail, Result};
 use std::path::PathBuf;
 
@@ -21,6 +21,7 @@ pub fn run(_args: XcheckArgs) -> Result<()> {
 
 #[cfg(feature = "raster")]
 pub fn run(args: XcheckArgs) -> Result<()> {
+    use super::{load_config, load_settings};
     use shadowcull::bake::BakeConfig;
     use shadowcull::raster;
     let settings = load_settings(&args.settings)?;
