@@ -5,10 +5,13 @@
 //!
 //! Per light, face and tile of the shadow map, and per alpha variant (all
 //! groups; alpha-tested groups left out), OR-ed:
-//! - pass 1: every triangle with depth LESS and depth writes; the stencil is
-//!   incremented by every fragment that survives face culling and the
-//!   fragment tests, whether it passes depth or not (receiver-only instances
-//!   included: they count but are never queried);
+//! - pass 1: every caster triangle with depth LESS and depth writes; the
+//!   stencil is incremented by every fragment that survives face culling and
+//!   the fragment tests, whether it passes depth or not; then receiver-only
+//!   instances, which are not drawn into the shadow map: no depth writes, and
+//!   they count only where they are not in front of the nearest caster
+//!   (depth GEQUAL), as SPEC §4's "receiver-only hits that are not in front
+//!   of the front set"; they are never queried;
 //! - pass 2: per caster (primitive group, terrain block), an occlusion query
 //!   with depth LEQUAL against pass 1 where stencil > 1, no writes; a caster
 //!   is useful if any sample passes.
@@ -565,11 +568,23 @@ unsafe fn raster_in(
                         gl.clear_stencil(0);
                         gl.clear(glow::DEPTH_BUFFER_BIT | glow::STENCIL_BUFFER_BIT);
                         gl.color_mask(false, false, false, false);
-                        // Pass 1.
+                        // Pass 1: casters write the nearest caster depth;
+                        // every fragment counts in the stencil.
                         gl.depth_func(glow::LESS);
                         gl.stencil_func(glow::ALWAYS, 0, 0xff);
                         gl.stencil_op(glow::KEEP, glow::INCR, glow::INCR);
-                        for r in runs.iter().filter(|r| included(r)) {
+                        let receiver = |r: &Run| casters.casters[r.caster as usize].receiver_only;
+                        for r in runs.iter().filter(|r| included(r) && !receiver(r)) {
+                            draw_run(gl, &casters, r, culling, ground_on, &u);
+                        }
+                        // Receiver-only instances are not drawn into the
+                        // shadow map (SPEC §2): they write no depth, and
+                        // count only where they are not in front of the
+                        // nearest caster (SPEC §4), i.e. depth GEQUAL.
+                        gl.depth_mask(false);
+                        gl.depth_func(glow::GEQUAL);
+                        gl.stencil_op(glow::KEEP, glow::KEEP, glow::INCR);
+                        for r in runs.iter().filter(|r| included(r) && receiver(r)) {
                             draw_run(gl, &casters, r, culling, ground_on, &u);
                         }
                         // Pass 2.
