@@ -101,14 +101,15 @@ fn small_fixture_agrees_and_tiling_changes_nothing() {
 #[test]
 fn village_fixture_agrees_with_every_face_culling_mode() {
     let (scene, mut config) = fixture("village");
-    // Back (the default) meets the 99.9 % bar; front and none expose more
-    // edge-on faces (a 549-pair world: 2 explained edge cases measured), so
-    // they must be explained and within 99 % (measured 546 of 549).
+    // Back (the default) and none meet the 99.9 % bar (549 of 549
+    // measured). Front culling exposes the faces turned away from the light,
+    // with more edge-on texels: measured 547 of 549, both explained; its
+    // bar stays at 99 % until those two are understood (issue 4 is open).
     check(&scene, &config, raster::DEFAULT_MAX_TILE, 999, 1);
-    for culling in [FaceCulling::Front, FaceCulling::None] {
-        config.face_culling = culling;
-        check(&scene, &config, raster::DEFAULT_MAX_TILE, 990, 5);
-    }
+    config.face_culling = FaceCulling::None;
+    check(&scene, &config, raster::DEFAULT_MAX_TILE, 999, 1);
+    config.face_culling = FaceCulling::Front;
+    check(&scene, &config, raster::DEFAULT_MAX_TILE, 990, 5);
 }
 
 #[test]
