@@ -6,7 +6,7 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use shadowcull::bake::casters::CasterTable;
 use shadowcull::bake::ground::Ground;
-use shadowcull::bake::trace_light::{trace_light, RayCounter, RayRules, Tracer};
+use shadowcull::bake::trace_light::{LightRays, RayCounter, RayRules, Tracer};
 use shadowcull::bake::{self, geometry, BakeConfig, Silent};
 use shadowcull::classify::Passes;
 use shadowcull::formats::bake_settings::BakeSettings;
@@ -35,17 +35,6 @@ fn bench_world() -> (tempfile::TempDir, BakeSettings, Scene) {
     (dir, settings, scene)
 }
 
-fn config(settings: &BakeSettings) -> BakeConfig {
-    BakeConfig {
-        face_culling: settings.face_culling,
-        height_bias: settings.height_bias,
-        tie_epsilon: settings.tie_epsilon,
-        lights: settings.lights.clone(),
-        brute_force: false,
-        ..Default::default()
-    }
-}
-
 fn bake_bench(c: &mut Criterion) {
     let (_dir, settings, scene) = bench_world();
     let casters = CasterTable::new(&scene);
@@ -72,32 +61,24 @@ fn bake_bench(c: &mut Criterion) {
         group.finish();
 
         let bvh = Bvh::build(triangles);
-        let rules = RayRules {
-            face_culling: settings.face_culling,
-            height_bias: settings.height_bias,
-            tie_epsilon: settings.tie_epsilon as f32,
-            passes: if light_geometry.reaches_alpha_tested {
-                Passes::AllAndOpaque
-            } else {
-                Passes::AllOnly
-            },
+        let passes = if light_geometry.reaches_alpha_tested {
+            Passes::AllAndOpaque
+        } else {
+            Passes::AllOnly
+        };
+        let rays_of_light = LightRays {
+            grid: &grid,
+            tracer: Tracer::Bvh(&bvh),
+            casters: &casters,
+            ground: ground.as_ref(),
+            rules: RayRules::new(&BakeConfig::from_settings(&settings), passes),
         };
         let mut group = c.benchmark_group(format!("trace/{kind}"));
         group.sample_size(10);
         group.measurement_time(Duration::from_secs(10));
         group.throughput(Throughput::Elements(grid.texel_count()));
         group.bench_function("bake_rays", |b| {
-            b.iter(|| {
-                trace_light(
-                    &grid,
-                    &Tracer::Bvh(&bvh),
-                    &casters,
-                    ground.as_ref(),
-                    rules,
-                    1,
-                    &NoCount,
-                )
-            })
+            b.iter(|| rays_of_light.trace_grid(1, &NoCount))
         });
         // The same rays through the traversals alone (no classification),
         // single-threaded loops over every texel: ours collecting hits with
@@ -152,7 +133,7 @@ fn bake_bench(c: &mut Criterion) {
         group.finish();
     }
 
-    let config = config(&settings);
+    let config = BakeConfig::from_settings(&settings);
     let mut group = c.benchmark_group("bake");
     group.sample_size(10);
     group.measurement_time(Duration::from_secs(20));

@@ -34,6 +34,22 @@ impl Rng {
     pub fn chance(&mut self, p: f64) -> bool {
         self.unit() < p
     }
+
+    /// A uniformly distributed unit vector (rejection sampling in the unit
+    /// ball, so no direction is favoured).
+    pub fn unit_vector(&mut self) -> glam::DVec3 {
+        loop {
+            let p = glam::DVec3::new(
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+            );
+            let l = p.length();
+            if l > 1e-3 && l <= 1.0 {
+                return p / l;
+            }
+        }
+    }
 }
 
 /// The SplitMix64 finaliser, also used as a stateless hash for lattice noise.

@@ -18,7 +18,7 @@ use crate::trace::Bvh;
 use casters::CasterTable;
 use std::sync::atomic::AtomicU64;
 use std::time::Instant;
-use trace_light::{CasterSet, RayRules, Tracer};
+use trace_light::{CasterSet, LightRays, RayRules, Tracer};
 
 /// What to bake (the settings file's values after command-line overrides).
 #[derive(Debug, Clone)]
@@ -246,11 +246,12 @@ pub fn bake(
             bvh_seconds = build_started.elapsed().as_secs_f64();
             progress.light_started(index, light, rays);
             let trace_started = Instant::now();
-            let rules = RayRules {
-                face_culling: config.face_culling,
-                height_bias: config.height_bias,
-                tie_epsilon: config.tie_epsilon as f32,
-                passes,
+            let rays_of_light = LightRays {
+                grid: &grid,
+                tracer,
+                casters: &casters,
+                ground: ground.as_ref(),
+                rules: RayRules::new(config, passes),
             };
             let done = AtomicU64::new(0);
             let reporter = ProgressRelay {
@@ -258,24 +259,12 @@ pub fn bake(
                 index,
                 done: &done,
             };
-            let mut useful = trace_light::trace_light(
-                &grid,
-                &tracer,
-                &casters,
-                ground.as_ref(),
-                rules,
-                supersample,
-                &reporter,
-            );
+            let mut useful = rays_of_light.trace_grid(supersample, &reporter);
             if config.refine_samples > 0 {
                 let (refined, traced) = refine::refine(
-                    &grid,
+                    &rays_of_light,
                     index,
                     &geometry.triangles,
-                    &tracer,
-                    &casters,
-                    ground.as_ref(),
-                    rules,
                     &useful,
                     config.refine_samples,
                 );

@@ -6,10 +6,7 @@
 //! caster useful keeps it (the rays are fixed before tracing and the results
 //! OR-ed, so the outcome does not depend on order or threads).
 
-use super::casters::CasterTable;
-use super::ground::Ground;
-use super::trace_light::{trace_ray, CasterSet, RayRules, Tracer};
-use crate::light::TexelGrid;
+use super::trace_light::{CasterSet, LightRays};
 use crate::rng::{mix, Rng};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
@@ -23,18 +20,14 @@ const EDGE_MARGIN: f64 = 0.02;
 /// yet nor receiver-only: `samples` points per caster, area-weighted over its
 /// triangles, deterministic per (light, caster). Returns the casters the
 /// rays prove useful and how many rays were traced.
-#[allow(clippy::too_many_arguments)]
 pub fn refine(
-    grid: &TexelGrid,
+    rays_of_light: &LightRays<'_>,
     light_index: usize,
     triangles: &[TraceTriangle],
-    tracer: &Tracer<'_>,
-    casters: &CasterTable,
-    ground: Option<&Ground<'_>>,
-    rules: RayRules,
     already_useful: &CasterSet,
     samples: u32,
 ) -> (CasterSet, u64) {
+    let (grid, casters) = (rays_of_light.grid, rays_of_light.casters);
     // Triangles arrive caster by caster (scene order), so each caster's are
     // one contiguous run.
     let mut runs: Vec<(u32, std::ops::Range<usize>)> = Vec::new();
@@ -75,16 +68,7 @@ pub fn refine(
                     let p = reference + sample_point(&run[chosen], &mut rng);
                     if let Some(ray) = grid.ray_toward(p) {
                         rays += 1;
-                        trace_ray(
-                            &ray,
-                            reference,
-                            tracer,
-                            casters,
-                            ground,
-                            rules,
-                            &mut hits,
-                            &mut useful,
-                        );
+                        rays_of_light.trace(&ray, &mut hits, |c| useful.insert(c));
                     }
                 }
                 (useful, hits, rays)

@@ -58,25 +58,11 @@ mod tests {
         assert!((w - d).length() < tol, "u×v = {w} differs from d = {d}");
     }
 
-    fn random_unit(rng: &mut Rng) -> DVec3 {
-        loop {
-            let p = DVec3::new(
-                rng.range(-1.0, 1.0),
-                rng.range(-1.0, 1.0),
-                rng.range(-1.0, 1.0),
-            );
-            let l = p.length();
-            if l > 1e-3 && l <= 1.0 {
-                return p / l;
-            }
-        }
-    }
-
     #[test]
     fn random_directions_give_right_handed_orthonormal_frames() {
         let mut rng = Rng::new(0x11_9417);
         for _ in 0..100_000 {
-            assert_frame(random_unit(&mut rng));
+            assert_frame(rng.unit_vector());
         }
     }
 
@@ -137,7 +123,7 @@ mod tests {
         // documented jump across d.z = 0).
         let mut rng = Rng::new(7);
         for _ in 0..10_000 {
-            let d = random_unit(&mut rng);
+            let d = rng.unit_vector();
             if d.z.abs() < 1e-3 {
                 continue;
             }

@@ -369,6 +369,28 @@ impl TexelGrid {
         self.ray_through(face, x as f64 + 0.5, y as f64 + 0.5)
     }
 
+    /// The `samples`² rays of texel `(face, x, y)`: 1 gives its centre, k a
+    /// k×k pattern of sub-texel centres (the same rays as a k× denser grid).
+    pub fn texel_rays(
+        &self,
+        face: usize,
+        x: u32,
+        y: u32,
+        samples: u32,
+    ) -> impl Iterator<Item = TexelRay> + '_ {
+        let samples = samples.max(1);
+        let step = 1.0 / samples as f64;
+        (0..samples).flat_map(move |sy| {
+            (0..samples).map(move |sx| {
+                self.ray_through(
+                    face,
+                    x as f64 + (sx as f64 + 0.5) * step,
+                    y as f64 + (sy as f64 + 0.5) * step,
+                )
+            })
+        })
+    }
+
     /// The ray through grid position (`cx`, `cy`) of `face`, in texel units
     /// (texel (x, y) spans [x, x+1) × [y, y+1); its centre is (x+0.5,
     /// y+0.5)): supersampling traces several per texel.

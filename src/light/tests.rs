@@ -50,20 +50,6 @@ fn point(position: DVec3, near: f64, far: f64, resolution: u32) -> LightSettings
 /// Bounds are ignored by spot and point lights.
 const NO_WORLD: (DVec3, DVec3) = (DVec3::ZERO, DVec3::ZERO);
 
-fn random_unit(rng: &mut Rng) -> DVec3 {
-    loop {
-        let p = DVec3::new(
-            rng.range(-1.0, 1.0),
-            rng.range(-1.0, 1.0),
-            rng.range(-1.0, 1.0),
-        );
-        let l = p.length();
-        if l > 1e-3 && l <= 1.0 {
-            return p / l;
-        }
-    }
-}
-
 fn random_bounds(rng: &mut Rng) -> (DVec3, DVec3) {
     let centre = DVec3::new(
         rng.range(-5000.0, 5000.0),
@@ -139,7 +125,7 @@ fn sun_along_x_maps_texels_to_minus_z_and_y() {
 fn directional_grids_cover_the_world_with_exact_spacing() {
     let mut rng = Rng::new(0xd1_2ec7);
     for case in 0..300 {
-        let d = random_unit(&mut rng);
+        let d = rng.unit_vector();
         let bounds = random_bounds(&mut rng);
         let texel_size = rng.range(0.5, 20.0);
         let grid = TexelGrid::new(&directional(d, texel_size), bounds).unwrap();
@@ -388,7 +374,7 @@ fn invalid_lights_built_in_code_are_errors() {
 fn spot_rays_follow_the_opening_angle() {
     let mut rng = Rng::new(0x5b07);
     for _ in 0..200 {
-        let d = random_unit(&mut rng);
+        let d = rng.unit_vector();
         let position = DVec3::new(
             rng.range(-1e4, 1e4),
             rng.range(-1e2, 1e2),
@@ -499,7 +485,7 @@ fn point_light_faces_partition_the_sphere() {
     let mut rng = Rng::new(0xc0be);
     let mut per_face = [0usize; 6];
     for _ in 0..50_000 {
-        let r = random_unit(&mut rng);
+        let r = rng.unit_vector();
         let owners: Vec<usize> = (0..6)
             .filter(|&f| {
                 let (axis, u, v) = CUBE_FACES[f];
@@ -576,7 +562,7 @@ fn reaches_keeps_every_box_a_ray_enters() {
         let near = rng.range(0.01, 2.0);
         let far = near + rng.range(0.1, 200.0);
         let res = 1 + rng.below(64) as u32;
-        let d = random_unit(&mut rng);
+        let d = rng.unit_vector();
         let fov = rng.range(0.5, 179.0);
         let s = TexelGrid::new(&spot(position, d, fov, near, far, res), NO_WORLD).unwrap();
         assert_reaches_hit_boxes(&s, &mut rng);
@@ -661,7 +647,7 @@ fn reaches_drops_boxes_out_of_a_point_lights_shell() {
     let grid = TexelGrid::new(&point(c, 0.5, 30.0, 32), NO_WORLD).unwrap();
     let mut rng = Rng::new(0x9017);
     for _ in 0..1_000 {
-        let dir = random_unit(&mut rng);
+        let dir = rng.unit_vector();
         let h = rng.range(0.0, 3.0);
         // The box's nearest point is at least 30.5 away along some axis...
         let beyond = c + dir * (30.5 + h * 3f64.sqrt());

@@ -18,7 +18,7 @@
 use super::RasterResult;
 use crate::bake::casters::{CasterTable, Owner};
 use crate::bake::ground::Ground;
-use crate::bake::trace_light::{self, RayRules, Tracer};
+use crate::bake::trace_light::{LightRays, RayRules, Tracer};
 use crate::bake::{geometry, BakeConfig};
 use crate::classify::Passes;
 use crate::light::TexelGrid;
@@ -100,23 +100,23 @@ pub fn ray_counts(
         };
         let geo = geometry::light_geometry(scene, casters, &grid);
         let bvh = Bvh::build(&geo.triangles);
-        let tracer = Tracer::Bvh(&bvh);
         let passes = if geo.reaches_alpha_tested {
             Passes::AllAndOpaque
         } else {
             Passes::AllOnly
         };
-        let rules = RayRules {
-            face_culling: config.face_culling,
-            height_bias: config.height_bias,
-            tie_epsilon: config.tie_epsilon as f32,
-            passes,
+        let rays_of_light = LightRays {
+            grid: &grid,
+            tracer: Tracer::Bvh(&bvh),
+            casters,
+            ground: ground.as_ref(),
+            rules: RayRules::new(config, passes),
         };
-        let all_rules = RayRules {
-            passes: Passes::AllOnly,
-            ..rules
+        // The All pass alone, for the per-light texel counts.
+        let all_pass = LightRays {
+            rules: RayRules::new(config, Passes::AllOnly),
+            ..rays_of_light
         };
-        let step = 1.0 / samples.max(1) as f64;
         let rows = grid.faces() as u64 * grid.height() as u64;
         let (all, any) = (0..rows)
             .into_par_iter()
@@ -134,41 +134,14 @@ pub fn ray_counts(
                     let y = (row % grid.height() as u64) as u32;
                     for x in 0..grid.width() {
                         seen.clear();
-                        for sy in 0..samples.max(1) {
-                            for sx in 0..samples.max(1) {
-                                let ray = grid.ray_through(
-                                    face,
-                                    x as f64 + (sx as f64 + 0.5) * step,
-                                    y as f64 + (sy as f64 + 0.5) * step,
-                                );
-                                let r = grid.reference_point();
-                                let g = ground.as_ref();
-                                trace_light::trace_ray_each(
-                                    &ray,
-                                    r,
-                                    &tracer,
-                                    casters,
-                                    g,
-                                    rules,
-                                    &mut hits,
-                                    |c| seen.push(c),
-                                );
-                                if samples <= 1 {
-                                    trace_light::trace_ray_each(
-                                        &ray,
-                                        r,
-                                        &tracer,
-                                        casters,
-                                        g,
-                                        all_rules,
-                                        &mut hits,
-                                        |c| {
-                                            if let Some(n) = all.get_mut(c as usize) {
-                                                *n += 1;
-                                            }
-                                        },
-                                    );
-                                }
+                        for ray in grid.texel_rays(face, x, y, samples) {
+                            rays_of_light.trace(&ray, &mut hits, |c| seen.push(c));
+                            if samples <= 1 {
+                                all_pass.trace(&ray, &mut hits, |c| {
+                                    if let Some(n) = all.get_mut(c as usize) {
+                                        *n += 1;
+                                    }
+                                });
                             }
                         }
                         seen.sort_unstable();

@@ -15,7 +15,7 @@
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
 use crate::bake::geometry::{light_geometry, world_bounds};
 use crate::bake::ground::Ground;
-use crate::bake::trace_light::{front_hit, RayRules, Tracer};
+use crate::bake::trace_light::{LightRays, RayRules, Tracer};
 use crate::bake::BakeConfig;
 use crate::classify::Passes;
 use crate::light::{TexelGrid, CUBE_FACE_NAMES};
@@ -47,14 +47,14 @@ pub fn light_view(
     let grid = TexelGrid::new(settings, bounds)?;
     let geometry = light_geometry(scene, &verdicts.casters, &grid);
     let bvh = Bvh::build(&geometry.triangles);
-    let tracer = Tracer::Bvh(&bvh);
     let ground = Ground::new(scene);
-    let rules = RayRules {
-        face_culling: config.face_culling,
-        height_bias: config.height_bias,
-        tie_epsilon: config.tie_epsilon as f32,
-        // front_hit does not classify; the value is not used.
-        passes: Passes::AllOnly,
+    let rays_of_light = LightRays {
+        grid: &grid,
+        tracer: Tracer::Bvh(&bvh),
+        casters: &verdicts.casters,
+        ground: ground.as_ref(),
+        // front_hit does not classify; the passes are not used.
+        rules: RayRules::new(config, Passes::AllOnly),
     };
 
     // At most 6 × 65536 columns: fits u64 arithmetic with room to spare.
@@ -71,16 +71,7 @@ pub fn light_view(
                     let native_column = centre_sample(column, width, native_w);
                     let face = (native_column / grid.width() as u64) as usize;
                     let x = (native_column % grid.width() as u64) as u32;
-                    match front_hit(
-                        &grid,
-                        &tracer,
-                        &verdicts.casters,
-                        ground.as_ref(),
-                        rules,
-                        face,
-                        x,
-                        y,
-                    ) {
+                    match rays_of_light.front_hit(face, x, y) {
                         Some(hit) => (
                             verdicts
                                 .classes

@@ -4,7 +4,7 @@
 //!
 //! Two views of one light's verdicts:
 //! - [`light_view`]: the light's own shadow map, one pixel per texel, each
-//!   coloured by the texel's front caster ([`crate::bake::trace_light::front_hit`],
+//!   coloured by the texel's front caster ([`crate::bake::trace_light::LightRays::front_hit`],
 //!   the bake's own hit filter) and shaded by its distance;
 //! - [`camera_view`]: a perspective picture of the whole world, each surface
 //!   coloured by its caster's verdict and lit by the light (Lambert).

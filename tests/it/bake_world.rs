@@ -173,12 +173,8 @@ fn bvh_equals_brute_force_on_a_generated_world() {
         })
         .collect();
     let config = BakeConfig {
-        face_culling: settings.face_culling,
-        height_bias: settings.height_bias,
-        tie_epsilon: settings.tie_epsilon,
         lights,
-        brute_force: false,
-        ..Default::default()
+        ..BakeConfig::from_settings(&settings)
     };
     let fast = bake::bake(&scene, &config, &Silent).unwrap();
     let oracle = bake::bake(
@@ -412,14 +408,7 @@ fn fixture_casters(preset: Preset) -> serde_json::Value {
     let settings_file = fixture_dir(preset).join(SETTINGS_FILE);
     let scene = load_world(&settings_file);
     let settings = shadowcull::formats::read_bake_settings(&settings_file).unwrap();
-    let config = BakeConfig {
-        face_culling: settings.face_culling,
-        height_bias: settings.height_bias,
-        tie_epsilon: settings.tie_epsilon,
-        lights: settings.lights,
-        brute_force: false,
-        ..Default::default()
-    };
+    let config = BakeConfig::from_settings(&settings);
     let result = bake::bake(&scene, &config, &Silent).unwrap();
     serde_json::to_value(bake::output::report(&scene, &result).casters).unwrap()
 }

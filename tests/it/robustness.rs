@@ -707,12 +707,8 @@ fn nan_zero_scale_and_singular_transforms_are_skipped_and_reported_by_the_bake()
     assert_eq!(transform_problems("NaN"), 1, "{:#?}", scene.problems);
     assert_eq!(transform_problems("singular"), 2, "{:#?}", scene.problems);
     let config = BakeConfig {
-        face_culling: settings.face_culling,
-        height_bias: settings.height_bias,
-        tie_epsilon: settings.tie_epsilon,
         lights: vec![directional(DVec3::new(-0.3, -1.0, 0.2), 0.5)],
-        brute_force: false,
-        ..Default::default()
+        ..BakeConfig::from_settings(&settings)
     };
     let result = bake::bake(&scene, &config, &Silent).expect("the bake completes");
     let skipped = skipped_why(&result);
