@@ -36,8 +36,8 @@ pub fn run(args: XcheckArgs) -> Result<()> {
     }
     for l in &report.lights {
         println!(
-            "light {}: useful texels ray cast {} raster {} ({:.2} s ray cast, {:.2} s raster)",
-            l.light, l.ray_cast, l.raster, l.ray_seconds, l.raster_seconds
+            "light {}: useful texels ray cast {} ({} of them in ε ties) raster {} ({:.2} s ray cast, {:.2} s raster)",
+            l.light, l.ray_cast, l.ray_cast_tied, l.raster, l.ray_seconds, l.raster_seconds
         );
     }
     println!(

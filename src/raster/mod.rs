@@ -43,14 +43,25 @@ use glow::HasContext;
 /// Largest tile side (pixels); smaller values force tiling (tests).
 pub const DEFAULT_MAX_TILE: u32 = 2048;
 
+/// Occlusion queries issued before their results are read. Mesa 22.3's
+/// llvmpipe returns wrong samples-passed counts (thousands of samples for a
+/// group that drew none, varying from run to run) when a few hundred
+/// queries are outstanding: on the `bench` sun, batches of 4096 miscounted
+/// 20 groups, 256 one, and 16 to 160 none. 64 keeps a margin; the per-tile
+/// self-check in [`raster`] catches a driver that still miscounts.
+const QUERY_BATCH: usize = 64;
+
 #[derive(Debug, Clone)]
 pub struct RasterResult {
     pub casters: CasterTable,
     /// Per caster id: bit i set = useful for light i (receiver-only: 0).
     pub masks: Vec<u32>,
-    /// Per light, per caster: texels where the caster passed its query in
-    /// the All variant.
+    /// Per light, per caster: samples (one per texel) that passed its
+    /// query in the All variant.
     pub texels: Vec<Vec<u64>>,
+    /// The same in the Opaque variant (alpha-tested groups left out); all
+    /// zero for a light that reaches no alpha-tested group.
+    pub texels_opaque: Vec<Vec<u64>>,
     /// Per light: wall time in seconds.
     pub seconds: Vec<f64>,
     /// Why the below-ground test could not be applied, if so.
@@ -342,6 +353,7 @@ unsafe fn raster_in(
     let casters = CasterTable::new(scene);
     let mut masks = vec![0u32; casters.len()];
     let mut texels = Vec::new();
+    let mut texels_opaque = Vec::new();
     let mut seconds = Vec::new();
     let program = compile(gl)?;
     gl.use_program(Some(program));
@@ -361,7 +373,10 @@ unsafe fn raster_in(
     gl.bind_framebuffer(glow::FRAMEBUFFER, Some(fbo));
     let colour_rb = gl.create_renderbuffer()?;
     gl.bind_renderbuffer(glow::RENDERBUFFER, Some(colour_rb));
-    gl.renderbuffer_storage(glow::RENDERBUFFER, glow::R8, tile as i32, tile as i32);
+    // Pass 2 also adds 1 per passing sample here (float blending is exact
+    // to 2^24 per texel), so the queries can be checked against what was
+    // drawn.
+    gl.renderbuffer_storage(glow::RENDERBUFFER, glow::R32F, tile as i32, tile as i32);
     gl.framebuffer_renderbuffer(
         glow::FRAMEBUFFER,
         glow::COLOR_ATTACHMENT0,
@@ -388,6 +403,9 @@ unsafe fn raster_in(
     gl.enable(glow::DEPTH_TEST);
     gl.enable(glow::STENCIL_TEST);
     gl.disable(glow::MULTISAMPLE);
+    gl.blend_func(glow::ONE, glow::ONE);
+    gl.pixel_store_i32(glow::PACK_ALIGNMENT, 4);
+    let mut drawn = Vec::new();
     // CCW in the light's window (x along u, y along v, depth along u × v)
     // is a normal along the ray: a back face.
     gl.front_face(glow::CW);
@@ -410,7 +428,9 @@ unsafe fn raster_in(
     for (index, light) in config.lights.iter().enumerate() {
         let started = std::time::Instant::now();
         let mut counts = vec![0u64; casters.len()];
+        let mut counts_opaque = vec![0u64; casters.len()];
         let Some(bounds) = bounds else {
+            texels_opaque.push(counts.clone());
             texels.push(counts);
             seconds.push(0.0);
             continue;
@@ -418,6 +438,7 @@ unsafe fn raster_in(
         let grid = match TexelGrid::new(light, bounds) {
             Ok(g) => g,
             Err(crate::light::GridError::EmptyWorld { .. }) => {
+                texels_opaque.push(counts.clone());
                 texels.push(counts);
                 seconds.push(0.0);
                 continue;
@@ -564,9 +585,15 @@ unsafe fn raster_in(
                         };
                         gl.depth_mask(true);
                         gl.stencil_mask(0xff);
+                        gl.color_mask(true, false, false, false);
                         gl.clear_depth_f64(1.0);
                         gl.clear_stencil(0);
-                        gl.clear(glow::DEPTH_BUFFER_BIT | glow::STENCIL_BUFFER_BIT);
+                        gl.clear_color(0.0, 0.0, 0.0, 0.0);
+                        gl.clear(
+                            glow::DEPTH_BUFFER_BIT
+                                | glow::STENCIL_BUFFER_BIT
+                                | glow::COLOR_BUFFER_BIT,
+                        );
                         gl.color_mask(false, false, false, false);
                         // Pass 1: casters write the nearest caster depth;
                         // every fragment counts in the stencil.
@@ -593,7 +620,15 @@ unsafe fn raster_in(
                         gl.depth_func(glow::LEQUAL);
                         gl.stencil_func(glow::LESS, 1, 0xff);
                         gl.stencil_op(glow::KEEP, glow::KEEP, glow::KEEP);
+                        gl.color_mask(true, false, false, false);
+                        gl.enable(glow::BLEND);
                         let mut asked = Vec::new();
+                        let mut counted = 0u64;
+                        let tally = if opaque_only {
+                            &mut counts_opaque
+                        } else {
+                            &mut counts
+                        };
                         for (r, q) in runs.iter().zip(&queries) {
                             let caster = &casters.casters[r.caster as usize];
                             if !included(r) || caster.receiver_only {
@@ -603,15 +638,35 @@ unsafe fn raster_in(
                             draw_run(gl, &casters, r, culling, ground_on, &u);
                             gl.end_query(glow::SAMPLES_PASSED);
                             asked.push((r.caster, *q));
+                            if asked.len() >= QUERY_BATCH {
+                                counted += read_queries(gl, &mut asked, &mut useful, |c, n| {
+                                    tally[c] += n;
+                                });
+                            }
                         }
-                        for (caster, q) in asked {
-                            let n = gl.get_query_parameter_u32(q, glow::QUERY_RESULT);
-                            if n > 0 {
-                                useful[caster as usize] = true;
-                            }
-                            if !opaque_only {
-                                counts[caster as usize] += n as u64;
-                            }
+                        counted += read_queries(gl, &mut asked, &mut useful, |c, n| {
+                            tally[c] += n;
+                        });
+                        gl.disable(glow::BLEND);
+                        // The queries must add up to the samples drawn.
+                        drawn.resize(tw as usize * th as usize, 0f32);
+                        gl.read_pixels(
+                            0,
+                            0,
+                            tw as i32,
+                            th as i32,
+                            glow::RED,
+                            glow::FLOAT,
+                            glow::PixelPackData::Slice(Some(bytes_of_mut(&mut drawn))),
+                        );
+                        let samples: u64 = drawn.iter().map(|&n| n as u64).sum();
+                        if samples != counted {
+                            return Err(format!(
+                                "the OpenGL driver's occlusion queries counted {counted} samples \
+                                 where it drew {samples} (light {index}, face {face}, tile at \
+                                 texel {x0}, {y0}); its query results cannot be trusted (a driver bug: \
+                                 try another driver, e.g. a GPU's or Mesa's llvmpipe with LIBGL_ALWAYS_SOFTWARE=1)"
+                            ));
                         }
                     }
                 }
@@ -629,6 +684,7 @@ unsafe fn raster_in(
             }
         }
         texels.push(counts);
+        texels_opaque.push(counts_opaque);
         seconds.push(started.elapsed().as_secs_f64());
     }
     gl.delete_texture(heights_tex);
@@ -643,6 +699,7 @@ unsafe fn raster_in(
         casters,
         masks,
         texels,
+        texels_opaque,
         seconds,
         ground_note,
         renderer: ctx.renderer.clone(),
@@ -670,6 +727,26 @@ unsafe fn draw_run(
     gl.draw_arrays(glow::TRIANGLES, r.first, r.count);
 }
 
+/// Reads (and forgets) the results of `asked`, marking passing casters
+/// useful and handing each count to `count`; returns the samples counted.
+unsafe fn read_queries(
+    gl: &glow::Context,
+    asked: &mut Vec<(u32, glow::Query)>,
+    useful: &mut [bool],
+    mut count: impl FnMut(usize, u64),
+) -> u64 {
+    let mut total = 0;
+    for (caster, q) in asked.drain(..) {
+        let n = u64::from(gl.get_query_parameter_u32(q, glow::QUERY_RESULT));
+        if n > 0 {
+            useful[caster as usize] = true;
+        }
+        count(caster as usize, n);
+        total += n;
+    }
+    total
+}
+
 unsafe fn set_nearest(gl: &glow::Context) {
     gl.tex_parameter_i32(
         glow::TEXTURE_2D,
@@ -683,9 +760,14 @@ unsafe fn set_nearest(gl: &glow::Context) {
     );
 }
 
-fn bytes_of<T: Copy>(v: &[T]) -> &[u8] {
-    // SAFETY: f32 has no padding or invalid bit patterns as bytes.
+fn bytes_of(v: &[f32]) -> &[u8] {
+    // SAFETY: f32 has no padding, and any byte is a valid u8.
     unsafe { std::slice::from_raw_parts(v.as_ptr().cast(), std::mem::size_of_val(v)) }
+}
+
+fn bytes_of_mut(v: &mut [f32]) -> &mut [u8] {
+    // SAFETY: as `bytes_of`, and every bit pattern is a valid f32.
+    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast(), std::mem::size_of_val(v)) }
 }
 
 #[cfg(test)]

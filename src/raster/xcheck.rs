@@ -1,17 +1,21 @@
 //! `shadowcull xcheck`: the ray-cast bake against the rasterized method,
 //! pair by pair (caster × light), with a cause for every disagreement found
-//! by re-testing that caster.
+//! by re-testing that caster with rays.
 //!
-//! Causes (the only ones SPEC §4 allows):
-//! - the ray cast finds a caster useful at no more than [`EDGE_TEXELS`]
-//!   texel centres and the raster at none: a triangle edge or vertex on a
-//!   texel centre (the ray test's tie rule and the rasterizer's top-left
-//!   rule give such a centre to different triangles) or an ε tie the depth
-//!   test does not see;
-//! - the raster finds it useful at no more than [`EDGE_TEXELS`] samples, or
-//!   4×4 supersampled rays over the light's texels find it useful too: an
-//!   edge or depth quantization near a texel centre (the two methods
-//!   sample the same surface a hair apart).
+//! SPEC §4 allows only rasterization rules at triangle edges and depth
+//! quantization as causes, so those are the only explanations:
+//! - the ray cast finds the caster useful and the raster does not: every
+//!   texel where a centre ray makes it useful is re-traced. It is a **tie**
+//!   when another caster's hit lies within ε in front of it (or level with
+//!   it to f32 precision): the ray cast keeps both in its front set, LEQUAL
+//!   on one f32 depth keeps only the nearer. It is an **edge** when a ray
+//!   moved [`EDGE_JITTER`] texel off the centre gives another answer: a
+//!   triangle edge passes that close to the centre, where the ray test's tie
+//!   rule and the rasterizer's snapped top-left rule part.
+//! - the raster finds it useful and the ray cast does not: the queries do
+//!   not say at which texels, so every texel is re-traced with rays moved
+//!   [`EDGE_JITTER`] off its centre; it is an edge when such rays find the
+//!   caster useful at no fewer texels than the raster passed samples.
 //!
 //! Anything else stays unexplained.
 
@@ -20,14 +24,19 @@ use crate::bake::casters::{CasterTable, Owner};
 use crate::bake::ground::Ground;
 use crate::bake::trace_light::{LightRays, RayRules, Tracer};
 use crate::bake::{geometry, BakeConfig};
-use crate::classify::Passes;
+use crate::classify::{Passes, RayHit};
 use crate::light::TexelGrid;
 use crate::scene::Scene;
 use crate::trace::Bvh;
+use glam::DVec3;
 use rayon::prelude::*;
 
-/// Texels (or samples) at or below which a one-sided answer is an edge.
-pub const EDGE_TEXELS: u64 = 3;
+/// How far (texels) the edge re-test moves rays off a texel centre: more
+/// than the rasterizer's vertex snapping (llvmpipe: 1/256 pixel) and the
+/// f32 rounding of projected positions (about 1e-4 texel on 2048-texel
+/// tiles). Four rays, ±x and ±y, catch any edge within 1/181 texel.
+pub const EDGE_JITTER: f64 = 1.0 / EDGE_JITTER_PER_TEXEL as f64;
+const EDGE_JITTER_PER_TEXEL: u32 = 128;
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Disagreement {
@@ -39,7 +48,9 @@ pub struct Disagreement {
     pub light: usize,
     pub ray_cast: bool,
     pub raster: bool,
+    /// Texel centres where the ray cast finds it useful (any pass).
     pub ray_texels: u64,
+    /// Samples that passed its query (the larger of the two variants).
     pub raster_texels: u64,
     /// `None`: unexplained.
     pub cause: Option<String>,
@@ -50,6 +61,12 @@ pub struct LightTexels {
     pub light: usize,
     /// Σ over casters of texels where the caster is useful (All pass).
     pub ray_cast: u64,
+    /// Of `ray_cast`, the useful casters beyond the first at texels whose
+    /// front set holds several casters (hits within ε of the nearest: SPEC
+    /// §4). LEQUAL passes only exactly equal depths, so at such a texel
+    /// the raster counts between one and all of them: `ray_cast − tied ≤
+    /// raster ≤ ray_cast` up to edge texels.
+    pub ray_cast_tied: u64,
     pub raster: u64,
     pub ray_seconds: f64,
     pub raster_seconds: f64,
@@ -71,101 +88,281 @@ pub struct XcheckReport {
 pub struct RayCounts {
     pub all: Vec<Vec<u64>>,
     pub any: Vec<Vec<u64>>,
+    /// Per light: Σ over texels of (casters useful in the All pass − 1),
+    /// where at least one is.
+    pub tied: Vec<u64>,
     pub seconds: Vec<f64>,
 }
 
-/// Traces every texel centre of every light like the bake does, counting.
-pub fn ray_counts(
+/// A texel of a light: face, x, y.
+type Texel = (usize, u32, u32);
+
+/// One light's centre-ray counts, and the texels where the watched casters
+/// are useful.
+struct CentrePass {
+    all: Vec<u64>,
+    any: Vec<u64>,
+    tied: u64,
+    /// (caster, texel), sorted.
+    watched: Vec<(u32, Texel)>,
+}
+
+/// One worker's share of a [`CentrePass`] (and its reused buffers).
+struct Tally {
+    all: Vec<u64>,
+    any: Vec<u64>,
+    tied: u64,
+    watched: Vec<(u32, Texel)>,
+    hits: Vec<RayHit>,
+    seen: Vec<u32>,
+}
+
+/// Everything needed to trace one light: built once per light and dropped
+/// before the next, so one BVH is alive at a time.
+struct LightSetup {
+    grid: TexelGrid,
+    bvh: Bvh,
+    passes: Passes,
+}
+
+fn light_setup(
     scene: &Scene,
     config: &BakeConfig,
     casters: &CasterTable,
-    samples: u32,
-) -> RayCounts {
+    bounds: Option<(DVec3, DVec3)>,
+    light: usize,
+) -> Option<LightSetup> {
+    let grid = TexelGrid::new(&config.lights[light], bounds?).ok()?;
+    let geo = geometry::light_geometry(scene, casters, &grid);
+    let bvh = Bvh::build(&geo.triangles);
+    let passes = if geo.reaches_alpha_tested {
+        Passes::AllAndOpaque
+    } else {
+        Passes::AllOnly
+    };
+    Some(LightSetup { grid, bvh, passes })
+}
+
+/// Traces every texel centre like the bake does: per caster, the texels
+/// where it is useful in the All pass and in any pass, the ties, and (for
+/// casters with `watch` set) the texels themselves.
+fn centre_pass(rays: &LightRays, watch: &[bool]) -> CentrePass {
+    let grid = rays.grid;
+    let n = rays.casters.len();
+    let all_pass = LightRays {
+        rules: RayRules {
+            passes: Passes::AllOnly,
+            ..rays.rules
+        },
+        ..*rays
+    };
+    let rows = grid.faces() as u64 * grid.height() as u64;
+    let tally = (0..rows)
+        .into_par_iter()
+        .fold(
+            || Tally {
+                all: vec![0; n],
+                any: vec![0; n],
+                tied: 0,
+                watched: Vec::new(),
+                hits: Vec::new(),
+                seen: Vec::new(),
+            },
+            |mut tally, row| {
+                let face = (row / grid.height() as u64) as usize;
+                let y = (row % grid.height() as u64) as u32;
+                for x in 0..grid.width() {
+                    let ray = grid.ray(face, x, y);
+                    let Tally {
+                        all,
+                        any,
+                        tied,
+                        watched,
+                        hits,
+                        seen,
+                    } = &mut tally;
+                    seen.clear();
+                    rays.trace(&ray, hits, |c| seen.push(c));
+                    seen.sort_unstable();
+                    seen.dedup();
+                    for &c in seen.iter() {
+                        any[c as usize] += 1;
+                        if watch[c as usize] {
+                            watched.push((c, (face, x, y)));
+                        }
+                    }
+                    let mut front = 0u64;
+                    all_pass.trace(&ray, hits, |c| {
+                        all[c as usize] += 1;
+                        front += 1;
+                    });
+                    *tied += front.saturating_sub(1);
+                }
+                tally
+            },
+        )
+        .map(|t| (t.all, t.any, t.tied, t.watched))
+        .reduce(
+            || (vec![0; n], vec![0; n], 0, Vec::new()),
+            |(mut a, mut b, t, mut w), (c, d, u, x)| {
+                a.iter_mut().zip(c).for_each(|(p, q)| *p += q);
+                b.iter_mut().zip(d).for_each(|(p, q)| *p += q);
+                w.extend(x);
+                (a, b, t + u, w)
+            },
+        );
+    let (all, any, tied, mut watched) = tally;
+    watched.sort_unstable();
+    CentrePass {
+        all,
+        any,
+        tied,
+        watched,
+    }
+}
+
+/// Whether `caster` is useful on ray `(cx, cy)` of `face` (texel units).
+fn useful_at(
+    rays: &LightRays,
+    hits: &mut Vec<RayHit>,
+    face: usize,
+    at: (f64, f64),
+    caster: u32,
+) -> bool {
+    let mut useful = false;
+    rays.trace(&rays.grid.ray_through(face, at.0, at.1), hits, |c| {
+        useful |= c == caster;
+    });
+    useful
+}
+
+/// The four rays of the edge re-test around texel `(x, y)`'s centre.
+fn jittered(x: u32, y: u32) -> [(f64, f64); 4] {
+    let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+    [
+        (cx - EDGE_JITTER, cy),
+        (cx + EDGE_JITTER, cy),
+        (cx, cy - EDGE_JITTER),
+        (cx, cy + EDGE_JITTER),
+    ]
+}
+
+/// Why the raster may miss `caster` at a texel where the centre ray finds
+/// it useful.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum TexelCause {
+    /// Another caster's hit `dt` metres in front of it (≤ ε; ≤ 0 is level
+    /// to f32 precision).
+    Tie {
+        other: u32,
+        dt: f32,
+    },
+    Edge,
+    Unexplained,
+}
+
+fn texel_cause(rays: &LightRays, hits: &mut Vec<RayHit>, caster: u32, texel: Texel) -> TexelCause {
+    let (face, x, y) = texel;
+    let epsilon = rays.rules.tie_epsilon;
+    rays.trace(&rays.grid.ray(face, x, y), hits, |_| {});
+    if let Some(own) = hits.iter().find(|h| h.caster == caster) {
+        // f32 depth of equal surfaces may round either way: a hit level
+        // with this one to a few ulps counts as in front.
+        let level = own.t.abs() * 4.0 * f32::EPSILON;
+        let rival = hits.iter().find(|h| {
+            h.caster != caster && !h.receiver_only && h.t >= own.t - epsilon && h.t <= own.t + level
+        });
+        if let Some(h) = rival {
+            return TexelCause::Tie {
+                other: h.caster,
+                dt: own.t - h.t,
+            };
+        }
+    }
+    let moved = jittered(x, y)
+        .iter()
+        .any(|&at| !useful_at(rays, hits, face, at, caster));
+    if moved {
+        TexelCause::Edge
+    } else {
+        TexelCause::Unexplained
+    }
+}
+
+/// Texels where `candidates` are useful on some ray moved [`EDGE_JITTER`]
+/// off a texel centre, per caster.
+fn jitter_pass(rays: &LightRays, candidates: &[bool]) -> Vec<u64> {
+    let grid = rays.grid;
+    let n = rays.casters.len();
+    let rows = grid.faces() as u64 * grid.height() as u64;
+    (0..rows)
+        .into_par_iter()
+        .fold(
+            || (vec![0u64; n], Vec::new(), Vec::new()),
+            |(mut found, mut hits, mut seen), row| {
+                let face = (row / grid.height() as u64) as usize;
+                let y = (row % grid.height() as u64) as u32;
+                for x in 0..grid.width() {
+                    seen.clear();
+                    for (cx, cy) in jittered(x, y) {
+                        let ray = grid.ray_through(face, cx, cy);
+                        rays.trace(&ray, &mut hits, |c| {
+                            if candidates[c as usize] {
+                                seen.push(c);
+                            }
+                        });
+                    }
+                    seen.sort_unstable();
+                    seen.dedup();
+                    for &c in &seen {
+                        found[c as usize] += 1;
+                    }
+                }
+                (found, hits, seen)
+            },
+        )
+        .map(|(found, _, _)| found)
+        .reduce(
+            || vec![0; n],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(p, q)| *p += q);
+                a
+            },
+        )
+}
+
+/// Traces every texel centre of every light like the bake does, counting
+/// per caster the texels where it is useful.
+pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> RayCounts {
     let ground = Ground::new(scene);
     let bounds = geometry::world_bounds(scene);
     let mut out = RayCounts {
         all: Vec::new(),
         any: Vec::new(),
+        tied: Vec::new(),
         seconds: Vec::new(),
     };
-    for light in &config.lights {
+    let nobody = vec![false; casters.len()];
+    for light in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let empty = vec![0u64; casters.len()];
-        let grid = bounds.and_then(|b| TexelGrid::new(light, b).ok());
-        let Some(grid) = grid else {
-            out.all.push(empty.clone());
-            out.any.push(empty);
+        let Some(setup) = light_setup(scene, config, casters, bounds, light) else {
+            out.all.push(vec![0; casters.len()]);
+            out.any.push(vec![0; casters.len()]);
+            out.tied.push(0);
             out.seconds.push(0.0);
             continue;
         };
-        let geo = geometry::light_geometry(scene, casters, &grid);
-        let bvh = Bvh::build(&geo.triangles);
-        let passes = if geo.reaches_alpha_tested {
-            Passes::AllAndOpaque
-        } else {
-            Passes::AllOnly
-        };
-        let rays_of_light = LightRays {
-            grid: &grid,
-            tracer: Tracer::Bvh(&bvh),
+        let rays = LightRays {
+            grid: &setup.grid,
+            tracer: Tracer::Bvh(&setup.bvh),
             casters,
             ground: ground.as_ref(),
-            rules: RayRules::new(config, passes),
+            rules: RayRules::new(config, setup.passes),
         };
-        // The All pass alone, for the per-light texel counts.
-        let all_pass = LightRays {
-            rules: RayRules::new(config, Passes::AllOnly),
-            ..rays_of_light
-        };
-        let rows = grid.faces() as u64 * grid.height() as u64;
-        let (all, any) = (0..rows)
-            .into_par_iter()
-            .fold(
-                || {
-                    (
-                        vec![0u64; casters.len()],
-                        vec![0u64; casters.len()],
-                        Vec::new(),
-                        Vec::new(),
-                    )
-                },
-                |(mut all, mut any, mut hits, mut seen), row| {
-                    let face = (row / grid.height() as u64) as usize;
-                    let y = (row % grid.height() as u64) as u32;
-                    for x in 0..grid.width() {
-                        seen.clear();
-                        for ray in grid.texel_rays(face, x, y, samples) {
-                            rays_of_light.trace(&ray, &mut hits, |c| seen.push(c));
-                            if samples <= 1 {
-                                all_pass.trace(&ray, &mut hits, |c| {
-                                    if let Some(n) = all.get_mut(c as usize) {
-                                        *n += 1;
-                                    }
-                                });
-                            }
-                        }
-                        seen.sort_unstable();
-                        seen.dedup();
-                        for &c in &seen {
-                            if let Some(n) = any.get_mut(c as usize) {
-                                *n += 1;
-                            }
-                        }
-                    }
-                    (all, any, hits, seen)
-                },
-            )
-            .map(|(a, b, _, _)| (a, b))
-            .reduce(
-                || (vec![0u64; casters.len()], vec![0u64; casters.len()]),
-                |(mut a, mut b), (c, d)| {
-                    a.iter_mut().zip(c).for_each(|(x, y)| *x += y);
-                    b.iter_mut().zip(d).for_each(|(x, y)| *x += y);
-                    (a, b)
-                },
-            );
-        out.all.push(all);
-        out.any.push(any);
+        let centre = centre_pass(&rays, &nobody);
+        out.all.push(centre.all);
+        out.any.push(centre.any);
+        out.tied.push(centre.tied);
         out.seconds.push(started.elapsed().as_secs_f64());
     }
     out
@@ -175,7 +372,8 @@ pub fn ray_counts(
 /// config.
 pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> XcheckReport {
     let casters = &raster.casters;
-    let rays = ray_counts(scene, config, casters, 1);
+    let ground = Ground::new(scene);
+    let bounds = geometry::world_bounds(scene);
     let mut report = XcheckReport {
         pairs: 0,
         agreeing: 0,
@@ -185,53 +383,82 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
         renderer: raster.renderer.clone(),
         notes: raster.ground_note.iter().cloned().collect(),
     };
-    let mut supersampled: Vec<Option<Vec<u64>>> = vec![None; config.lights.len()];
-    #[allow(clippy::needless_range_loop)]
     for light in 0..config.lights.len() {
+        let started = std::time::Instant::now();
+        let setup = light_setup(scene, config, casters, bounds, light);
+        let raster_useful: Vec<bool> = raster.masks.iter().map(|m| m & (1 << light) != 0).collect();
+        let not_in_raster: Vec<bool> = raster_useful.iter().map(|u| !u).collect();
+        let rays = setup.as_ref().map(|s| LightRays {
+            grid: &s.grid,
+            tracer: Tracer::Bvh(&s.bvh),
+            casters,
+            ground: ground.as_ref(),
+            rules: RayRules::new(config, s.passes),
+        });
+        let centre = match &rays {
+            Some(rays) => centre_pass(rays, &not_in_raster),
+            None => CentrePass {
+                all: vec![0; casters.len()],
+                any: vec![0; casters.len()],
+                tied: 0,
+                watched: Vec::new(),
+            },
+        };
+        let ray_seconds = started.elapsed().as_secs_f64();
         report.lights.push(LightTexels {
             light,
-            ray_cast: rays.all[light].iter().sum(),
+            ray_cast: centre.all.iter().sum(),
+            ray_cast_tied: centre.tied,
             raster: raster.texels.get(light).map_or(0, |t| t.iter().sum()),
-            ray_seconds: rays.seconds[light],
+            ray_seconds,
             raster_seconds: raster.seconds.get(light).copied().unwrap_or(0.0),
         });
+        // Raster-only casters: one jittered pass for all of them.
+        let raster_only: Vec<bool> = (0..casters.len())
+            .map(|id| {
+                raster_useful[id] && centre.any[id] == 0 && !casters.casters[id].receiver_only
+            })
+            .collect();
+        let jittered_found = match &rays {
+            Some(rays) if raster_only.iter().any(|&b| b) => jitter_pass(rays, &raster_only),
+            _ => vec![0; casters.len()],
+        };
+        let mut hits = Vec::new();
         for (id, caster) in casters.casters.iter().enumerate() {
             if caster.receiver_only {
                 continue;
             }
             report.pairs += 1;
-            let ray_n = rays.any[light][id];
+            let ray_n = centre.any[id];
             let ray = ray_n > 0;
-            let ras = raster.masks[id] & (1 << light) != 0;
+            let ras = raster_useful[id];
             if ray == ras {
                 report.agreeing += 1;
                 continue;
             }
-            let ras_n = raster.texels.get(light).map_or(0, |t| t[id]);
-            let cause = if ray && ray_n <= EDGE_TEXELS {
-                Some(format!(
-                    "edge or tie: the ray cast finds it useful at only {ray_n} texel centre(s), the raster at none"
-                ))
-            } else if ras && ras_n <= EDGE_TEXELS {
-                Some(format!(
-                    "edge or depth quantization: the raster passes {ras_n} sample(s), the texel-centre rays none"
-                ))
-            } else if ras {
-                let fine = supersampled[light].get_or_insert_with(|| {
-                    let one = BakeConfig {
-                        lights: vec![config.lights[light].clone()],
-                        ..config.clone()
-                    };
-                    ray_counts(scene, &one, casters, 4).any.remove(0)
-                });
-                (fine[id] > 0).then(|| {
+            let ras_all = raster.texels.get(light).map_or(0, |t| t[id]);
+            let ras_opaque = raster.texels_opaque.get(light).map_or(0, |t| t[id]);
+            let cause = match (&rays, ray) {
+                (Some(rays), true) => {
+                    let from = centre.watched.partition_point(|&(c, _)| c < id as u32);
+                    let to = centre.watched.partition_point(|&(c, _)| c <= id as u32);
+                    let texels = &centre.watched[from..to];
+                    let causes: Vec<(Texel, TexelCause)> = texels
+                        .iter()
+                        .map(|&(c, t)| (t, texel_cause(rays, &mut hits, c, t)))
+                        .collect();
+                    describe_ray_only(casters, scene, &causes)
+                }
+                // Each raster sample must have a near ray to back it.
+                (Some(_), false) => (ras_all.max(ras_opaque) <= jittered_found[id]).then(|| {
                     format!(
-                        "sub-texel: 4×4 rays per texel find it useful at {} texel(s); the centre rays miss it",
-                        fine[id]
+                        "edge: rays 1/{EDGE_JITTER_PER_TEXEL} texel off the centres find it useful at {} texel(s), \
+                         the raster passes {} sample(s) (all groups {ras_all}, opaque groups {ras_opaque})",
+                        jittered_found[id],
+                        ras_all.max(ras_opaque)
                     )
-                })
-            } else {
-                None
+                }),
+                (None, _) => None,
             };
             if cause.is_none() {
                 report.unexplained += 1;
@@ -246,12 +473,47 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
                 ray_cast: ray,
                 raster: ras,
                 ray_texels: ray_n,
-                raster_texels: ras_n,
+                raster_texels: ras_all.max(ras_opaque),
                 cause,
             });
         }
     }
     report
+}
+
+/// The cause of a ray-only disagreement from its texels' causes: explained
+/// when every texel is.
+fn describe_ray_only(
+    casters: &CasterTable,
+    scene: &Scene,
+    causes: &[(Texel, TexelCause)],
+) -> Option<String> {
+    if causes.is_empty() || causes.iter().any(|(_, c)| *c == TexelCause::Unexplained) {
+        return None;
+    }
+    let ties: Vec<&(Texel, TexelCause)> = causes
+        .iter()
+        .filter(|(_, c)| matches!(c, TexelCause::Tie { .. }))
+        .collect();
+    let edges = causes.len() - ties.len();
+    let mut parts = Vec::new();
+    if let Some(&&((face, x, y), TexelCause::Tie { other, dt })) = ties.first() {
+        let (chunk, kind, index, group) = describe(scene, casters, other as usize);
+        let whom = match (index, group) {
+            (Some(i), Some(g)) => format!("{chunk} {kind} {i} group {g}"),
+            _ => format!("{chunk} {kind}"),
+        };
+        parts.push(format!(
+            "tie at {} texel(s): another caster's hit within ε in front (e.g. texel {face}/{x},{y}: {whom}, {dt:.2e} m), which LEQUAL on one depth does not keep",
+            ties.len()
+        ));
+    }
+    if edges > 0 {
+        parts.push(format!(
+            "edge at {edges} texel(s): rays 1/{EDGE_JITTER_PER_TEXEL} texel off the centre answer otherwise"
+        ));
+    }
+    Some(parts.join("; "))
 }
 
 fn describe(

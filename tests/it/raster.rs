@@ -12,12 +12,17 @@ use shadowcull::raster::{self, xcheck};
 use shadowcull::scene::{load_scene, LoadConfig, Scene};
 use std::path::Path;
 
-/// Edge tolerance of the per-light texel counts: texel centres on triangle
-/// edges go to different triangles under the two tie rules, and f32 depth
-/// ties differ; both touch a thin fraction of the texels (measured ≤ 0.02 %
-/// on the fixtures), so 0.1 % of the texels plus a few.
-fn within_edge_tolerance(ray: u64, raster: u64, per_mille: u64) -> bool {
-    ray.abs_diff(raster) <= ray * per_mille / 1000 + 4
+/// The per-light useful-texel counts must agree up to two documented
+/// effects (README "Cross-checking"):
+/// - ε ties: where several casters are within ε of the nearest hit the
+///   ray cast counts them all, the raster's LEQUAL only those of exactly
+///   the nearest depth, so the raster may count up to `tied` fewer;
+/// - edges: texel centres on triangle edges go to different triangles
+///   under the two tie rules (the rasterizer snaps to 1/256 pixel), a thin
+///   fraction of the texels: 0.1 % plus a few either way.
+fn within_edge_tolerance(l: &xcheck::LightTexels) -> bool {
+    let edge = l.ray_cast / 1000 + 4;
+    l.raster <= l.ray_cast + edge && l.raster + l.ray_cast_tied + edge >= l.ray_cast
 }
 
 fn fixture(name: &str) -> (Scene, BakeConfig) {
@@ -37,10 +42,10 @@ fn check(
     config: &BakeConfig,
     max_tile: u32,
     min_agree_per_mille: u64,
-    per_mille: u64,
 ) -> xcheck::XcheckReport {
-    let result = raster::raster(scene, config, max_tile)
-        .unwrap_or_else(|e| panic!("no OpenGL context for the raster tests: {e}"));
+    let result = raster::raster(scene, config, max_tile).unwrap_or_else(|e| {
+        panic!("the rasterized method failed (no OpenGL context, or see why): {e}")
+    });
     let report = xcheck::compare(scene, config, &result);
     assert!(report.pairs > 0);
     assert_eq!(report.unexplained, 0, "{:#?}", report.disagreements);
@@ -52,10 +57,7 @@ fn check(
     );
     for l in &report.lights {
         assert!(l.ray_cast > 0, "light {} finds nothing useful", l.light);
-        assert!(
-            within_edge_tolerance(l.ray_cast, l.raster, per_mille),
-            "{l:?}"
-        );
+        assert!(within_edge_tolerance(l), "{l:?}");
     }
     report
 }
@@ -82,10 +84,10 @@ fn small_fixture_agrees_and_tiling_changes_nothing() {
     {
         assert!(a.abs_diff(*b) <= 4, "{a} vs {b}");
     }
-    check(&scene, &config, 37, 999, 1);
+    check(&scene, &config, 37, 999);
     // The counting ray loop of xcheck decides exactly what the bake does.
     let baked = bake(&scene, &config, &Silent).unwrap();
-    let counts = xcheck::ray_counts(&scene, &config, &baked.casters, 1);
+    let counts = xcheck::ray_counts(&scene, &config, &baked.casters);
     for (id, mask) in baked.masks.iter().enumerate() {
         for light in 0..config.lights.len() {
             let counted = counts.any[light][id] > 0 && !baked.casters.casters[id].receiver_only;
@@ -101,15 +103,23 @@ fn small_fixture_agrees_and_tiling_changes_nothing() {
 #[test]
 fn village_fixture_agrees_with_every_face_culling_mode() {
     let (scene, mut config) = fixture("village");
-    // Back (the default) and none meet the 99.9 % bar (549 of 549
-    // measured). Front culling exposes the faces turned away from the light,
-    // with more edge-on texels: measured 547 of 549, both explained; its
-    // bar stays at 99 % until those two are understood (issue 4 is open).
-    check(&scene, &config, raster::DEFAULT_MAX_TILE, 999, 1);
+    // Back (the fixture's own setting) and none: 549 of 549 agree.
+    check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
     config.face_culling = FaceCulling::None;
-    check(&scene, &config, raster::DEFAULT_MAX_TILE, 999, 1);
+    check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
+    // Front culling keeps the faces turned away from the light, among them
+    // the bottoms of the two parts of one instance, level with each other,
+    // and of two boulders 6e-5 m apart: each is useful at one texel where
+    // the other is within ε (SPEC §4 keeps both), and LEQUAL on one depth
+    // keeps one. Measured 547 of 549; those ties are the SPEC's rule, so
+    // this mode's bar is that every disagreement is a tie found by the
+    // re-test, not 99.9 %.
     config.face_culling = FaceCulling::Front;
-    check(&scene, &config, raster::DEFAULT_MAX_TILE, 990, 5);
+    let report = check(&scene, &config, raster::DEFAULT_MAX_TILE, 990);
+    for d in &report.disagreements {
+        let cause = d.cause.as_deref().unwrap_or("");
+        assert!(d.ray_cast && cause.starts_with("tie at"), "{d:?}");
+    }
 }
 
 #[test]
@@ -140,9 +150,174 @@ fn a_world_of_real_models_agrees() {
         }],
         ..Default::default()
     };
-    // Real art has coplanar overlapping surfaces that tie within ε for the
-    // rays (both useful) but not under LEQUAL of one depth: the texel counts
-    // differ by ~5 % (measured 47082 vs 44785) while the masks agree.
-    let report = check(&scene, &config, raster::DEFAULT_MAX_TILE, 999, 60);
+    // The dungeon tunnel's floor lies in the plane of the ground slab: the
+    // rays keep both (within ε), LEQUAL one of them, so the raster counts
+    // 4.9 % fewer texels (measured 47 082 against 44 785, with 2 948 tied),
+    // inside the tie allowance of `within_edge_tolerance`; the masks agree.
+    let report = check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
+    let light = &report.lights[0];
+    assert!(
+        light.ray_cast_tied > 0 && light.raster < light.ray_cast,
+        "{light:?}"
+    );
     assert!(report.agreeing >= 30, "{report:?}");
+}
+
+/// 1600 cubes on a ground quad under a sun: 1601 occlusion queries per pass,
+/// far more than llvmpipe answers correctly when all are outstanding (see
+/// `QUERY_BATCH` in `src/raster/mod.rs`). Each cube's useful texels are its
+/// silhouette (the ground is behind all of it; the ground itself has
+/// nothing behind it and is never useful; the cubes float 0.1 m above it so
+/// no contact edge ties with it), so both methods must count about its
+/// projected area, and agree with each other cube by cube.
+#[test]
+fn many_casters_are_counted_one_by_one() {
+    use crate::micro::{self, cube, quad_up, Mesh, World, OPAQUE};
+    use glam::{DMat4, DVec3, Vec3};
+    let mut world = World::new(4, 4);
+    let size = 4.0 * micro::CHUNK as f32;
+    let ground = world.model(Mesh {
+        groups: vec![(quad_up(0.0, 0.0, size, size, 0.0), OPAQUE)],
+    });
+    world.place((0, 0), &[ground], DMat4::IDENTITY, true);
+    let side = 0.8;
+    let block = world.model(Mesh {
+        groups: vec![(cube(Vec3::ZERO, Vec3::splat(side)), OPAQUE)],
+    });
+    for i in 0..40 {
+        for j in 0..40 {
+            let (x, z) = (0.4 + 1.6 * i as f64, 0.4 + 1.6 * j as f64);
+            let grid = (
+                (x / micro::CHUNK).floor() as i32,
+                (z / micro::CHUNK).floor() as i32,
+            );
+            let local = DVec3::new(
+                x - grid.0 as f64 * micro::CHUNK,
+                0.1,
+                z - grid.1 as f64 * micro::CHUNK,
+            );
+            world.place(grid, &[block], DMat4::from_translation(local), true);
+        }
+    }
+    let direction = DVec3::new(0.3, -1.0, 0.2);
+    let texel = 0.05;
+    let config = micro::config(vec![micro::directional(direction, texel)]);
+    let result =
+        raster::raster(&world.scene, &config, raster::DEFAULT_MAX_TILE).unwrap_or_else(|e| {
+            panic!("the rasterized method failed (no OpenGL context, or see why): {e}")
+        });
+    let rays = xcheck::ray_counts(&world.scene, &config, &result.casters);
+    // A cube's silhouette seen along unit d has area side² (|dx|+|dy|+|dz|);
+    // texel centres inside it number that over texel², give or take half
+    // its perimeter (at most 6 sides of ≤ side·√2) in texels.
+    let d = direction.normalize();
+    let area = (side * side) as f64 * (d.x.abs() + d.y.abs() + d.z.abs());
+    let expected = area / (texel * texel);
+    let slack = 6.0 * side as f64 * 2f64.sqrt() / texel / 2.0;
+    let mut worst = 0u64;
+    let scene = &world.scene;
+    let cubes: Vec<usize> = (0..scene.instances.len())
+        .filter(|&i| scene.instances[i].parts == [Some(block)])
+        .collect();
+    assert_eq!(cubes.len(), 1600);
+    for &instance in &cubes {
+        let id = result.casters.first_of_instance[instance].unwrap() as usize;
+        let (ray, ras) = (rays.all[0][id], result.texels[0][id]);
+        assert!(
+            (ray as f64 - expected).abs() <= slack,
+            "cube {instance}: {ray} texels by ray cast, about {expected:.0} expected"
+        );
+        worst = worst.max(ray.abs_diff(ras));
+        assert!(result.masks[id] & 1 != 0 && rays.any[0][id] > 0);
+    }
+    let ground_at = (0..scene.instances.len())
+        .find(|&i| scene.instances[i].parts == [Some(ground)])
+        .unwrap();
+    let ground_id = result.casters.first_of_instance[ground_at].unwrap() as usize;
+    assert_eq!(
+        (rays.all[0][ground_id], result.texels[0][ground_id]),
+        (0, 0)
+    );
+    assert_eq!(result.masks[ground_id], 0);
+    println!("largest per-cube difference: {worst} texels");
+    assert!(worst <= 2, "a cube's counts differ by {worst} texels");
+}
+
+/// A world whose one disagreement is designed: quad B lies 5e-5 m under
+/// quad A (inside its outline) and 1 m over a ground quad, lit from above.
+/// The rays keep A and B both in the front set (5.3e-5 m apart along the
+/// ray, within ε = 1e-4), so both are useful; LEQUAL on one depth keeps only
+/// A, so the raster finds B useless. Returns the world's scene, config and
+/// the instance indices of (A, B, ground).
+fn tie_world() -> (Scene, BakeConfig, [usize; 3]) {
+    use crate::micro::{self, quad_up, Mesh, World, OPAQUE};
+    use glam::{DMat4, DVec3};
+    let mut world = World::new(1, 1);
+    let mut quad = |x0: f32, x1: f32, y: f32| {
+        world.model(Mesh {
+            groups: vec![(quad_up(x0, x0, x1, x1, y), OPAQUE)],
+        })
+    };
+    let (a, b, ground) = (
+        quad(4.0, 12.0, 1.0),
+        quad(5.0, 11.0, 1.0 - 5e-5),
+        quad(0.0, 16.0, 0.0),
+    );
+    for model in [a, b, ground] {
+        world.place((0, 0), &[model], DMat4::IDENTITY, true);
+    }
+    let config = micro::config(vec![micro::directional(DVec3::new(0.3, -1.0, 0.2), 0.25)]);
+    (world.scene, config, [0, 1, 2])
+}
+
+#[test]
+fn a_designed_tie_is_the_one_disagreement_and_is_explained_as_a_tie() {
+    let (scene, config, [a, b, ground]) = tie_world();
+    let result = raster::raster(&scene, &config, raster::DEFAULT_MAX_TILE)
+        .unwrap_or_else(|e| panic!("the rasterized method failed: {e}"));
+    let report = xcheck::compare(&scene, &config, &result);
+    assert_eq!(
+        (report.pairs, report.agreeing, report.unexplained),
+        (3, 2, 0)
+    );
+    let d = &report.disagreements[0];
+    assert_eq!(d.index, Some(b), "{d:?}");
+    assert!(d.ray_cast && !d.raster, "{d:?}");
+    // B covers 6 × 6 m, about 576 texels of 0.25 m seen from above.
+    assert!(d.ray_texels > 400, "{d:?}");
+    let cause = d.cause.as_deref().unwrap();
+    assert!(
+        cause.starts_with(&format!("tie at {} texel(s)", d.ray_texels)),
+        "{cause}"
+    );
+    assert!(cause.contains(&format!("model {a} group 0")), "{cause}");
+    let id = |i: usize| result.casters.first_of_instance[i].unwrap() as usize;
+    assert_eq!(result.masks[id(a)], 1);
+    assert_eq!(result.masks[id(ground)], 0);
+}
+
+/// The re-tests must be able to fail: a raster answer changed by hand away
+/// from edges and ties stays unexplained, both ways.
+#[test]
+fn disagreements_away_from_edges_and_ties_stay_unexplained() {
+    let (scene, config, [a, _, ground]) = tie_world();
+    let mut result = raster::raster(&scene, &config, raster::DEFAULT_MAX_TILE)
+        .unwrap_or_else(|e| panic!("the rasterized method failed: {e}"));
+    let id = |i: usize| result.casters.first_of_instance[i].unwrap() as usize;
+    let (a, ground) = (id(a), id(ground));
+    // A is the nearest surface at ~1000 texels and nothing ties in front of
+    // it; the ground has nothing behind it anywhere.
+    result.masks[a] = 0;
+    result.masks[ground] = 1;
+    result.texels[0][ground] = 1000;
+    let report = xcheck::compare(&scene, &config, &result);
+    assert_eq!(report.unexplained, 2, "{:#?}", report.disagreements);
+    let unexplained: Vec<bool> = report
+        .disagreements
+        .iter()
+        .filter(|d| d.cause.is_none())
+        .map(|d| d.ray_cast)
+        .collect();
+    assert_eq!(unexplained.len(), 2);
+    assert!(unexplained.contains(&true) && unexplained.contains(&false));
 }
