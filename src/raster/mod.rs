@@ -20,14 +20,22 @@
 //! spot and point lights keep fragments whose *distance* from the light is in
 //! [near, far] (the ray caster's rule; the clip planes are set wider and
 //! discard does the rest), and non-terrain fragments below the terrain −
-//! heightBias are discarded, with the terrain heights in a texture and the
-//! engine's per-cell diagonal. Known differences from the ray cast (and why
-//! `xcheck` explains them rather than hides them): rasterization rules at
-//! triangle edges vs the ray test's tie rule, f32 depth quantization and
-//! interpolated positions vs exact ray distances, and ε ties (LEQUAL ties
-//! only exactly equal depths).
+//! heightBias are discarded, with every terrain block in an atlas
+//! (`ground_atlas.rs`) and the engine's per-cell diagonal.
+//!
+//! Occlusion queries are read back in batches ([`QUERY_BATCH`]), and every
+//! tile checks that its queries add up to the samples pass 2 drew (counted
+//! by additive blending into the colour buffer): a driver whose queries
+//! miscount fails the run instead of skewing the comparison.
+//!
+//! Known differences from the ray cast (and why `xcheck` explains them
+//! rather than hides them): rasterization rules at triangle edges vs the
+//! ray test's tie rule, f32 depth quantization and interpolated positions
+//! vs exact ray distances, and ε ties (LEQUAL ties only exactly equal
+//! depths).
 
 pub mod context;
+pub mod ground_atlas;
 pub mod xcheck;
 
 use crate::bake::casters::CasterTable;
@@ -39,6 +47,7 @@ use crate::scene::Scene;
 use context::GlContext;
 use glam::{DMat4, DVec3, DVec4};
 use glow::HasContext;
+use ground_atlas::GroundAtlas;
 
 /// Largest tile side (pixels); smaller values force tiling (tests).
 pub const DEFAULT_MAX_TILE: u32 = 2048;
@@ -89,131 +98,65 @@ uniform float far_d;
 uniform int check_ground;
 uniform sampler2D heights;
 uniform usampler2D cells;
-uniform vec2 ground_origin;
-uniform vec2 ground_spacing;
-uniform ivec2 ground_cells;
+uniform sampler2D block_place;
+uniform sampler2D block_frame;
+uniform vec2 grid_origin;
+uniform float chunk_size;
+uniform ivec2 grid_count;
 uniform float height_bias;
 out vec4 colour;
+
+// H(p) as bake::ground::Ground finds it (see ground_atlas.rs, whose
+// `height` is this function in f64): the chunk of p's floor, then its
+// neighbours for points on a border or in a hole.
+bool ground_height(vec2 p, out float h) {
+    ivec2 g0 = ivec2(floor((p - grid_origin) / chunk_size));
+    for (int k = 0; k < 4; k++) {
+        ivec2 g = g0 - ivec2(k & 1, k >> 1);
+        if (any(lessThan(g, ivec2(0))) || any(greaterThanEqual(g, grid_count))) continue;
+        vec4 place = texelFetch(block_place, g, 0);
+        if (place.x < 0.0) continue;
+        vec4 frame = texelFetch(block_frame, g, 0);
+        vec2 l = p - frame.xy;
+        if (any(lessThan(l, vec2(0.0))) || any(greaterThan(l, vec2(chunk_size)))) continue;
+        ivec2 n = ivec2(place.zw);
+        vec2 gl = l / frame.zw;
+        ivec2 c = min(ivec2(max(floor(gl), vec2(0.0))), n - 1);
+        vec2 t = clamp(gl - vec2(c), 0.0, 1.0);
+        ivec2 a = ivec2(place.xy) + c;
+        uint f = texelFetch(cells, a, 0).r;
+        if ((f & 1u) == 0u) continue;
+        float xf = t.x;
+        float zf = t.y;
+        float h00 = texelFetch(heights, a, 0).r;
+        float h10 = texelFetch(heights, a + ivec2(1, 0), 0).r;
+        float h01 = texelFetch(heights, a + ivec2(0, 1), 0).r;
+        float h11 = texelFetch(heights, a + ivec2(1, 1), 0).r;
+        if ((f & 2u) != 0u) {
+            if ((1.0 - xf) > zf) h = h00 + (h10 - h00) * xf + (h01 - h00) * zf;
+            else h = h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf);
+        } else if (xf > zf) {
+            h = h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf;
+        } else {
+            h = h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf);
+        }
+        return true;
+    }
+    return false;
+}
+
 void main() {
     if (by_distance == 1) {
         float d = length(rel - apex);
         if (d < near_d || d > far_d) discard;
     }
     if (check_ground == 1) {
-        vec2 g = (rel.xz - ground_origin) / ground_spacing;
-        ivec2 c = ivec2(floor(g));
-        if (all(greaterThanEqual(c, ivec2(0))) && all(lessThan(c, ground_cells))) {
-            uint f = texelFetch(cells, c, 0).r;
-            if ((f & 1u) != 0u) {
-                vec2 t = g - vec2(c);
-                float xf = t.x;
-                float zf = t.y;
-                float h00 = texelFetch(heights, c, 0).r;
-                float h10 = texelFetch(heights, c + ivec2(1, 0), 0).r;
-                float h01 = texelFetch(heights, c + ivec2(0, 1), 0).r;
-                float h11 = texelFetch(heights, c + ivec2(1, 1), 0).r;
-                float h;
-                if ((f & 2u) != 0u) {
-                    if ((1.0 - xf) > zf) h = h00 + (h10 - h00) * xf + (h01 - h00) * zf;
-                    else h = h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf);
-                } else if (xf > zf) {
-                    h = h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf;
-                } else {
-                    h = h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf);
-                }
-                if (rel.y < h - height_bias) discard;
-            }
-        }
+        float h;
+        if (ground_height(rel.xz, h) && rel.y < h - height_bias) discard;
     }
     colour = vec4(1.0);
 }
 "#;
-
-/// The terrain of the world on one lattice, relative to a light's reference.
-struct GroundLattice {
-    origin: (f64, f64),
-    spacing: (f64, f64),
-    cells: (usize, usize),
-    /// World heights at lattice vertices, `(cells.0 + 1) × (cells.1 + 1)`.
-    heights: Vec<f64>,
-    /// Per cell: bit 0 covered and not a hole, bit 1 odd diagonal.
-    flags: Vec<u8>,
-}
-
-/// Largest lattice side put into a texture (every GL 3.3 driver has 8192).
-const MAX_LATTICE: usize = 8192;
-
-impl GroundLattice {
-    /// `Err`: why the blocks cannot share one lattice (the test is then off).
-    fn new(scene: &Scene) -> Result<Option<GroundLattice>, String> {
-        let Some(first) = scene.terrain.first() else {
-            return Ok(None);
-        };
-        let spacing = first.spacing();
-        let mut min = (f64::INFINITY, f64::INFINITY);
-        let mut max = (f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for block in &scene.terrain {
-            if block.spacing() != spacing {
-                return Err("terrain blocks of different spacings".into());
-            }
-            let o = block.origin();
-            let (cx, cz) = block.cells();
-            min = (min.0.min(o.x), min.1.min(o.z));
-            max = (
-                max.0.max(o.x + cx as f64 * spacing.0),
-                max.1.max(o.z + cz as f64 * spacing.1),
-            );
-        }
-        let cells_x = ((max.0 - min.0) / spacing.0).round();
-        let cells_z = ((max.1 - min.1) / spacing.1).round();
-        if !(cells_x >= 1.0 && cells_z >= 1.0)
-            || cells_x >= MAX_LATTICE as f64
-            || cells_z >= MAX_LATTICE as f64
-        {
-            return Err(format!(
-                "the terrain lattice would be {cells_x} × {cells_z} cells (limit {MAX_LATTICE})"
-            ));
-        }
-        let cells = (cells_x as usize, cells_z as usize);
-        let mut heights = vec![0.0; (cells.0 + 1) * (cells.1 + 1)];
-        let mut flags = vec![0u8; cells.0 * cells.1];
-        for block in &scene.terrain {
-            let o = block.origin();
-            let ox = (o.x - min.0) / spacing.0;
-            let oz = (o.z - min.1) / spacing.1;
-            if (ox - ox.round()).abs() > 1e-6 || (oz - oz.round()).abs() > 1e-6 {
-                return Err("terrain blocks not aligned on one lattice".into());
-            }
-            let (ox, oz) = (ox.round() as usize, oz.round() as usize);
-            let (bx, bz) = block.cells();
-            for z in 0..=bz {
-                for x in 0..=bx {
-                    if let Some(h) = block.vertex_height(x, z) {
-                        if let Some(slot) = heights.get_mut((oz + z) * (cells.0 + 1) + ox + x) {
-                            *slot = o.y + h;
-                        }
-                    }
-                }
-            }
-            for z in 0..bz {
-                for x in 0..bx {
-                    let f = u8::from(!block.cell_is_hole(x, z))
-                        | (u8::from(block.cell_has_odd_diagonal(x, z)) << 1);
-                    if let Some(slot) = flags.get_mut((oz + z) * cells.0 + ox + x) {
-                        *slot = f;
-                    }
-                }
-            }
-        }
-        Ok(Some(GroundLattice {
-            origin: min,
-            spacing,
-            cells,
-            heights,
-            flags,
-        }))
-    }
-}
 
 /// A contiguous run of one caster's triangles in the vertex buffer.
 #[derive(Debug, Clone, Copy)]
@@ -359,8 +302,9 @@ unsafe fn raster_in(
     gl.use_program(Some(program));
     let u = |name: &str| gl.get_uniform_location(program, name);
 
-    let (lattice, ground_note) = match GroundLattice::new(scene) {
-        Ok(l) => (l, None),
+    let max_texture = gl.get_parameter_i32(glow::MAX_TEXTURE_SIZE).max(1) as usize;
+    let (atlas, ground_note) = match GroundAtlas::new(scene, max_texture) {
+        Ok(a) => (a, None),
         Err(why) => (
             None,
             Some(format!("below-ground test off in the raster: {why}")),
@@ -422,8 +366,12 @@ unsafe fn raster_in(
     gl.enable_vertex_attrib_array(0);
     gl.vertex_attrib_pointer_f32(0, 3, glow::FLOAT, false, 12, 0);
 
-    let heights_tex = gl.create_texture()?;
-    let cells_tex = gl.create_texture()?;
+    let ground_textures = [
+        gl.create_texture()?,
+        gl.create_texture()?,
+        gl.create_texture()?,
+        gl.create_texture()?,
+    ];
     let bounds = geometry::world_bounds(scene);
     for (index, light) in config.lights.iter().enumerate() {
         let started = std::time::Instant::now();
@@ -464,55 +412,8 @@ unsafe fn raster_in(
         }
         gl.buffer_data_u8_slice(glow::ARRAY_BUFFER, bytes_of(&vertices), glow::STATIC_DRAW);
 
-        // Ground lattice, relative to this light's reference point.
-        let ground_on = if let Some(l) = &lattice {
-            let hs: Vec<f32> = l.heights.iter().map(|h| (h - reference.y) as f32).collect();
-            gl.active_texture(glow::TEXTURE0);
-            gl.bind_texture(glow::TEXTURE_2D, Some(heights_tex));
-            gl.pixel_store_i32(glow::UNPACK_ALIGNMENT, 1);
-            gl.tex_image_2d(
-                glow::TEXTURE_2D,
-                0,
-                glow::R32F as i32,
-                (l.cells.0 + 1) as i32,
-                (l.cells.1 + 1) as i32,
-                0,
-                glow::RED,
-                glow::FLOAT,
-                glow::PixelUnpackData::Slice(Some(bytes_of(&hs))),
-            );
-            set_nearest(gl);
-            gl.active_texture(glow::TEXTURE1);
-            gl.bind_texture(glow::TEXTURE_2D, Some(cells_tex));
-            gl.tex_image_2d(
-                glow::TEXTURE_2D,
-                0,
-                glow::R8UI as i32,
-                l.cells.0 as i32,
-                l.cells.1 as i32,
-                0,
-                glow::RED_INTEGER,
-                glow::UNSIGNED_BYTE,
-                glow::PixelUnpackData::Slice(Some(&l.flags)),
-            );
-            set_nearest(gl);
-            gl.uniform_1_i32(u("heights").as_ref(), 0);
-            gl.uniform_1_i32(u("cells").as_ref(), 1);
-            gl.uniform_2_f32(
-                u("ground_origin").as_ref(),
-                (l.origin.0 - reference.x) as f32,
-                (l.origin.1 - reference.z) as f32,
-            );
-            gl.uniform_2_f32(
-                u("ground_spacing").as_ref(),
-                l.spacing.0 as f32,
-                l.spacing.1 as f32,
-            );
-            gl.uniform_2_i32(
-                u("ground_cells").as_ref(),
-                l.cells.0 as i32,
-                l.cells.1 as i32,
-            );
+        let ground_on = if let Some(atlas) = &atlas {
+            upload_ground(gl, atlas, reference, ground_textures, &u);
             gl.uniform_1_f32(u("height_bias").as_ref(), config.height_bias as f32);
             true
         } else {
@@ -687,8 +588,9 @@ unsafe fn raster_in(
         texels_opaque.push(counts_opaque);
         seconds.push(started.elapsed().as_secs_f64());
     }
-    gl.delete_texture(heights_tex);
-    gl.delete_texture(cells_tex);
+    for texture in ground_textures {
+        gl.delete_texture(texture);
+    }
     gl.delete_buffer(vbo);
     gl.delete_vertex_array(vao);
     gl.delete_renderbuffer(colour_rb);
@@ -745,6 +647,112 @@ unsafe fn read_queries(
         total += n;
     }
     total
+}
+
+/// Puts the ground atlas into texture units 0–3 (heights, cell flags, block
+/// placement, block frame), relative to `reference`, and sets the
+/// shader's ground uniforms but the bias.
+unsafe fn upload_ground(
+    gl: &glow::Context,
+    atlas: &GroundAtlas,
+    reference: DVec3,
+    textures: [glow::Texture; 4],
+    u: &dyn Fn(&str) -> Option<glow::UniformLocation>,
+) {
+    let heights: Vec<f32> = atlas
+        .heights
+        .iter()
+        .map(|h| (h - reference.y) as f32)
+        .collect();
+    let mut place = Vec::with_capacity(atlas.index.len() * 4);
+    let mut frame = Vec::with_capacity(atlas.index.len() * 4);
+    for entry in &atlas.index {
+        match entry {
+            Some(p) => {
+                place.extend([p.atlas.0, p.atlas.1, p.cells.0, p.cells.1].map(|v| v as f32));
+                frame.extend(
+                    [
+                        p.origin.0 - reference.x,
+                        p.origin.1 - reference.z,
+                        p.spacing.0,
+                        p.spacing.1,
+                    ]
+                    .map(|v| v as f32),
+                );
+            }
+            None => {
+                place.extend([-1.0f32; 4]);
+                frame.extend([0.0f32, 0.0, 1.0, 1.0]);
+            }
+        }
+    }
+    let (aw, ah) = (atlas.size.0 as i32, atlas.size.1 as i32);
+    let (gw, gh) = (atlas.grid_count.0 as i32, atlas.grid_count.1 as i32);
+    gl.pixel_store_i32(glow::UNPACK_ALIGNMENT, 1);
+    // (internal format, size, pixel format, pixel type, data) per unit.
+    let atlas_size = (aw, ah);
+    let grid_size = (gw, gh);
+    let uploads = [
+        (
+            glow::R32F,
+            atlas_size,
+            glow::RED,
+            glow::FLOAT,
+            bytes_of(&heights),
+        ),
+        (
+            glow::R8UI,
+            atlas_size,
+            glow::RED_INTEGER,
+            glow::UNSIGNED_BYTE,
+            &atlas.flags[..],
+        ),
+        (
+            glow::RGBA32F,
+            grid_size,
+            glow::RGBA,
+            glow::FLOAT,
+            bytes_of(&place),
+        ),
+        (
+            glow::RGBA32F,
+            grid_size,
+            glow::RGBA,
+            glow::FLOAT,
+            bytes_of(&frame),
+        ),
+    ];
+    for (unit, (texture, (internal, (w, h), format, kind, data))) in
+        textures.into_iter().zip(uploads).enumerate()
+    {
+        gl.active_texture(glow::TEXTURE0 + unit as u32);
+        gl.bind_texture(glow::TEXTURE_2D, Some(texture));
+        gl.tex_image_2d(
+            glow::TEXTURE_2D,
+            0,
+            internal as i32,
+            w,
+            h,
+            0,
+            format,
+            kind,
+            glow::PixelUnpackData::Slice(Some(data)),
+        );
+        set_nearest(gl);
+    }
+    for (unit, name) in ["heights", "cells", "block_place", "block_frame"]
+        .iter()
+        .enumerate()
+    {
+        gl.uniform_1_i32(u(name).as_ref(), unit as i32);
+    }
+    gl.uniform_2_f32(
+        u("grid_origin").as_ref(),
+        (f64::from(atlas.grid_min.0) * atlas.chunk_size - reference.x) as f32,
+        (f64::from(atlas.grid_min.1) * atlas.chunk_size - reference.z) as f32,
+    );
+    gl.uniform_1_f32(u("chunk_size").as_ref(), atlas.chunk_size as f32);
+    gl.uniform_2_i32(u("grid_count").as_ref(), gw, gh);
 }
 
 unsafe fn set_nearest(gl: &glow::Context) {

@@ -226,8 +226,12 @@ impl World {
 
     /// Terrain for chunk `grid`: 8×8 cells, height from `h(x, z)` (chunk-local).
     pub fn terrain(&mut self, grid: (i32, i32), h: impl Fn(f64, f64) -> f64) {
+        self.terrain_of(grid, 8, h);
+    }
+
+    /// Terrain for chunk `grid` with `cells` × `cells` cells.
+    pub fn terrain_of(&mut self, grid: (i32, i32), cells: usize, h: impl Fn(f64, f64) -> f64) {
         let chunk = self.chunk_index(grid);
-        let cells = 8usize;
         let width = cells + 5;
         let spacing = CHUNK / cells as f64;
         let mut heights = Vec::new();

@@ -321,3 +321,50 @@ fn disagreements_away_from_edges_and_ties_stay_unexplained() {
     assert_eq!(unexplained.len(), 2);
     assert!(unexplained.contains(&true) && unexplained.contains(&false));
 }
+
+/// Two terrain blocks of different resolutions (8 and 5 cells a side) with
+/// hills, a box buried under each and a box standing on each. The buried
+/// boxes' hits are below ground and ignored, so nothing is ever behind the
+/// terrain: only the standing boxes are useful. A raster whose height
+/// lookup got a block wrong would keep a buried box's fragments and make
+/// that terrain block useful.
+#[test]
+fn terrain_blocks_of_different_resolutions_hide_what_is_buried() {
+    use crate::micro::{self, cube, Mesh, World, OPAQUE};
+    use glam::{DMat4, DVec3, Vec3};
+    let mut world = World::new(2, 1);
+    // Linear in z along the border x = 16 m, so the two blocks' border
+    // edges (vertices 2 m and 3.2 m apart) meet without a crack.
+    let hill = |x: f64, z: f64| 2.0 + (x * 0.4).sin() + 0.5 * (x * 0.3).cos() + 0.1 * z;
+    world.terrain_of((0, 0), 8, hill);
+    world.terrain_of((1, 0), 5, move |x, z| hill(x + 16.0, z));
+    let block = world.model(Mesh {
+        groups: vec![(cube(Vec3::ZERO, Vec3::splat(3.0)), OPAQUE)],
+    });
+    let mut buried = Vec::new();
+    let mut standing = Vec::new();
+    for chunk in [(0, 0), (1, 0)] {
+        // The hills stay within 0.5 … 5.2 m; the buried box spans −4 … −1 m
+        // and the standing one 6 … 9 m.
+        let at = |x: f64, y: f64, z: f64| DMat4::from_translation(DVec3::new(x, y, z));
+        buried.push(world.place(chunk, &[block], at(6.0, -4.0, 6.0), true));
+        standing.push(world.place(chunk, &[block], at(2.0, 6.0, 10.0), true));
+    }
+    let config = micro::config(vec![micro::directional(DVec3::new(0.3, -1.0, 0.2), 0.1)]);
+    let result = raster::raster(&world.scene, &config, raster::DEFAULT_MAX_TILE)
+        .unwrap_or_else(|e| panic!("the rasterized method failed: {e}"));
+    assert_eq!(result.ground_note, None);
+    let id = |i: usize| result.casters.first_of_instance[i].unwrap() as usize;
+    for &b in &buried {
+        assert_eq!(result.masks[id(b)], 0, "buried instance {b}");
+    }
+    for &s in &standing {
+        assert_eq!(result.masks[id(s)], 1, "standing instance {s}");
+    }
+    for block in 0..2 {
+        let terrain = result.casters.of_block[block] as usize;
+        assert_eq!(result.masks[terrain], 0, "terrain block {block}");
+    }
+    let report = xcheck::compare(&world.scene, &config, &result);
+    assert_eq!(report.agreeing, report.pairs, "{:#?}", report.disagreements);
+}
