@@ -9,30 +9,16 @@ use shadowcull::bake::ground::Ground;
 use shadowcull::bake::trace_light::{LightRays, RayCounter, RayRules, Tracer};
 use shadowcull::bake::{self, geometry, BakeConfig, Silent};
 use shadowcull::classify::Passes;
-use shadowcull::formats::bake_settings::BakeSettings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
-use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::light::TexelGrid;
-use shadowcull::scene::{load_scene, LoadConfig, Scene};
 use shadowcull::trace::{Bvh, TraceRay};
 use std::time::Duration;
+
+mod common;
+use common::bench_world;
 
 struct NoCount;
 impl RayCounter for NoCount {
     fn add(&self, _: u64) {}
-}
-
-fn bench_world() -> (tempfile::TempDir, BakeSettings, Scene) {
-    let dir = tempfile::tempdir().expect("temporary folder");
-    write_tree(dir.path(), &generate(Preset::Bench, 1).files).expect("write bench world");
-    let settings =
-        shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE)).expect("settings");
-    let scene = load_scene(&LoadConfig {
-        res_paths: ResPaths::new(settings.res_paths.clone()),
-        space: settings.space.clone(),
-    })
-    .expect("load");
-    (dir, settings, scene)
 }
 
 fn bake_bench(c: &mut Criterion) {

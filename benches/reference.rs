@@ -7,22 +7,14 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use shadowcull::bake::{self, BakeConfig, Silent};
-use shadowcull::formats::resources::{write_tree, ResPaths};
-use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::raster;
-use shadowcull::scene::{load_scene, LoadConfig};
 use std::time::Duration;
 
+mod common;
+use common::bench_world;
+
 fn reference_bench(c: &mut Criterion) {
-    let dir = tempfile::tempdir().expect("temporary folder");
-    write_tree(dir.path(), &generate(Preset::Bench, 1).files).expect("write bench world");
-    let settings =
-        shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE)).expect("settings");
-    let scene = load_scene(&LoadConfig {
-        res_paths: ResPaths::new(settings.res_paths.clone()),
-        space: settings.space.clone(),
-    })
-    .expect("load");
+    let (_dir, settings, scene) = bench_world();
     let all = BakeConfig::from_settings(&settings);
     for light in &all.lights {
         let config = BakeConfig {

@@ -7,6 +7,7 @@
 //! point's floor falls in, then its neighbours for points on a border or
 //! in a hole.
 
+use crate::scene::terrain::cell_height;
 use crate::scene::Scene;
 use std::collections::HashMap;
 
@@ -175,18 +176,8 @@ impl GroundAtlas {
                     return None;
                 }
                 let h = |dx: usize, dz: usize| self.heights[(a.1 + dz) * self.size.0 + a.0 + dx];
-                let (h00, h10, h01, h11) = (h(0, 0), h(1, 0), h(0, 1), h(1, 1));
-                Some(if f & 2 != 0 {
-                    if (1.0 - xf) > zf {
-                        h00 + (h10 - h00) * xf + (h01 - h00) * zf
-                    } else {
-                        h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf)
-                    }
-                } else if xf > zf {
-                    h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf
-                } else {
-                    h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf)
-                })
+                let corners = [h(0, 0), h(1, 0), h(0, 1), h(1, 1)];
+                Some(cell_height(corners, f & 2 != 0, xf, zf))
             })
     }
 }

@@ -235,17 +235,8 @@ impl TerrainBlock {
         let h10 = self.vertex_height(cx + 1, cz)?;
         let h01 = self.vertex_height(cx, cz + 1)?;
         let h11 = self.vertex_height(cx + 1, cz + 1)?;
-        let h = if self.cell_has_odd_diagonal(cx, cz) {
-            if (1.0 - xf) > zf {
-                h00 + (h10 - h00) * xf + (h01 - h00) * zf
-            } else {
-                h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf)
-            }
-        } else if xf > zf {
-            h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf
-        } else {
-            h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf)
-        };
+        let odd = self.cell_has_odd_diagonal(cx, cz);
+        let h = cell_height([h00, h10, h01, h11], odd, xf, zf);
         Some(self.origin.y + h)
     }
 
@@ -294,6 +285,25 @@ fn hole_index(c: usize, cells: usize, holes: usize) -> usize {
 
 /// Splits a grid coordinate `g` (in cells, `0..=cells`) into a cell index and
 /// the fraction inside it; `g == cells` maps to the last cell at fraction 1.
+/// The height inside one cell at fractions (`xf`, `zf`) from its corner
+/// heights `[h00, h10, h01, h11]`, on the triangle the diagonal puts the
+/// point in (`odd`: the (x, z+1)–(x+1, z) diagonal): the engine's
+/// `heightAt`.
+pub fn cell_height(corners: [f64; 4], odd: bool, xf: f64, zf: f64) -> f64 {
+    let [h00, h10, h01, h11] = corners;
+    if odd {
+        if (1.0 - xf) > zf {
+            h00 + (h10 - h00) * xf + (h01 - h00) * zf
+        } else {
+            h11 + (h01 - h11) * (1.0 - xf) + (h10 - h11) * (1.0 - zf)
+        }
+    } else if xf > zf {
+        h10 + (h00 - h10) * (1.0 - xf) + (h11 - h10) * zf
+    } else {
+        h01 + (h11 - h01) * xf + (h00 - h01) * (1.0 - zf)
+    }
+}
+
 fn cell_and_fraction(g: f64, cells: usize) -> (usize, f64) {
     let last = cells - 1; // cells >= 1 by construction
     let floor = g.floor().max(0.0);
