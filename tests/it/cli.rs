@@ -5,7 +5,7 @@ use crate::support::realdata;
 use shadowcull::gen::{generate, Preset};
 use std::process::{Command, Output};
 
-fn shadowcull(args: &[&str]) -> Output {
+pub fn shadowcull(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_shadowcull"))
         .args(args)
         .output()
@@ -150,4 +150,16 @@ fn gen_writes_the_same_bytes_as_the_library_and_the_world_inspects_clean() {
         "--json",
     ]));
     assert_eq!(value["problems"].as_array().map(Vec::len), Some(0));
+}
+
+/// Without the `raster` feature, `xcheck` fails (exit 1) and says how to
+/// get it.
+#[cfg(not(feature = "raster"))]
+#[test]
+fn xcheck_without_the_raster_feature_says_how_to_build_it() {
+    let settings = fixture_dir(Preset::Small).join("bake.xml");
+    let out = shadowcull(&["xcheck", settings.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--features raster"), "{stderr}");
 }

@@ -291,6 +291,15 @@ fn a_designed_tie_is_the_one_disagreement_and_is_explained_as_a_tie() {
         "{cause}"
     );
     assert!(cause.contains(&format!("model {a} group 0")), "{cause}");
+    // The report's disagreement fields (SPEC §8).
+    let value = serde_json::to_value(&report).unwrap();
+    let entry = &value["disagreements"][0];
+    for field in [
+        "chunk", "kind", "index", "light", "ray_cast", "raster", "cause",
+    ] {
+        assert!(!entry[field].is_null(), "{field}: {entry}");
+    }
+    assert_eq!(entry["kind"], "model");
     let id = |i: usize| result.casters.first_of_instance[i].unwrap() as usize;
     assert_eq!(result.masks[id(a)], 1);
     assert_eq!(result.masks[id(ground)], 0);
@@ -367,4 +376,41 @@ fn terrain_blocks_of_different_resolutions_hide_what_is_buried() {
     }
     let report = xcheck::compare(&world.scene, &config, &result);
     assert_eq!(report.agreeing, report.pairs, "{:#?}", report.disagreements);
+}
+
+/// `shadowcull xcheck --report`: exit 0 when everything is explained, and
+/// the SPEC §8 fields.
+#[test]
+fn xcheck_cli_writes_the_report_fields() {
+    let settings = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small/bake.xml");
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("xcheck.json");
+    let out = crate::cli::shadowcull(&[
+        "xcheck",
+        settings.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("69 of 69 (caster, light) pairs agree"),
+        "{stdout}"
+    );
+    let value: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    for field in ["pairs", "agreeing", "unexplained"] {
+        assert!(value[field].is_u64(), "{field}: {value}");
+    }
+    assert_eq!(value["pairs"], 69);
+    assert_eq!(value["unexplained"], 0);
+    assert!(value["disagreements"].is_array());
+    // A settings file that does not exist: exit 1, naming it.
+    let out = crate::cli::shadowcull(&["xcheck", "/nonexistent/bake.xml"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/bake.xml"));
 }
