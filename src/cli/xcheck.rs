@@ -27,8 +27,18 @@ pub fn run(args: XcheckArgs) -> Result<()> {
     let settings = load_settings(&args.settings)?;
     let scene = shadowcull::scene::load_scene(&load_config(&settings))?;
     let config = BakeConfig::from_settings(&settings);
+    // Both halves take seconds to minutes on a big world: say what runs.
+    let started = std::time::Instant::now();
+    eprintln!(
+        "xcheck: rasterizing {} light(s) with occlusion queries…",
+        config.lights.len()
+    );
     let result = raster::raster(&scene, &config, raster::DEFAULT_MAX_TILE)
         .map_err(|e| anyhow::anyhow!("the rasterized method could not run: {e}"))?;
+    eprintln!(
+        "xcheck: raster done in {:.1} s; ray casting the same texels and re-testing disagreements…",
+        started.elapsed().as_secs_f64()
+    );
     let report = raster::xcheck::compare(&scene, &config, &result);
     println!("renderer: {}", report.renderer);
     for note in &report.notes {
