@@ -70,23 +70,10 @@ fn bake_bench(c: &mut Criterion) {
         // single-threaded loops over every texel: ours collecting hits with
         // the early cut-off (two hits suffice on most rays), ours closest-hit,
         // obvhs's closest-hit with its own triangle test.
-        let reference = grid.reference_point();
         let (width, height) = (grid.width(), grid.height());
         let rays: Vec<TraceRay> = (0..grid.faces())
             .flat_map(|f| (0..height).flat_map(move |y| (0..width).map(move |x| (f, x, y))))
-            .map(|(f, x, y)| {
-                let r = grid.ray(f, x, y);
-                TraceRay {
-                    origin: (r.origin - reference).as_vec3(),
-                    direction: r.direction.as_vec3(),
-                    t_min: r.t_min as f32,
-                    t_max: if r.t_max.is_finite() {
-                        r.t_max as f32
-                    } else {
-                        f32::INFINITY
-                    },
-                }
-            })
+            .map(|(f, x, y)| rays_of_light.light_relative(&grid.ray(f, x, y)))
             .collect();
         group.bench_function("two_hits", |b| {
             b.iter(|| {

@@ -192,7 +192,7 @@ impl LightRays<'_> {
     }
 
     /// A ray in the tracer's light-relative f32 frame.
-    fn light_relative(&self, ray: &TexelRay) -> TraceRay {
+    pub fn light_relative(&self, ray: &TexelRay) -> TraceRay {
         let reference: DVec3 = self.grid.reference_point();
         TraceRay {
             origin: (ray.origin - reference).as_vec3(),

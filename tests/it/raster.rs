@@ -7,7 +7,7 @@
 use crate::support::realdata;
 use shadowcull::bake::{bake, BakeConfig, Silent};
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::formats::resources::ResPaths;
 use shadowcull::raster::{self, xcheck};
 use shadowcull::scene::{load_scene, LoadConfig, Scene};
 use std::path::Path;
@@ -127,19 +127,7 @@ fn a_world_of_real_models_agrees() {
     let Some(root) = realdata("a_world_of_real_models_agrees") else {
         return;
     };
-    let res = root.join("bigworld-14.4.1/res");
-    let models = crate::real_scene::real_model_names(&res);
-    let mut files = crate::real_scene::world_placing(&models);
-    let chunk = String::from_utf8(files[0].1.clone()).unwrap();
-    let ground = "\t<model>\n\t\t<resource>\thelpers/models/unit_cube.model\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t90.000000 0.000000 0.000000\t</row0>\n\t\t\t<row1>\t0.000000 0.100000 0.000000\t</row1>\n\t\t\t<row2>\t0.000000 0.000000 20.000000\t</row2>\n\t\t\t<row3>\t-5.000000 -0.100000 40.000000\t</row3>\n\t\t</transform>\n\t</model>\n</root>\n";
-    files[0].1 = chunk.replace("</root>\n", ground).into_bytes();
-    let dir = tempfile::tempdir().unwrap();
-    write_tree(dir.path(), &files).unwrap();
-    let scene = load_scene(&LoadConfig {
-        res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res]),
-        space: "spaces/real".into(),
-    })
-    .unwrap();
+    let (_dir, _, scene) = crate::real_scene::world_on_a_slab(&root);
     let config = BakeConfig {
         lights: vec![LightSettings {
             name: "sun".into(),

@@ -142,14 +142,13 @@ fn every_real_model_loads_with_its_index_header_counts() {
     assert!(stats.alpha_tested_groups > 0 && stats.double_sided_groups > 0);
 }
 
-#[test]
-fn a_world_of_real_models_bakes_identically_with_the_oracle() {
-    // Every real model in a row over a thin ground slab (the real unit cube
-    // scaled), lit from above at an angle: BVH and brute force must agree
-    // on real geometry (skinned, nodefull, alpha-tested, double-sided).
-    let Some(root) = realdata("a_world_of_real_models_bakes_identically_with_the_oracle") else {
-        return;
-    };
+/// Every real model of `root`'s bigworld-14.4.1 in a row (see
+/// [`world_placing`]) over a thin ground slab (the real unit cube scaled),
+/// written to a temporary folder (keep it while the scene is used) and
+/// loaded; also the model names in placing order.
+pub(crate) fn world_on_a_slab(
+    root: &Path,
+) -> (tempfile::TempDir, Vec<String>, shadowcull::scene::Scene) {
     let res = root.join("bigworld-14.4.1/res");
     let models = real_model_names(&res);
     let mut files = world_placing(&models);
@@ -159,10 +158,22 @@ fn a_world_of_real_models_bakes_identically_with_the_oracle() {
     let dir = tempfile::tempdir().unwrap();
     write_tree(dir.path(), &files).unwrap();
     let scene = load_scene(&LoadConfig {
-        res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res.clone()]),
+        res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res]),
         space: "spaces/real".into(),
     })
     .unwrap();
+    (dir, models, scene)
+}
+
+#[test]
+fn a_world_of_real_models_bakes_identically_with_the_oracle() {
+    // Every real model in a row over a thin ground slab (the real unit cube
+    // scaled), lit from above at an angle: BVH and brute force must agree
+    // on real geometry (skinned, nodefull, alpha-tested, double-sided).
+    let Some(root) = realdata("a_world_of_real_models_bakes_identically_with_the_oracle") else {
+        return;
+    };
+    let (_dir, models, scene) = world_on_a_slab(&root);
     assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
     let mut config = shadowcull::bake::BakeConfig {
         face_culling: shadowcull::formats::bake_settings::FaceCulling::Back,
