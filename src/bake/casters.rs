@@ -1,6 +1,11 @@
 //! The caster table: every primitive group of every placed instance and
 //! every terrain block gets a dense id, the unit the bake classifies and the
-//! traced triangles point back to.
+//! traced hits point back to.
+//!
+//! This is the one place that defines the id order: complete instances in
+//! scene order, their parts in `<resource>` order, each part's groups in
+//! model order; then terrain blocks in scene order. Everything that needs a
+//! part's ids walks [`CasterTable::parts`].
 
 use crate::scene::Scene;
 
@@ -31,6 +36,18 @@ impl Caster {
     pub fn is_terrain(&self) -> bool {
         matches!(self.owner, Owner::Terrain { .. })
     }
+}
+
+/// One model part of a placed instance and its first caster id.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PartCasters {
+    /// Into `Scene::instances`.
+    pub instance: usize,
+    /// Position among the instance's `<resource>` parts.
+    pub part: usize,
+    /// Into `Scene::models`.
+    pub model: usize,
+    pub first_caster: u32,
 }
 
 #[derive(Debug, Clone, Default)]
@@ -86,6 +103,34 @@ impl CasterTable {
         self.casters.len()
     }
 
+    /// Every model part of every instance in the bake, in id order, with the
+    /// id of its group 0 (group g of the part is `first_caster + g`).
+    pub fn parts<'s>(&'s self, scene: &'s Scene) -> impl Iterator<Item = PartCasters> + 's {
+        scene
+            .instances
+            .iter()
+            .enumerate()
+            .filter_map(|(index, instance)| Some((index, instance, self.first_of_instance[index]?)))
+            .flat_map(move |(index, instance, first)| {
+                let mut next = first;
+                instance
+                    .parts
+                    .iter()
+                    .flatten()
+                    .enumerate()
+                    .map(move |(part, &model)| {
+                        let first_caster = next;
+                        next += scene.models[model].groups.len() as u32;
+                        PartCasters {
+                            instance: index,
+                            part,
+                            model,
+                            first_caster,
+                        }
+                    })
+            })
+    }
+
     pub fn is_empty(&self) -> bool {
         self.casters.is_empty()
     }
@@ -93,5 +138,41 @@ impl CasterTable {
     /// Casters that can be useful (everything but receiver-only groups).
     pub fn real_casters(&self) -> usize {
         self.casters.iter().filter(|c| !c.receiver_only).count()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formats::resources::ResPaths;
+    use crate::scene::{load_scene, LoadConfig};
+
+    #[test]
+    fn parts_walk_the_ids_in_table_order() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
+        let scene = load_scene(&LoadConfig {
+            res_paths: ResPaths::new(vec![root]),
+            space: "spaces/village".into(),
+        })
+        .expect("the village fixture loads");
+        let table = CasterTable::new(&scene);
+        let mut expected = 0u32;
+        for part in table.parts(&scene) {
+            assert_eq!(part.first_caster, expected);
+            for group in 0..scene.models[part.model].groups.len() {
+                let caster = &table.casters[part.first_caster as usize + group];
+                assert_eq!(
+                    caster.owner,
+                    Owner::Group {
+                        instance: part.instance,
+                        part: part.part,
+                        group
+                    }
+                );
+            }
+            expected += scene.models[part.model].groups.len() as u32;
+        }
+        assert_eq!(expected, table.of_block.first().copied().unwrap_or(expected));
+        assert!(expected > 100);
     }
 }

@@ -8,17 +8,17 @@ pub mod geometry;
 pub mod ground;
 pub mod output;
 pub mod refine;
+pub mod setup;
 pub mod trace_light;
 
 use crate::classify::Passes;
 use crate::formats::bake_settings::{FaceCulling, LightSettings};
-use crate::light::TexelGrid;
 use crate::scene::Scene;
-use crate::trace::Bvh;
 use casters::CasterTable;
+use setup::{BakeWorld, LightSetup, NoSetup};
 use std::sync::atomic::AtomicU64;
 use std::time::Instant;
-use trace_light::{CasterSet, LightRays, RayRules, Tracer};
+use trace_light::CasterSet;
 
 /// What to bake (the settings file's values after command-line overrides).
 #[derive(Debug, Clone)]
@@ -73,8 +73,9 @@ impl Default for BakeConfig {
 
 /// Where a bake reports progress; the library never prints.
 pub trait Progress: Sync {
-    /// Before the BVH build, which takes seconds on large worlds.
-    fn light_preparing(&self, _index: usize, _light: &LightSettings, _triangles: usize) {}
+    /// Before the bottom levels (one BVH per distinct model, one height
+    /// field per terrain block) are built, once per bake.
+    fn bottom_levels_building(&self, _models: usize, _terrain_blocks: usize) {}
     /// Before the rays are traced.
     fn light_started(&self, _index: usize, _light: &LightSettings, _rays: u64) {}
     /// Called from worker threads with the running total of rays traced.
@@ -95,15 +96,22 @@ pub struct LightReport {
     pub rays: u64,
     /// Of `rays`, those aimed at casters' own surfaces (`refine`).
     pub refine_rays: u64,
-    /// Wall time for the light in all: geometry + BVH + tracing.
+    /// Wall time for the light in all: reach + top level + tracing.
     pub seconds: f64,
+    /// Finding the parts and blocks in reach.
     pub geometry_seconds: f64,
+    /// Building the light's top level (the bottom levels are shared: see
+    /// [`BakeResult::bottom_level_seconds`]).
     pub bvh_seconds: f64,
     pub trace_seconds: f64,
     pub useful_casters: usize,
     pub culled_casters: usize,
-    /// Triangles in this light's BVH.
+    /// Triangles in the light's reach (placed model triangles plus two per
+    /// terrain cell), traced through instances and height fields.
     pub triangles: usize,
+    /// Placed model parts in the light's top level.
+    pub instances: usize,
+    pub terrain_blocks: usize,
     /// Both passes (All and Opaque) or only All.
     pub passes: usize,
 }
@@ -117,6 +125,10 @@ pub struct Skipped {
 
 #[derive(Debug, Clone)]
 pub struct BakeResult {
+    /// Wall time of building the bottom levels, once for every light.
+    pub bottom_level_seconds: f64,
+    /// Heap bytes of the bottom levels.
+    pub bottom_level_bytes: usize,
     pub casters: CasterTable,
     /// Per caster id: bit i set = useful for light i.
     pub masks: Vec<u32>,
@@ -144,8 +156,51 @@ pub fn bake(
             count: config.lights.len(),
         });
     }
-    let casters = CasterTable::new(scene);
-    let mut masks = vec![0u32; casters.len()];
+    progress.bottom_levels_building(scene.models.len(), scene.terrain.len());
+    let world = BakeWorld::new(scene);
+    let mut masks = vec![0u32; world.casters.len()];
+    let mut skipped = world_skipped(&world);
+    let mut lights = Vec::new();
+    for index in 0..config.lights.len() {
+        let setup = match LightSetup::new(&world, config, index) {
+            Ok(setup) => setup,
+            Err(nothing) if nothing.is_nothing_to_trace() => {
+                skipped.push(Skipped {
+                    what: light_name(config, index),
+                    why: nothing.to_string(),
+                });
+                continue;
+            }
+            Err(NoSetup::Grid(err)) => return Err(err.into()),
+            Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
+        };
+        let (useful, report) = bake_light(&world, &setup, config, progress, &mut skipped);
+        for (id, mask) in masks.iter_mut().enumerate() {
+            if useful.contains(id as u32) {
+                *mask |= 1 << index;
+            }
+        }
+        progress.light_finished(&report);
+        lights.push(report);
+    }
+    skipped.sort();
+    Ok(BakeResult {
+        bottom_level_seconds: world.bottom_seconds,
+        bottom_level_bytes: world.bottom.heap_bytes(),
+        casters: world.casters,
+        masks,
+        lights,
+        skipped,
+    })
+}
+
+fn light_name(config: &BakeConfig, index: usize) -> String {
+    format!("light {index} ({})", config.lights[index].name)
+}
+
+/// What the world itself leaves out, whatever the light.
+fn world_skipped(world: &BakeWorld) -> Vec<Skipped> {
+    let scene = world.scene;
     let mut skipped: Vec<Skipped> = scene
         .problems
         .iter()
@@ -155,7 +210,7 @@ pub fn bake(
         })
         .collect();
     for (index, instance) in scene.instances.iter().enumerate() {
-        if casters.first_of_instance[index].is_none() {
+        if world.casters.first_of_instance[index].is_none() {
             let chunk = &scene.chunks[instance.chunk];
             skipped.push(Skipped {
                 what: format!("{} instance {} ({})", chunk.name, instance.index, instance.resources.join(", ")),
@@ -163,157 +218,114 @@ pub fn bake(
             });
         }
     }
-    let ground = ground::Ground::new(scene);
-    if ground.is_none() {
+    if world.ground.is_none() {
         skipped.push(Skipped {
             what: "below-ground test".into(),
             why: "the world has no terrain: no height tests".into(),
         });
     }
-    let bounds = geometry::world_bounds(scene);
-    let mut lights = Vec::new();
-    for (index, light) in config.lights.iter().enumerate() {
-        let started = Instant::now();
-        let name = format!("light {index} ({})", light.name);
-        let Some(bounds) = bounds else {
-            skipped.push(Skipped {
-                what: name,
-                why: "the world has no geometry to cast or receive shadows".into(),
-            });
-            continue;
-        };
-        let grid = match TexelGrid::new(light, bounds) {
-            Ok(grid) => grid,
-            Err(err @ crate::light::GridError::EmptyWorld { .. }) => {
-                skipped.push(Skipped {
-                    what: name,
-                    why: err.to_string(),
-                });
-                continue;
-            }
-            Err(err) => return Err(err.into()),
-        };
-        let geometry = geometry::light_geometry(scene, &casters, &grid);
-        if geometry.instances_out_of_reach + geometry.blocks_out_of_reach > 0 {
-            skipped.push(Skipped {
-                what: name.clone(),
-                why: format!(
-                    "{} instances and {} terrain blocks outside its reach were left out of its BVH",
-                    geometry.instances_out_of_reach, geometry.blocks_out_of_reach
-                ),
-            });
-        }
-        if geometry.degenerate_triangles > 0 {
-            skipped.push(Skipped {
-                what: name.clone(),
-                why: format!(
-                    "{} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
-                    geometry.degenerate_triangles,
-                    crate::trace::MAX_COORDINATE
-                ),
-            });
-        }
-        let passes = if geometry.reaches_alpha_tested {
-            Passes::AllAndOpaque
-        } else {
-            skipped.push(Skipped {
-                what: name.clone(),
-                why: "reaches no alpha-tested group: one pass (All) instead of two".into(),
-            });
-            Passes::AllOnly
-        };
-        let supersample = config.supersample.max(1);
-        let mut rays = grid.texel_count() * (supersample as u64).pow(2);
-        let mut refine_rays = 0;
-        let geometry_seconds = started.elapsed().as_secs_f64();
-        let (mut bvh_seconds, mut trace_seconds) = (0.0, 0.0);
-        let useful = if geometry.triangles.is_empty() {
-            skipped.push(Skipped {
-                what: name.clone(),
-                why: "its frustum holds no geometry: no rays traced".into(),
-            });
-            CasterSet::new(casters.len())
-        } else {
-            progress.light_preparing(index, light, geometry.triangles.len());
-            let build_started = Instant::now();
-            let bvh;
-            let tracer = if config.brute_force {
-                Tracer::BruteForce(&geometry.triangles)
-            } else {
-                bvh = Bvh::build(&geometry.triangles);
-                Tracer::Bvh(&bvh)
-            };
-            bvh_seconds = build_started.elapsed().as_secs_f64();
-            progress.light_started(index, light, rays);
-            let trace_started = Instant::now();
-            let rays_of_light = LightRays {
-                grid: &grid,
-                tracer,
-                casters: &casters,
-                ground: ground.as_ref(),
-                rules: RayRules::new(config, passes),
-            };
-            let done = AtomicU64::new(0);
-            let reporter = ProgressRelay {
-                progress,
-                index,
-                done: &done,
-            };
-            let mut useful = rays_of_light.trace_grid(supersample, &reporter);
-            if config.refine_samples > 0 {
-                let (refined, traced) = refine::refine(
-                    &rays_of_light,
-                    index,
-                    &geometry.triangles,
-                    &useful,
-                    config.refine_samples,
-                );
-                useful = useful.union(&refined);
-                refine_rays = traced;
-                rays += traced;
-            }
-            trace_seconds = trace_started.elapsed().as_secs_f64();
-            useful
-        };
-        let mut useful_casters = 0;
-        for (id, caster) in casters.casters.iter().enumerate() {
-            if !caster.receiver_only && useful.contains(id as u32) {
-                masks[id] |= 1 << index;
-                useful_casters += 1;
-            }
-        }
-        let report = LightReport {
-            index,
-            name: light.name.clone(),
-            kind: light.kind.type_name(),
-            rays: if geometry.triangles.is_empty() {
-                0
-            } else {
-                rays
-            },
-            refine_rays,
-            seconds: started.elapsed().as_secs_f64(),
-            geometry_seconds,
-            bvh_seconds,
-            trace_seconds,
-            useful_casters,
-            culled_casters: casters.real_casters() - useful_casters,
-            triangles: geometry.triangles.len(),
-            passes: match passes {
-                Passes::AllOnly => 1,
-                Passes::AllAndOpaque => 2,
-            },
-        };
-        progress.light_finished(&report);
-        lights.push(report);
+    skipped
+}
+
+/// Traces one prepared light: its grid (supersampled as configured) and
+/// refinement. Returns the casters it proves useful (receiver-only groups
+/// never count) and its report; notes what it left out in `skipped`.
+pub fn bake_light(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    skipped: &mut Vec<Skipped>,
+) -> (CasterSet, LightReport) {
+    let started = Instant::now();
+    let index = setup.index;
+    let light = &config.lights[index];
+    let name = light_name(config, index);
+    let reach = &setup.reach;
+    if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
+        skipped.push(Skipped {
+            what: name.clone(),
+            why: format!(
+                "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
+                reach.parts_out_of_reach, reach.blocks_out_of_reach
+            ),
+        });
     }
-    skipped.sort();
-    Ok(BakeResult {
-        casters,
-        masks,
-        lights,
-        skipped,
-    })
+    let left_out = reach.left_out_triangles as usize + setup.top.left_out();
+    if left_out > 0 {
+        skipped.push(Skipped {
+            what: name.clone(),
+            why: format!(
+                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles or placements left out (they can never be hit)",
+                crate::trace::MAX_COORDINATE
+            ),
+        });
+    }
+    if setup.passes == Passes::AllOnly {
+        skipped.push(Skipped {
+            what: name.clone(),
+            why: "reaches no alpha-tested group: one pass (All) instead of two".into(),
+        });
+    }
+    let supersample = config.supersample.max(1);
+    let mut rays = setup.grid.texel_count() * (supersample as u64).pow(2);
+    let mut refine_rays = 0;
+    let trace_started = Instant::now();
+    let useful = if setup.top.is_empty() {
+        skipped.push(Skipped {
+            what: name.clone(),
+            why: "its frustum holds no geometry: no rays traced".into(),
+        });
+        rays = 0;
+        CasterSet::new(world.casters.len())
+    } else {
+        progress.light_started(index, light, rays);
+        let rays_of_light = setup.rays(world, config);
+        let done = AtomicU64::new(0);
+        let reporter = ProgressRelay {
+            progress,
+            index,
+            done: &done,
+        };
+        let mut useful = rays_of_light.trace_grid(supersample, &reporter);
+        if config.refine_samples > 0 {
+            let (refined, traced) =
+                refine::refine(world, setup, &rays_of_light, &useful, config.refine_samples);
+            useful = useful.union(&refined);
+            refine_rays = traced;
+            rays += traced;
+        }
+        useful
+    };
+    let trace_seconds = trace_started.elapsed().as_secs_f64();
+    let mut kept = CasterSet::new(world.casters.len());
+    for (id, caster) in world.casters.casters.iter().enumerate() {
+        if !caster.receiver_only && useful.contains(id as u32) {
+            kept.insert(id as u32);
+        }
+    }
+    let useful_casters = kept.len();
+    let report = LightReport {
+        index,
+        name: light.name.clone(),
+        kind: light.kind.type_name(),
+        rays,
+        refine_rays,
+        seconds: setup.reach_seconds + setup.top_seconds + started.elapsed().as_secs_f64(),
+        geometry_seconds: setup.reach_seconds,
+        bvh_seconds: setup.top_seconds,
+        trace_seconds,
+        useful_casters,
+        culled_casters: world.casters.real_casters() - useful_casters,
+        triangles: reach.triangles as usize,
+        instances: reach.parts.len(),
+        terrain_blocks: reach.blocks.len(),
+        passes: match setup.passes {
+            Passes::AllOnly => 1,
+            Passes::AllAndOpaque => 2,
+        },
+    };
+    (kept, report)
 }
 
 /// Passes ray counts from the tracing threads to the caller's progress.

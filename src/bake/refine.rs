@@ -6,6 +6,7 @@
 //! caster useful keeps it (the rays are fixed before tracing and the results
 //! OR-ed, so the outcome does not depend on order or threads).
 
+use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays};
 use crate::rng::{mix, Rng};
 use crate::trace::TraceTriangle;
@@ -16,44 +17,43 @@ use rayon::prelude::*;
 /// inside its triangle and its ray crosses that triangle, not a neighbour.
 const EDGE_MARGIN: f64 = 0.02;
 
-/// Extra rays for every caster (id) of `triangles` that is neither useful
+/// Extra rays for every caster in the light's reach that is neither useful
 /// yet nor receiver-only: `samples` points per caster, area-weighted over its
 /// triangles, deterministic per (light, caster). Returns the casters the
 /// rays prove useful and how many rays were traced.
 pub fn refine(
+    world: &BakeWorld,
+    setup: &LightSetup,
     rays_of_light: &LightRays<'_>,
-    light_index: usize,
-    triangles: &[TraceTriangle],
     already_useful: &CasterSet,
     samples: u32,
 ) -> (CasterSet, u64) {
-    let (grid, casters) = (rays_of_light.grid, rays_of_light.casters);
-    // Triangles arrive caster by caster (scene order), so each caster's are
-    // one contiguous run.
-    let mut runs: Vec<(u32, std::ops::Range<usize>)> = Vec::new();
-    for (index, triangle) in triangles.iter().enumerate() {
-        match runs.last_mut() {
-            Some((caster, range)) if *caster == triangle.caster && range.end == index => {
-                range.end = index + 1
-            }
-            _ => runs.push((triangle.caster, index..index + 1)),
-        }
+    let casters = &world.casters;
+    let grid = rays_of_light.grid;
+    let light_index = setup.index;
+    let mut candidates: Vec<u32> = Vec::new();
+    for &p in &setup.reach.parts {
+        let part = &world.parts[p as usize];
+        let groups = world.scene.models[part.model].groups.len() as u32;
+        candidates.extend(part.first_caster..part.first_caster + groups);
     }
-    runs.retain(|(caster, _)| {
-        !already_useful.contains(*caster) && !casters.casters[*caster as usize].receiver_only
+    candidates.extend(setup.reach.blocks.iter().map(|&b| casters.of_block[b as usize]));
+    candidates.retain(|&caster| {
+        !already_useful.contains(caster) && !casters.casters[caster as usize].receiver_only
     });
     let reference = grid.reference_point();
-    runs.par_iter()
+    candidates
+        .par_iter()
         .fold(
             || (CasterSet::new(casters.len()), Vec::new(), 0u64),
-            |(mut useful, mut hits, mut rays), (caster, range)| {
-                let run = &triangles[range.clone()];
+            |(mut useful, mut hits, mut rays), &caster| {
+                let run = setup.caster_triangles(world, caster);
                 let areas: Vec<f64> = run.iter().map(area).collect();
                 let total: f64 = areas.iter().sum();
-                if total.is_nan() || total <= 0.0 {
+                if run.is_empty() || total.is_nan() || total <= 0.0 {
                     return (useful, hits, rays);
                 }
-                let mut rng = Rng::new(mix(((light_index as u64) << 32) | *caster as u64));
+                let mut rng = Rng::new(mix(((light_index as u64) << 32) | caster as u64));
                 for _ in 0..samples {
                     let pick = rng.unit() * total;
                     let mut chosen = run.len() - 1;

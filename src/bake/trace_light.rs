@@ -8,7 +8,7 @@ use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::{Bvh, Hit, TraceRay, TraceTriangle};
+use crate::trace::{Hit, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -74,24 +74,9 @@ impl CasterSet {
     }
 }
 
-/// How rays find their hits: the BVH, or (for the oracle) every triangle.
-#[derive(Clone, Copy)]
-pub enum Tracer<'a> {
-    Bvh(&'a Bvh),
-    BruteForce(&'a [TraceTriangle]),
-}
-
-impl Tracer<'_> {
-    fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
-        match self {
-            Tracer::Bvh(bvh) => bvh.for_each_hit(ray, on_hit),
-            Tracer::BruteForce(triangles) => crate::trace::brute_force_hits(triangles, ray, on_hit),
-        }
-    }
-}
-
 /// Everything one light's rays need: its grid, how to find hits, what the
-/// hits belong to, the ground and the rules. The grid pass, refinement, the
+/// hits belong to, the ground and the rules. Made by
+/// [`super::setup::LightSetup::rays`]; the grid pass, refinement, the
 /// pictures and the cross-check all trace through this one value, so they
 /// apply the same filter and the same classification.
 #[derive(Clone, Copy)]
@@ -208,7 +193,7 @@ impl LightRays<'_> {
 
     /// The per-hit rules every consumer of a light's rays applies before
     /// classification: face culling (double-sided groups exempt; mirrored
-    /// instances were re-wound when the geometry was built) and the
+    /// instances are judged in model space, see `trace::instance`) and the
     /// below-ground test for non-terrain hits. `None`: the hit does not count.
     fn filter_hit(&self, hit: &Hit, ray: &TexelRay) -> Option<RayHit> {
         let caster = self.casters.casters.get(hit.caster as usize)?;

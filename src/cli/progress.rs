@@ -28,12 +28,10 @@ impl Reporter {
 }
 
 impl Progress for Reporter {
-    fn light_preparing(&self, index: usize, light: &LightSettings, triangles: usize) {
+    fn bottom_levels_building(&self, models: usize, terrain_blocks: usize) {
         // A bar cannot move during the build; one line says what happens.
         eprintln!(
-            "light {index} {} ({}): building the BVH over {triangles} triangles",
-            light.name,
-            light.kind.type_name()
+            "building the bottom levels: {models} model BVHs, {terrain_blocks} terrain height fields"
         );
     }
 

@@ -9,6 +9,7 @@
 //! light (directional: against its direction; spot and point: from the
 //! point to the light); no shadows. Sky: dark blue.
 
+use crate::bake::setup::BakeWorld;
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
 use crate::bake::geometry::{all_geometry, world_bounds};
 use crate::bake::BakeConfig;
@@ -172,7 +173,8 @@ pub fn camera_view(
             )));
         }
     }
-    let verdicts = verdicts(scene, config, light)?;
+    let world = BakeWorld::new(scene);
+    let (verdicts, _) = verdicts(&world, config, light)?;
     let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
     let (position, target) = camera.resolve(bounds);
     let forward = (target - position).normalize_or_zero();
@@ -184,7 +186,7 @@ pub fn camera_view(
     let frame = Frame::new(forward, camera.fov_degrees, camera.width, camera.height);
 
     let reference = (bounds.0 + bounds.1) * 0.5;
-    let geometry = all_geometry(scene, &verdicts.casters, reference);
+    let geometry = all_geometry(scene, &world.casters, reference);
     let bvh = Bvh::build(&geometry.triangles);
     let light_kind = &config.lights[light].kind;
     let origin = (position - reference).as_vec3();

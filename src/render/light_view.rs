@@ -13,14 +13,10 @@
 //! texels); only those texels are traced.
 
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
-use crate::bake::geometry::{light_geometry, world_bounds};
-use crate::bake::ground::Ground;
-use crate::bake::trace_light::{LightRays, RayRules, Tracer};
+use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
-use crate::classify::Passes;
 use crate::light::{TexelGrid, CUBE_FACE_NAMES};
 use crate::scene::Scene;
-use crate::trace::Bvh;
 use rayon::prelude::*;
 
 /// Largest light view drawn when the caller gives no size.
@@ -41,21 +37,17 @@ pub fn light_view(
 ) -> Result<Picture, RenderError> {
     let (max_w, max_h) = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
     check_size(max_w, max_h)?;
-    let verdicts = verdicts(scene, config, light)?;
-    let settings = &config.lights[light];
-    let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
-    let grid = TexelGrid::new(settings, bounds)?;
-    let geometry = light_geometry(scene, &verdicts.casters, &grid);
-    let bvh = Bvh::build(&geometry.triangles);
-    let ground = Ground::new(scene);
-    let rays_of_light = LightRays {
-        grid: &grid,
-        tracer: Tracer::Bvh(&bvh),
-        casters: &verdicts.casters,
-        ground: ground.as_ref(),
-        // front_hit does not classify; the passes are not used.
-        rules: RayRules::new(config, Passes::AllOnly),
+    let world = BakeWorld::new(scene);
+    let (verdicts, setup) = verdicts(&world, config, light)?;
+    let Some(setup) = setup else {
+        // The light reaches nothing: say why, as the grid does.
+        let bounds = world.bounds.ok_or(RenderError::EmptyWorld)?;
+        TexelGrid::new(&config.lights[light], bounds)?;
+        return Err(RenderError::EmptyWorld);
     };
+    let grid = &setup.grid;
+    // front_hit does not classify: the passes play no part.
+    let rays_of_light = setup.rays(&world, config);
 
     // At most 6 × 65536 columns: fits u64 arithmetic with room to spare.
     let native_w = grid.faces() as u64 * grid.width() as u64;

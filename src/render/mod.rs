@@ -22,11 +22,12 @@ mod light_view;
 pub use camera::{camera_view, CameraSpec};
 pub use light_view::{light_view, DEFAULT_MAX_LIGHT_SIZE};
 
-use crate::bake::casters::{Caster, CasterTable};
+use crate::bake::casters::Caster;
+use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
+use crate::bake::trace_light::CasterSet;
 use crate::bake::{self, BakeConfig, BakeError, Silent};
 use crate::formats::bake_settings::LightSettings;
 use crate::light::GridError;
-use crate::scene::Scene;
 
 /// Largest picture side either view draws: a 16384² RGB buffer is 800 MB.
 pub const MAX_SIDE: u32 = 16384;
@@ -191,12 +192,18 @@ pub fn find_light(lights: &[LightSettings], name: &str) -> Result<usize, RenderE
 
 /// The bake's verdict for light `light` of `config`: per caster, its class.
 struct Verdicts {
-    casters: CasterTable,
     classes: Vec<Class>,
     light: LightSummary,
 }
 
-fn verdicts(scene: &Scene, config: &BakeConfig, light: usize) -> Result<Verdicts, RenderError> {
+/// The bake's verdicts for light `light` (the bake's own per-light path on
+/// the caller's world), and its setup for pictures that trace the light
+/// again (`None`: the light reaches nothing, so every caster is culled).
+fn verdicts(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+) -> Result<(Verdicts, Option<LightSetup>), RenderError> {
     let settings = config
         .lights
         .get(light)
@@ -204,36 +211,35 @@ fn verdicts(scene: &Scene, config: &BakeConfig, light: usize) -> Result<Verdicts
             name: format!("#{light}"),
             known: config.lights.iter().map(|l| l.name.clone()).collect(),
         })?;
-    let single = BakeConfig {
-        lights: vec![settings.clone()],
-        ..config.clone()
+    let casters = &world.casters;
+    let (useful, setup) = match LightSetup::new(world, config, light) {
+        Ok(setup) => {
+            let (useful, _) = bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
+            (useful, Some(setup))
+        }
+        Err(nothing) if nothing.is_nothing_to_trace() => (CasterSet::new(casters.len()), None),
+        Err(NoSetup::Grid(err)) => return Err(err.into()),
+        Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
-    let result = bake::bake(scene, &single, &Silent)?;
-    let classes = result
-        .casters
+    let classes = casters
         .casters
         .iter()
-        .zip(&result.masks)
-        .map(|(caster, mask)| Class::of(caster, mask & 1 != 0))
+        .enumerate()
+        .map(|(id, caster)| Class::of(caster, useful.contains(id as u32)))
         .collect();
-    let useful_casters = result.masks.iter().filter(|m| *m & 1 != 0).count();
-    let receiver_only_groups = result
-        .casters
-        .casters
-        .iter()
-        .filter(|c| c.receiver_only)
-        .count();
-    Ok(Verdicts {
+    let useful_casters = useful.len();
+    let receiver_only_groups = casters.casters.iter().filter(|c| c.receiver_only).count();
+    let verdicts = Verdicts {
         light: LightSummary {
             name: settings.name.clone(),
             kind: settings.kind.type_name(),
             useful_casters,
-            culled_casters: result.casters.real_casters() - useful_casters,
+            culled_casters: casters.real_casters() - useful_casters,
             receiver_only_groups,
         },
-        casters: result.casters,
         classes,
-    })
+    };
+    Ok((verdicts, setup))
 }
 
 /// `colour × shade`, rounded, for `shade` in [0, 1].

@@ -34,6 +34,7 @@
 use glam::DVec3;
 
 use crate::formats::terrain::{TerrainData, TerrainVersion};
+use crate::trace::HeightGrid;
 
 /// A chunk's terrain block in world space.
 #[derive(Debug, Clone)]
@@ -45,8 +46,9 @@ pub struct TerrainBlock {
     cells_z: usize,
     spacing_x: f64,
     spacing_z: f64,
-    /// Visible vertex heights, `(cells_x + 1) × (cells_z + 1)`, row-major by z.
-    heights: Vec<f64>,
+    /// Visible vertex heights, `(cells_x + 1) × (cells_z + 1)`, row-major by
+    /// z; kept in f32 as the files store them (4 bytes a sample).
+    heights: Vec<f32>,
     /// One flag per height cell, row-major by z.
     cell_holes: Vec<bool>,
     min_height: f64,
@@ -101,9 +103,8 @@ impl TerrainBlock {
                         "height {h} at visible sample ({x}, {z}) is not finite"
                     ));
                 }
-                let h = f64::from(h);
-                min_height = min_height.min(h);
-                max_height = max_height.max(h);
+                min_height = min_height.min(f64::from(h));
+                max_height = max_height.max(f64::from(h));
                 heights.push(h);
             }
         }
@@ -175,18 +176,41 @@ impl TerrainBlock {
         if x > self.cells_x {
             return None;
         }
-        self.heights.get(z * (self.cells_x + 1) + x).copied()
+        self.heights
+            .get(z * (self.cells_x + 1) + x)
+            .copied()
+            .map(f64::from)
+    }
+
+    /// The block's samples as the tracer reads them: one vertex function,
+    /// one hole and diagonal rule for the traced surface and for
+    /// [`triangles`](Self::triangles).
+    pub fn grid(&self) -> HeightGrid<'_> {
+        HeightGrid {
+            origin: self.origin,
+            chunk_size: self.chunk_size,
+            cells_x: self.cells_x,
+            cells_z: self.cells_z,
+            heights: &self.heights,
+            holes: &self.cell_holes,
+            alternating: self.version == TerrainVersion::Terrain2,
+        }
+    }
+
+    /// Bytes of height samples and hole flags held.
+    pub fn heap_bytes(&self) -> usize {
+        self.heights.len() * 4 + self.cell_holes.len()
     }
 
     /// Whether height cell (cx, cz) is a hole (no triangles, no height).
     pub fn cell_is_hole(&self, cx: usize, cz: usize) -> bool {
-        cx < self.cells_x && self.cell_holes.get(cz * self.cells_x + cx) == Some(&true)
+        self.grid().is_hole(cx, cz)
     }
 
     /// Whether the cell's diagonal joins (x, z+1)–(x+1, z) rather than
     /// (x, z)–(x+1, z+1).
     pub fn cell_has_odd_diagonal(&self, cx: usize, cz: usize) -> bool {
-        self.version == TerrainVersion::Terrain2 && (cx ^ cz) & 1 == 1
+        self.grid().has_odd_diagonal(cx, cz)
     }
 
     /// World-space box of the visible vertices (holes included).
@@ -245,30 +269,12 @@ impl TerrainBlock {
     /// geometric normal (v1 − v0) × (v2 − v0) points up (+y): the engine's
     /// vertex orders.
     pub fn triangles(&self) -> Vec<[DVec3; 3]> {
+        let grid = self.grid();
         let mut out = Vec::with_capacity(2 * self.cell_holes.iter().filter(|&&h| !h).count());
         for cz in 0..self.cells_z {
             for cx in 0..self.cells_x {
-                if self.cell_is_hole(cx, cz) {
-                    continue;
-                }
-                let v = |x: usize, z: usize| -> DVec3 {
-                    let h = self.vertex_height(x, z).unwrap_or(0.0);
-                    DVec3::new(
-                        self.origin.x + x as f64 * self.spacing_x,
-                        self.origin.y + h,
-                        self.origin.z + z as f64 * self.spacing_z,
-                    )
-                };
-                let bottom_left = v(cx, cz);
-                let bottom_right = v(cx + 1, cz);
-                let top_left = v(cx, cz + 1);
-                let top_right = v(cx + 1, cz + 1);
-                if self.cell_has_odd_diagonal(cx, cz) {
-                    out.push([bottom_left, top_left, bottom_right]);
-                    out.push([top_left, top_right, bottom_right]);
-                } else {
-                    out.push([bottom_left, top_left, top_right]);
-                    out.push([top_right, bottom_right, bottom_left]);
+                if !self.cell_is_hole(cx, cz) {
+                    out.extend(grid.cell_triangles(cx, cz));
                 }
             }
         }

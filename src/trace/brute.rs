@@ -39,3 +39,35 @@ pub fn brute_force_hits(
         }
     }
 }
+
+/// Every triangle of a bottom level against a (model-space) ray, skipping
+/// its tree: the oracle's half of an instanced trace. Returns the t_max it
+/// ends with.
+pub(crate) fn bvh_triangles_hits(
+    bvh: &super::Bvh,
+    ray: &TraceRay,
+    t_max: f32,
+    on_hit: &mut impl FnMut(Hit) -> f32,
+) -> f32 {
+    let prepared = PreparedRay::new(ray);
+    let mut t_max = t_max;
+    if !prepared.is_valid() {
+        return t_max;
+    }
+    for (index, tri) in bvh.triangles() {
+        if let Some((t, back_facing)) = hit_t(&prepared, tri) {
+            if t >= ray.t_min && t <= t_max {
+                let next = on_hit(Hit {
+                    t,
+                    triangle: index,
+                    caster: tri.caster,
+                    back_facing,
+                });
+                if next < t_max {
+                    t_max = next;
+                }
+            }
+        }
+    }
+    t_max
+}

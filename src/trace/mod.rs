@@ -1,7 +1,16 @@
-//! Ray casting for the bake: one BVH per light over that light's triangles, and
-//! a multi-hit traversal that reports every surface crossing of a ray, because
-//! the culling rule (SPEC §4) needs all hits near the first one, not just the
+//! Ray casting for the bake: a two-level structure and a multi-hit
+//! traversal that reports every surface crossing of a ray, because the
+//! culling rule (SPEC §4) needs all hits near the first one, not just the
 //! closest.
+//!
+//! - bottom levels ([`BottomLevels`], `blas.rs`): one BVH per distinct
+//!   model in model space (`bvh.rs`) and one min/max pyramid per terrain
+//!   block (`heightfield.rs`), built once per bake;
+//! - top level ([`TopLevel`], `tlas.rs`): per light, a BVH over the placed
+//!   parts and blocks in its reach; a ray enters an instance by its inverse
+//!   transform (`instance.rs`) with t kept in world metres;
+//! - [`Tracer`]: the top level through its trees, or the brute-force oracle
+//!   over the same entries with the same arithmetic (`brute.rs`).
 //!
 //! Hits are decided by a watertight ray/triangle test with a consistent tie
 //! rule ([`intersect`]), so a ray exactly through an edge or vertex shared by
@@ -11,15 +20,24 @@
 //! whatever the BVH's shape or the thread count that built it. obvhs types do
 //! not leave this module.
 
+mod blas;
+mod boxtree;
 mod brute;
 mod bvh;
+mod heightfield;
+mod instance;
+mod tlas;
 mod triangle;
 
 #[cfg(test)]
 mod tests;
 
 pub use brute::brute_force_hits;
+pub use blas::BottomLevels;
 pub use bvh::Bvh;
+pub use heightfield::{HeightField, HeightGrid};
+pub use instance::ToModel;
+pub use tlas::{transform_box, PlacedBlock, PlacedPart, TopLevel};
 pub use triangle::{intersect, PreparedRay};
 
 use glam::Vec3;
@@ -48,6 +66,48 @@ impl TraceTriangle {
             .iter()
             .all(|v| v.is_finite() && v.abs().max_element() <= MAX_COORDINATE)
     }
+
+    /// Zero area in f32 (the triangle test never reports such a triangle)
+    /// or a normal that overflows.
+    pub fn has_zero_area(&self) -> bool {
+        let [a, b, c] = self.vertices;
+        let n = (b - a).cross(c - a);
+        n == Vec3::ZERO || !n.is_finite()
+    }
+}
+
+/// How a [`Tracer`] finds hits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TraceMode {
+    /// Through the top level and the bottom levels' trees.
+    Trees,
+    /// Every triangle and terrain cell of every entry (the oracle; slow).
+    BruteForce,
+}
+
+/// One light's way of finding hits: its top level over the bake's bottom
+/// levels.
+#[derive(Clone, Copy)]
+pub struct Tracer<'a> {
+    pub bottom: &'a BottomLevels<'a>,
+    pub top: &'a TopLevel,
+    pub mode: TraceMode,
+}
+
+impl Tracer<'_> {
+    /// Calls `on_hit` for every surface crossing with `t_min <= t <=
+    /// current t_max`, caster ids already global; `on_hit` returns the new
+    /// t_max (a larger or NaN value is ignored). Hits arrive unsorted; the
+    /// set does not depend on the mode.
+    #[inline]
+    pub fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
+        self.top.for_each_hit(
+            self.bottom,
+            ray,
+            self.mode == TraceMode::BruteForce,
+            on_hit,
+        );
+    }
 }
 
 /// A ray segment: the points `origin + t·direction` for `t_min <= t <= t_max`.
@@ -65,7 +125,8 @@ pub struct TraceRay {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
     pub t: f32,
-    /// Index of the triangle in the slice the BVH was built from.
+    /// Index of the triangle in the slice the BVH was built from (for a
+    /// placed model: in the model; for terrain: 2 × cell + 0 or 1).
     pub triangle: u32,
     pub caster: u32,
     /// Geometric normal · ray direction > 0.

@@ -1,0 +1,251 @@
+//! The contract between preparing a light and everything that traces it.
+//!
+//! [`BakeWorld`] is what every light of a bake shares: the caster table,
+//! the bottom levels (one BVH per distinct model, one height field per
+//! terrain block, built once), the ground and the world bounds.
+//! [`LightSetup`] is one light ready to trace: its grid, what lies in its
+//! reach, its top level and its passes. The bake, refinement, `render`,
+//! `sweep` and `xcheck` all build lights through [`LightSetup::new`] and
+//! trace through [`LightSetup::rays`], so they see the same geometry and
+//! apply the same rules.
+
+use super::casters::{CasterTable, PartCasters};
+use super::geometry;
+use super::ground::Ground;
+use super::trace_light::{LightRays, RayRules};
+use super::BakeConfig;
+use crate::classify::Passes;
+use crate::light::{GridError, TexelGrid};
+use crate::scene::Scene;
+use crate::trace::{
+    transform_box, BottomLevels, PlacedBlock, PlacedPart, TopLevel, TraceMode, TraceTriangle,
+    Tracer,
+};
+use glam::DVec3;
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// What every light of a bake shares.
+pub struct BakeWorld<'a> {
+    pub scene: &'a Scene,
+    pub casters: CasterTable,
+    /// Every placed part, in caster id order.
+    pub parts: Vec<PartCasters>,
+    pub bottom: BottomLevels<'a>,
+    pub ground: Option<Ground<'a>>,
+    /// World bounds of everything that can be hit, `None`: no geometry.
+    pub bounds: Option<(DVec3, DVec3)>,
+    /// Wall time of the bottom-level builds.
+    pub bottom_seconds: f64,
+}
+
+impl<'a> BakeWorld<'a> {
+    /// Builds the bottom levels (in parallel across models and blocks).
+    pub fn new(scene: &'a Scene) -> BakeWorld<'a> {
+        let started = Instant::now();
+        let casters = CasterTable::new(scene);
+        let parts = casters.parts(scene).collect();
+        let bottom = BottomLevels::build(
+            scene.models.len(),
+            |m| model_space_triangles(scene, m),
+            scene.terrain.iter().map(|b| b.grid()).collect(),
+        );
+        BakeWorld {
+            scene,
+            casters,
+            parts,
+            bottom,
+            ground: Ground::new(scene),
+            bounds: geometry::world_bounds(scene),
+            bottom_seconds: started.elapsed().as_secs_f64(),
+        }
+    }
+}
+
+/// Model `m`'s triangles in model space, `caster` = group index.
+fn model_space_triangles(scene: &Scene, m: usize) -> Vec<TraceTriangle> {
+    let model = &scene.models[m];
+    let mut out = Vec::with_capacity(model.triangles.len());
+    for (group_index, group) in model.groups.iter().enumerate() {
+        for triangle in model.triangles.get(group.triangles.clone()).unwrap_or(&[]) {
+            let Some(vertices) = triangle
+                .iter()
+                .map(|&i| model.positions.get(i as usize).copied())
+                .collect::<Option<Vec<_>>>()
+            else {
+                continue;
+            };
+            out.push(TraceTriangle {
+                vertices: [vertices[0], vertices[1], vertices[2]],
+                caster: group_index as u32,
+            });
+        }
+    }
+    out
+}
+
+/// What lies in one light's reach, and what was left out.
+#[derive(Debug, Default, Clone)]
+pub struct Reach {
+    /// Into [`BakeWorld::parts`], in id order.
+    pub parts: Vec<u32>,
+    /// Terrain blocks, in scene order.
+    pub blocks: Vec<u32>,
+    pub parts_out_of_reach: usize,
+    pub blocks_out_of_reach: usize,
+    /// Triangles in reach (model triangles of every part, two per visible
+    /// non-hole terrain cell).
+    pub triangles: u64,
+    /// Triangles never traced: zero-area, non-finite or absurd in model
+    /// space, or of a part whose placement is absurd.
+    pub left_out_triangles: u64,
+    /// Some part in reach has an alpha-tested group.
+    pub reaches_alpha_tested: bool,
+}
+
+/// Why a light has no setup.
+#[derive(Debug, thiserror::Error)]
+pub enum NoSetup {
+    #[error("the world has no geometry to cast or receive shadows")]
+    NoGeometry,
+    /// The grid cannot be made: [`GridError::EmptyWorld`] means nothing to
+    /// trace; any other is a settings mistake and stops a bake.
+    #[error(transparent)]
+    Grid(#[from] GridError),
+}
+
+impl NoSetup {
+    /// Nothing to trace (the bake notes it and goes on), as opposed to a
+    /// settings mistake.
+    pub fn is_nothing_to_trace(&self) -> bool {
+        matches!(self, NoSetup::NoGeometry | NoSetup::Grid(GridError::EmptyWorld { .. }))
+    }
+}
+
+/// One light ready to trace.
+pub struct LightSetup {
+    pub index: usize,
+    pub grid: TexelGrid,
+    pub reach: Reach,
+    pub top: TopLevel,
+    pub passes: Passes,
+    /// Wall time of finding the reach and of the top-level build.
+    pub reach_seconds: f64,
+    pub top_seconds: f64,
+}
+
+impl LightSetup {
+    /// Light `index` of `config` over `world`.
+    pub fn new(world: &BakeWorld, config: &BakeConfig, index: usize) -> Result<LightSetup, NoSetup> {
+        let light = &config.lights[index];
+        let bounds = world.bounds.ok_or(NoSetup::NoGeometry)?;
+        let grid = TexelGrid::new(light, bounds)?;
+        let started = Instant::now();
+        let reach = reach(world, &grid);
+        let reach_seconds = started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let scene = world.scene;
+        let top = TopLevel::build(
+            &world.bottom,
+            reach.parts.iter().map(|&p| {
+                let part = &world.parts[p as usize];
+                PlacedPart {
+                    model: part.model as u32,
+                    world: scene.instances[part.instance].world,
+                    first_caster: part.first_caster,
+                }
+            }),
+            reach.blocks.iter().map(|&block| PlacedBlock {
+                block,
+                caster: world.casters.of_block[block as usize],
+            }),
+            grid.reference_point(),
+        );
+        let top_seconds = started.elapsed().as_secs_f64();
+        let passes = if reach.reaches_alpha_tested {
+            Passes::AllAndOpaque
+        } else {
+            Passes::AllOnly
+        };
+        Ok(LightSetup {
+            index,
+            grid,
+            reach,
+            top,
+            passes,
+            reach_seconds,
+            top_seconds,
+        })
+    }
+
+    /// The light's rays with `config`'s rules and this setup's passes.
+    pub fn rays<'a>(&'a self, world: &'a BakeWorld, config: &BakeConfig) -> LightRays<'a> {
+        LightRays {
+            grid: &self.grid,
+            tracer: Tracer {
+                bottom: &world.bottom,
+                top: &self.top,
+                mode: if config.brute_force {
+                    TraceMode::BruteForce
+                } else {
+                    TraceMode::Trees
+                },
+            },
+            casters: &world.casters,
+            ground: world.ground.as_ref(),
+            rules: RayRules::new(config, self.passes),
+        }
+    }
+
+    /// Light-relative triangles of caster `id` if it lies in this light's
+    /// reach (for refinement's sample points), else empty.
+    pub fn caster_triangles(&self, world: &BakeWorld, id: u32) -> Vec<TraceTriangle> {
+        geometry::caster_triangles(world, id, self.grid.reference_point())
+    }
+}
+
+/// The parts and blocks some of whose box the light's grid reaches.
+fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
+    let scene = world.scene;
+    let in_reach: Vec<bool> = world
+        .parts
+        .par_iter()
+        .map(|part| {
+            world.bottom.models[part.model].bounds().is_some_and(|(min, max)| {
+                let placed = &scene.instances[part.instance].world;
+                let (min, max) = transform_box(placed, min.as_dvec3(), max.as_dvec3());
+                grid.reaches(min, max)
+            })
+        })
+        .collect();
+    let mut reach = Reach::default();
+    for (index, part) in world.parts.iter().enumerate() {
+        if !in_reach[index] {
+            reach.parts_out_of_reach += 1;
+            continue;
+        }
+        reach.parts.push(index as u32);
+        let model = &scene.models[part.model];
+        reach.triangles += model.triangles.len() as u64;
+        reach.left_out_triangles += world.bottom.model_left_out(part.model) as u64;
+        reach.reaches_alpha_tested |= model
+            .groups
+            .iter()
+            .any(|g| g.alpha_tested && !g.triangles.is_empty());
+    }
+    for (index, block) in scene.terrain.iter().enumerate() {
+        let (min, max) = block.bounds();
+        if grid.reaches(min, max) {
+            reach.blocks.push(index as u32);
+            let (cx, cz) = block.cells();
+            let holes = (0..cz)
+                .flat_map(|z| (0..cx).map(move |x| (x, z)))
+                .filter(|&(x, z)| block.cell_is_hole(x, z))
+                .count();
+            reach.triangles += 2 * (cx * cz - holes) as u64;
+        } else {
+            reach.blocks_out_of_reach += 1;
+        }
+    }
+    reach
+}

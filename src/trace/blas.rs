@@ -1,0 +1,77 @@
+//! The bottom levels: one BVH per distinct model in model space and one
+//! min/max pyramid per terrain block, built once per bake (in parallel) and
+//! shared by every light and every placement. Memory grows with distinct
+//! geometry, not with placed copies.
+
+use super::heightfield::{HeightField, HeightGrid};
+use super::{Bvh, TraceTriangle};
+use rayon::prelude::*;
+
+pub struct BottomLevels<'a> {
+    pub(crate) models: Vec<Bvh>,
+    /// Triangles each model's input held that were left out (not finite,
+    /// beyond [`super::MAX_COORDINATE`] or of zero area in model space).
+    pub(crate) models_left_out: Vec<usize>,
+    pub(crate) terrain: Vec<(HeightGrid<'a>, HeightField)>,
+}
+
+impl<'a> BottomLevels<'a> {
+    /// `model_triangles(i)`: model i's triangles in model space, `caster`
+    /// holding the triangle's group index within the model.
+    pub fn build(
+        models: usize,
+        model_triangles: impl Fn(usize) -> Vec<TraceTriangle> + Sync,
+        terrain: Vec<HeightGrid<'a>>,
+    ) -> BottomLevels<'a> {
+        let (models, models_left_out): (Vec<Bvh>, Vec<usize>) = (0..models)
+            .into_par_iter()
+            .map(|i| {
+                let triangles = model_triangles(i);
+                let usable: Vec<TraceTriangle> = triangles
+                    .iter()
+                    .filter(|t| t.is_usable() && !t.has_zero_area())
+                    .copied()
+                    .collect();
+                let left_out = triangles.len() - usable.len();
+                (Bvh::build(&usable), left_out)
+            })
+            .unzip();
+        let terrain = terrain
+            .into_par_iter()
+            .map(|grid| {
+                let field = HeightField::build(&grid);
+                (grid, field)
+            })
+            .collect();
+        BottomLevels {
+            models,
+            models_left_out,
+            terrain,
+        }
+    }
+
+    pub fn model_count(&self) -> usize {
+        self.models.len()
+    }
+
+    /// Triangles built into model `model`'s BVH.
+    pub fn model_triangles(&self, model: usize) -> usize {
+        self.models.get(model).map_or(0, Bvh::triangle_count)
+    }
+
+    /// Triangles of model `model` left out of its BVH (never hit).
+    pub fn model_left_out(&self, model: usize) -> usize {
+        self.models_left_out.get(model).copied().unwrap_or(0)
+    }
+
+    /// Heap bytes of every bottom level (BVH nodes, triangles, pyramids;
+    /// the height samples themselves belong to the scene).
+    pub fn heap_bytes(&self) -> usize {
+        self.models.iter().map(Bvh::heap_bytes).sum::<usize>()
+            + self
+                .terrain
+                .iter()
+                .map(|(_, f)| f.heap_bytes())
+                .sum::<usize>()
+    }
+}

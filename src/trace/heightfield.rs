@@ -1,0 +1,301 @@
+//! Terrain as a height field: a block's cells are traced where the ray
+//! goes, not flattened into triangles. A per-block min/max pyramid (leaf
+//! tiles of 2×2 cells) skips empty space; at a leaf, each cell's two
+//! triangles go through the same watertight test and tie rule as models.
+//!
+//! Watertight across cells and blocks: a vertex is computed by one function
+//! ([`HeightGrid::vertex`], `origin + i·size/cells` in f64, then minus the
+//! reference point, then rounded to f32), so a vertex shared by two cells,
+//! or by two neighbouring blocks (whose origins differ by exactly the chunk
+//! size), is bit-equal in both, and the tie rule gives every shared edge
+//! and vertex to exactly one triangle. The pyramid only culls: its tile
+//! boxes hold every vertex of their cells (rounded the same way) and are
+//! padded like tree nodes, so the hits are those of testing every cell.
+
+use super::boxtree::BoxRay;
+use super::triangle::{hit_t, PreparedRay};
+use super::{Hit, TraceRay, TraceTriangle};
+use glam::{DVec3, Vec3};
+
+/// Cells per leaf tile side.
+const TILE_CELLS: usize = 2;
+
+/// A terrain block's samples as the tracer and the below-ground test both
+/// read them (borrowed from the scene: never copied per light).
+#[derive(Clone, Copy, Debug)]
+pub struct HeightGrid<'a> {
+    /// World position of the block's local origin (its visible corner).
+    pub origin: DVec3,
+    pub chunk_size: f64,
+    pub cells_x: usize,
+    pub cells_z: usize,
+    /// Chunk-local heights of the visible vertices, `(cells_x + 1) ×
+    /// (cells_z + 1)`, row-major by z.
+    pub heights: &'a [f32],
+    /// One flag per cell, row-major by z.
+    pub holes: &'a [bool],
+    /// terrain2: the diagonal alternates with `(cx ^ cz) & 1`; terrain1:
+    /// every diagonal joins (x, z)–(x+1, z+1).
+    pub alternating: bool,
+}
+
+impl HeightGrid<'_> {
+    /// Chunk-local height of vertex (x, z).
+    #[inline]
+    pub fn height(&self, x: usize, z: usize) -> f64 {
+        f64::from(
+            self.heights
+                .get(z * (self.cells_x + 1) + x)
+                .copied()
+                .unwrap_or(0.0),
+        )
+    }
+
+    /// World position of vertex (x, z): the one place a terrain vertex is
+    /// computed, so neighbours agree bit for bit.
+    #[inline]
+    pub fn vertex(&self, x: usize, z: usize) -> DVec3 {
+        DVec3::new(
+            self.origin.x + x as f64 * self.chunk_size / self.cells_x as f64,
+            self.origin.y + self.height(x, z),
+            self.origin.z + z as f64 * self.chunk_size / self.cells_z as f64,
+        )
+    }
+
+    pub fn is_hole(&self, cx: usize, cz: usize) -> bool {
+        cx < self.cells_x && self.holes.get(cz * self.cells_x + cx) == Some(&true)
+    }
+
+    /// Whether the cell's diagonal joins (x, z+1)–(x+1, z).
+    pub fn has_odd_diagonal(&self, cx: usize, cz: usize) -> bool {
+        self.alternating && (cx ^ cz) & 1 == 1
+    }
+
+    /// The cell's two triangles in world space, split along its diagonal
+    /// and wound so the geometric normal points up (+y): the engine's
+    /// vertex orders.
+    pub fn cell_triangles(&self, cx: usize, cz: usize) -> [[DVec3; 3]; 2] {
+        let bottom_left = self.vertex(cx, cz);
+        let bottom_right = self.vertex(cx + 1, cz);
+        let top_left = self.vertex(cx, cz + 1);
+        let top_right = self.vertex(cx + 1, cz + 1);
+        if self.has_odd_diagonal(cx, cz) {
+            [
+                [bottom_left, top_left, bottom_right],
+                [top_left, top_right, bottom_right],
+            ]
+        } else {
+            [
+                [bottom_left, top_left, top_right],
+                [top_right, bottom_right, bottom_left],
+            ]
+        }
+    }
+
+    /// Calls `on_hit` for each of cell (cx, cz)'s triangles the ray crosses
+    /// within `[t_min, t_max]` (a hole: none); returns the new t_max.
+    #[inline]
+    fn cell_hits(
+        &self,
+        cell: (usize, usize),
+        reference: DVec3,
+        prepared: &PreparedRay,
+        caster: u32,
+        t_max: f32,
+        on_hit: &mut impl FnMut(Hit) -> f32,
+    ) -> f32 {
+        let (cx, cz) = cell;
+        let mut t_max = t_max;
+        if self.is_hole(cx, cz) {
+            return t_max;
+        }
+        for (k, triangle) in self.cell_triangles(cx, cz).iter().enumerate() {
+            let tri = TraceTriangle {
+                vertices: triangle.map(|p| (p - reference).as_vec3()),
+                caster,
+            };
+            if let Some((t, back_facing)) = hit_t(prepared, &tri) {
+                if t >= prepared.t_min && t <= t_max {
+                    let next = on_hit(Hit {
+                        t,
+                        triangle: ((cz * self.cells_x + cx) * 2 + k) as u32,
+                        caster,
+                        back_facing,
+                    });
+                    if next < t_max {
+                        t_max = next;
+                    }
+                }
+            }
+        }
+        t_max
+    }
+
+    /// The oracle: every cell of the block, no pyramid.
+    pub(crate) fn brute_force_hits(
+        &self,
+        reference: DVec3,
+        ray: &TraceRay,
+        caster: u32,
+        t_max: f32,
+        on_hit: &mut impl FnMut(Hit) -> f32,
+    ) -> f32 {
+        let prepared = PreparedRay::new(ray);
+        let mut t_max = t_max;
+        if !prepared.is_valid() {
+            return t_max;
+        }
+        for cz in 0..self.cells_z {
+            for cx in 0..self.cells_x {
+                t_max = self.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
+            }
+        }
+        t_max
+    }
+}
+
+/// The min/max pyramid of one block: built once per bake, shared by every
+/// light. Level 0 has one entry per leaf tile of a square of `side` ×
+/// `side` tiles (a power of two covering the block); each level above
+/// halves the side. Heights are chunk-local; tiles outside the block are
+/// empty (min > max).
+#[derive(Clone, Debug, Default)]
+pub struct HeightField {
+    side: usize,
+    /// Per level, its first entry in `ranges`.
+    level_start: Vec<usize>,
+    ranges: Vec<(f32, f32)>,
+}
+
+impl HeightField {
+    pub fn build(grid: &HeightGrid) -> HeightField {
+        let tiles_x = grid.cells_x.div_ceil(TILE_CELLS);
+        let tiles_z = grid.cells_z.div_ceil(TILE_CELLS);
+        let side = tiles_x.max(tiles_z).max(1).next_power_of_two();
+        let mut ranges = vec![(f32::INFINITY, f32::NEG_INFINITY); side * side];
+        for tz in 0..tiles_z {
+            for tx in 0..tiles_x {
+                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                let x_end = ((tx + 1) * TILE_CELLS).min(grid.cells_x);
+                let z_end = ((tz + 1) * TILE_CELLS).min(grid.cells_z);
+                for z in tz * TILE_CELLS..=z_end {
+                    for x in tx * TILE_CELLS..=x_end {
+                        let h = grid.height(x, z) as f32;
+                        lo = lo.min(h);
+                        hi = hi.max(h);
+                    }
+                }
+                ranges[tz * side + tx] = (lo, hi);
+            }
+        }
+        let mut level_start = vec![0];
+        let mut n = side;
+        while n > 1 {
+            let below = *level_start.last().unwrap();
+            let start = ranges.len();
+            let half = n / 2;
+            for j in 0..half {
+                for i in 0..half {
+                    let mut range = (f32::INFINITY, f32::NEG_INFINITY);
+                    for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                        let (lo, hi) = ranges[below + (2 * j + dj) * n + 2 * i + di];
+                        range = (range.0.min(lo), range.1.max(hi));
+                    }
+                    ranges.push(range);
+                }
+            }
+            level_start.push(start);
+            n = half;
+        }
+        HeightField {
+            side,
+            level_start,
+            ranges,
+        }
+    }
+
+    /// Lowest and highest chunk-local height of the block (holes included).
+    pub fn height_range(&self) -> (f32, f32) {
+        self.ranges.last().copied().unwrap_or((0.0, 0.0))
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        self.ranges.len() * std::mem::size_of::<(f32, f32)>() + self.level_start.len() * 8
+    }
+
+    /// Every hit of the ray on the block's surface within `[t_min, t_max]`,
+    /// as [`HeightGrid::brute_force_hits`] finds them, visiting only the
+    /// tiles whose padded box the ray touches, nearer tiles first.
+    /// `magnitude`: the largest light-relative coordinate of the block.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn hits(
+        &self,
+        grid: &HeightGrid,
+        reference: DVec3,
+        magnitude: f32,
+        ray: &TraceRay,
+        caster: u32,
+        t_max: f32,
+        on_hit: &mut impl FnMut(Hit) -> f32,
+    ) -> f32 {
+        let prepared = PreparedRay::new(ray);
+        let mut t_max = t_max;
+        if !prepared.is_valid() || self.ranges.is_empty() {
+            return t_max;
+        }
+        let boxes = BoxRay::new(ray, magnitude);
+        let flip_x = ray.direction.x < 0.0;
+        let flip_z = ray.direction.z < 0.0;
+        let top = self.level_start.len() - 1;
+        let mut stack: Vec<(usize, usize, usize)> = Vec::with_capacity(4 * (top + 1));
+        stack.push((top, 0, 0));
+        while let Some((level, i, j)) = stack.pop() {
+            let (lo, hi) = self.ranges[self.level_start[level] + j * (self.side >> level) + i];
+            if lo > hi {
+                continue;
+            }
+            let span = TILE_CELLS << level;
+            let (cx0, cz0) = (i * span, j * span);
+            let cx1 = (cx0 + span).min(grid.cells_x);
+            let cz1 = (cz0 + span).min(grid.cells_z);
+            if cx0 >= cx1 || cz0 >= cz1 {
+                continue;
+            }
+            let corner = |x: usize, z: usize, h: f32| {
+                let p = grid.vertex(x, z);
+                (DVec3::new(p.x, grid.origin.y + f64::from(h), p.z) - reference).as_vec3()
+            };
+            let (min, max) = (corner(cx0, cz0, lo), corner(cx1, cz1, hi));
+            if !boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+                continue;
+            }
+            if level == 0 {
+                for cz in cz0..cz1 {
+                    for cx in cx0..cx1 {
+                        t_max = grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
+                    }
+                }
+                if t_max < ray.t_min {
+                    return t_max;
+                }
+                continue;
+            }
+            // Far children first on the stack, so the nearer pop first and
+            // shrink t_max before the farther are tested.
+            let mut children = [(0, 0), (1, 0), (0, 1), (1, 1)];
+            for c in &mut children {
+                c.0 ^= usize::from(!flip_x);
+                c.1 ^= usize::from(!flip_z);
+            }
+            for (di, dj) in children {
+                stack.push((level - 1, 2 * i + di, 2 * j + dj));
+            }
+        }
+        t_max
+    }
+}
+
+/// The largest absolute light-relative coordinate of a box.
+pub(crate) fn magnitude(min: Vec3, max: Vec3) -> f32 {
+    min.abs().max(max.abs()).max_element()
+}

@@ -1,0 +1,98 @@
+//! Entering a placed instance: a light-relative ray mapped into the model's
+//! own space by the inverse of the instance's affine world transform.
+//!
+//! The direction is mapped by the linear part and not renormalised, so the
+//! ray parameter t is the same on both sides: a hit at model-space t lies
+//! t metres along the world ray. The inverse is computed in f64 from the
+//! f64 world transform, and the reference point is folded into its
+//! translation in f64 too, so a world far from the origin loses nothing
+//! (only the final model-space ray is rounded to f32).
+//!
+//! Facing needs no flip for mirrored instances: the engine flips the cull
+//! mode of a model whose transform mirrors it, which is the same as judging
+//! facing by the model-space normal against the model-space direction —
+//! what the triangle test does here. (Flattening to world space instead has
+//! to swap two vertices of every mirrored triangle to get this.)
+
+use super::TraceRay;
+use glam::{DMat3, DMat4, DVec3};
+
+/// The map from the light-relative frame (world minus the light's
+/// reference point) into one instance's model space.
+#[derive(Clone, Copy, Debug)]
+pub struct ToModel {
+    linear: DMat3,
+    /// The model-space position of the reference point.
+    offset: DVec3,
+}
+
+impl ToModel {
+    /// `None` when `world` is not an invertible finite affine map (a
+    /// damaged transform: such an instance cannot be entered).
+    pub fn new(world: &DMat4, reference: DVec3) -> Option<ToModel> {
+        let det = world.determinant();
+        if !(det.is_finite() && det != 0.0) {
+            return None;
+        }
+        let inverse = world.inverse();
+        if !inverse.is_finite() {
+            return None;
+        }
+        Some(ToModel {
+            linear: DMat3::from_mat4(inverse),
+            offset: inverse.transform_point3(reference),
+        })
+    }
+
+    /// The ray in model space, same t range.
+    #[inline]
+    pub fn ray(&self, ray: &TraceRay) -> TraceRay {
+        let origin = self.linear * ray.origin.as_dvec3() + self.offset;
+        let direction = self.linear * ray.direction.as_dvec3();
+        TraceRay {
+            origin: origin.as_vec3(),
+            direction: direction.as_vec3(),
+            t_min: ray.t_min,
+            t_max: ray.t_max,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{DQuat, Vec3};
+
+    #[test]
+    fn t_is_kept_through_scale_rotation_and_far_translation() {
+        let world = DMat4::from_scale_rotation_translation(
+            DVec3::new(2.0, 0.5, 3.0),
+            DQuat::from_rotation_y(0.7),
+            DVec3::new(1e6, 20.0, -1e6),
+        );
+        let reference = DVec3::new(1e6 + 10.0, 0.0, -1e6 - 5.0);
+        let to_model = ToModel::new(&world, reference).unwrap();
+        let ray = TraceRay {
+            origin: Vec3::new(-3.0, 40.0, 2.0),
+            direction: Vec3::new(0.3, -0.9, 0.1).normalize(),
+            t_min: 0.0,
+            t_max: 100.0,
+        };
+        let m = to_model.ray(&ray);
+        for t in [0.0f32, 7.5, 33.0] {
+            let world_point = reference + (ray.origin + ray.direction * t).as_dvec3();
+            let model_point = world.inverse().transform_point3(world_point);
+            let ours = (m.origin + m.direction * t).as_dvec3();
+            assert!((ours - model_point).length() < 1e-4, "{ours} vs {model_point}");
+        }
+        assert_eq!((m.t_min, m.t_max), (0.0, 100.0));
+    }
+
+    #[test]
+    fn singular_and_non_finite_transforms_cannot_be_entered() {
+        assert!(ToModel::new(&DMat4::from_scale(DVec3::new(1.0, 0.0, 1.0)), DVec3::ZERO).is_none());
+        let mut nan = DMat4::IDENTITY;
+        nan.w_axis.x = f64::NAN;
+        assert!(ToModel::new(&nan, DVec3::ZERO).is_none());
+    }
+}

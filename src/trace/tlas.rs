@@ -1,0 +1,264 @@
+//! The top level: per light, a BVH over the placed model parts and terrain
+//! blocks in its reach, in the light-relative frame. A leaf enters an
+//! instance by its inverse transform ([`ToModel`]) and traverses the
+//! model's bottom level, or walks a block's height field.
+//!
+//! Instance boxes come from the model's bounds and the f64 world transform,
+//! relative to the light's reference point, rounded outward: a model-space
+//! hit lies inside its instance's box up to the rounding of the mapped ray,
+//! which the node padding (hundreds of ulps of the magnitude) covers.
+
+use super::blas::BottomLevels;
+use super::boxtree::BoxTree;
+use super::heightfield::{magnitude, HeightField, HeightGrid};
+use super::instance::ToModel;
+use super::{Hit, TraceRay, MAX_COORDINATE};
+use glam::{DMat4, DVec3, Vec3, Vec3A};
+use obvhs::aabb::Aabb;
+
+/// One model part of a placed instance, as the bake hands it over.
+#[derive(Clone, Copy, Debug)]
+pub struct PlacedPart {
+    /// Index into the bottom levels' models.
+    pub model: u32,
+    /// Model to world (f64).
+    pub world: DMat4,
+    /// The caster id of the part's group 0; group g is `first_caster + g`.
+    pub first_caster: u32,
+}
+
+/// One terrain block and its caster id.
+#[derive(Clone, Copy, Debug)]
+pub struct PlacedBlock {
+    pub block: u32,
+    pub caster: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Entry {
+    Part {
+        model: u32,
+        first_caster: u32,
+        to_model: ToModel,
+    },
+    Block {
+        block: u32,
+        caster: u32,
+        magnitude: f32,
+    },
+}
+
+/// One light's top level.
+#[derive(Debug, Default)]
+pub struct TopLevel {
+    tree: BoxTree,
+    /// In tree order.
+    pub(crate) entries: Vec<Entry>,
+    pub(crate) reference: DVec3,
+    /// Parts that could not be placed (no bounds, a box that is not finite
+    /// or beyond [`MAX_COORDINATE`], a transform that cannot be inverted).
+    left_out: usize,
+}
+
+/// World box of a model-space box under `world`.
+pub fn transform_box(world: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
+    let mut out_min = DVec3::splat(f64::INFINITY);
+    let mut out_max = DVec3::splat(f64::NEG_INFINITY);
+    for corner in 0..8 {
+        let p = DVec3::new(
+            if corner & 1 == 0 { min.x } else { max.x },
+            if corner & 2 == 0 { min.y } else { max.y },
+            if corner & 4 == 0 { min.z } else { max.z },
+        );
+        let q = world.transform_point3(p);
+        out_min = out_min.min(q);
+        out_max = out_max.max(q);
+    }
+    (out_min, out_max)
+}
+
+/// A world box in the light-relative f32 frame, rounded outward; `None`
+/// when it is not finite or reaches beyond [`MAX_COORDINATE`].
+fn relative_box(min: DVec3, max: DVec3, reference: DVec3) -> Option<(Vec3, Vec3)> {
+    let (lo, hi) = (min - reference, max - reference);
+    let limit = f64::from(MAX_COORDINATE);
+    if !(lo.is_finite() && hi.is_finite()) || lo.abs().max(hi.abs()).max_element() > limit {
+        return None;
+    }
+    let down = |v: f64| {
+        let f = v as f32;
+        if f64::from(f) > v {
+            f.next_down()
+        } else {
+            f
+        }
+    };
+    let up = |v: f64| {
+        let f = v as f32;
+        if f64::from(f) < v {
+            f.next_up()
+        } else {
+            f
+        }
+    };
+    Some((
+        Vec3::new(down(lo.x), down(lo.y), down(lo.z)),
+        Vec3::new(up(hi.x), up(hi.y), up(hi.z)),
+    ))
+}
+
+impl TopLevel {
+    pub fn build(
+        bottom: &BottomLevels,
+        parts: impl ExactSizeIterator<Item = PlacedPart>,
+        blocks: impl ExactSizeIterator<Item = PlacedBlock>,
+        reference: DVec3,
+    ) -> TopLevel {
+        let mut boxes = Vec::with_capacity(parts.len() + blocks.len());
+        let mut entries = Vec::with_capacity(parts.len() + blocks.len());
+        let mut left_out = 0;
+        for part in parts {
+            let placed = bottom
+                .models
+                .get(part.model as usize)
+                .and_then(|bvh| bvh.bounds())
+                .and_then(|(min, max)| {
+                    let (min, max) = transform_box(&part.world, min.as_dvec3(), max.as_dvec3());
+                    let to_model = ToModel::new(&part.world, reference)?;
+                    Some((relative_box(min, max, reference)?, to_model))
+                });
+            let Some((b, to_model)) = placed else {
+                left_out += 1;
+                continue;
+            };
+            boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
+            entries.push(Entry::Part {
+                model: part.model,
+                first_caster: part.first_caster,
+                to_model,
+            });
+        }
+        for placed in blocks {
+            let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
+                left_out += 1;
+                continue;
+            };
+            let (lo, hi) = grid_bounds(grid, field);
+            let Some(b) = relative_box(lo, hi, reference) else {
+                left_out += 1;
+                continue;
+            };
+            boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
+            entries.push(Entry::Block {
+                block: placed.block,
+                caster: placed.caster,
+                magnitude: magnitude(b.0, b.1),
+            });
+        }
+        let tree = BoxTree::build(&boxes, 1);
+        let entries = tree.order().iter().map(|&i| entries[i as usize]).collect();
+        TopLevel {
+            tree,
+            entries,
+            reference,
+            left_out,
+        }
+    }
+
+    /// Placed parts and blocks in the tree.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Parts and blocks that could not be placed (see [`TopLevel`]).
+    pub fn left_out(&self) -> usize {
+        self.left_out
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        self.tree.heap_bytes() + self.entries.capacity() * std::mem::size_of::<Entry>()
+    }
+
+    /// Every hit, through the trees (`brute_force` false) or by testing every
+    /// triangle and cell of every entry (the oracle), with the same
+    /// instance-space and height-field arithmetic.
+    pub(crate) fn for_each_hit(
+        &self,
+        bottom: &BottomLevels,
+        ray: &TraceRay,
+        brute_force: bool,
+        mut on_hit: impl FnMut(Hit) -> f32,
+    ) {
+        if brute_force {
+            let mut t_max = ray.t_max;
+            for entry in &self.entries {
+                t_max = self.entry_hits(bottom, entry, ray, t_max, true, &mut on_hit);
+                if t_max < ray.t_min {
+                    return;
+                }
+            }
+        } else {
+            self.tree.visit(ray, |slot, t_max| {
+                self.entry_hits(bottom, &self.entries[slot], ray, t_max, false, &mut on_hit)
+            });
+        }
+    }
+
+    #[inline]
+    fn entry_hits(
+        &self,
+        bottom: &BottomLevels,
+        entry: &Entry,
+        ray: &TraceRay,
+        t_max: f32,
+        brute_force: bool,
+        on_hit: &mut impl FnMut(Hit) -> f32,
+    ) -> f32 {
+        match *entry {
+            Entry::Part {
+                model,
+                first_caster,
+                to_model,
+            } => {
+                let bvh = &bottom.models[model as usize];
+                let model_ray = to_model.ray(ray);
+                let mut relay = |hit: Hit| {
+                    on_hit(Hit {
+                        caster: first_caster + hit.caster,
+                        ..hit
+                    })
+                };
+                if brute_force {
+                    super::brute::bvh_triangles_hits(bvh, &model_ray, t_max, &mut relay)
+                } else {
+                    bvh.hits_within(&model_ray, t_max, &mut relay)
+                }
+            }
+            Entry::Block {
+                block,
+                caster,
+                magnitude,
+            } => {
+                let (grid, field) = &bottom.terrain[block as usize];
+                if brute_force {
+                    grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit)
+                } else {
+                    field.hits(grid, self.reference, magnitude, ray, caster, t_max, on_hit)
+                }
+            }
+        }
+    }
+}
+
+/// World box of a block's visible vertices.
+fn grid_bounds(grid: &HeightGrid, field: &HeightField) -> (DVec3, DVec3) {
+    let (lo, hi) = field.height_range();
+    let o = grid.origin;
+    let min = DVec3::new(o.x, o.y + f64::from(lo), o.z);
+    let max = DVec3::new(o.x + grid.chunk_size, o.y + f64::from(hi), o.z + grid.chunk_size);
+    (min, max)
+}
