@@ -59,6 +59,8 @@ pub struct FlatGeometry {
     /// Zero-area, non-finite or absurdly far (beyond [`MAX_COORDINATE`])
     /// triangles, never hit, left out.
     pub degenerate_triangles: usize,
+    /// Some triangle kept belongs to an alpha-tested group.
+    pub reaches_alpha_tested: bool,
 }
 
 /// Zero area in f32 (the triangle test would never report it), not finite,
@@ -97,6 +99,7 @@ fn push_group(
         if degenerate(&tri) {
             out.degenerate_triangles += 1;
         } else {
+            out.reaches_alpha_tested |= group.alpha_tested;
             out.triangles.push(tri);
         }
     }
@@ -193,6 +196,7 @@ fn flat_geometry(
     for part in per_part.into_iter().chain(per_block) {
         all.triangles.extend(part.triangles);
         all.degenerate_triangles += part.degenerate_triangles;
+        all.reaches_alpha_tested |= part.reaches_alpha_tested;
     }
     all
 }

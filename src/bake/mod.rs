@@ -251,12 +251,12 @@ pub fn bake_light(
             ),
         });
     }
-    let left_out = reach.left_out_triangles as usize + setup.top.left_out();
+    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
     if left_out > 0 {
         skipped.push(Skipped {
             what: name.clone(),
             why: format!(
-                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles or placements left out (they can never be hit)",
+                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
                 crate::trace::MAX_COORDINATE
             ),
         });

@@ -93,8 +93,8 @@ pub struct Reach {
     pub blocks: Vec<u32>,
     pub parts_out_of_reach: usize,
     pub blocks_out_of_reach: usize,
-    /// Triangles in reach (model triangles of every part, two per visible
-    /// non-hole terrain cell).
+    /// Triangles in reach that can be hit (the usable triangles of every
+    /// part's model, two per visible non-hole terrain cell).
     pub triangles: u64,
     /// Triangles never traced: zero-area, non-finite or absurd in model
     /// space, or of a part whose placement is absurd.
@@ -226,7 +226,7 @@ fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
         }
         reach.parts.push(index as u32);
         let model = &scene.models[part.model];
-        reach.triangles += model.triangles.len() as u64;
+        reach.triangles += world.bottom.model_triangles(part.model) as u64;
         reach.left_out_triangles += world.bottom.model_left_out(part.model) as u64;
         reach.reaches_alpha_tested |= model
             .groups

@@ -61,8 +61,12 @@ enum Command {
         /// Output folder (created; existing files of the same names are replaced).
         dir: PathBuf,
         /// Size and content of the world.
-        #[arg(long, default_value = "village", value_parser = ["small", "village", "bench"])]
+        #[arg(long, default_value = "village", value_parser = ["small", "village", "bench"], conflicts_with = "chunks")]
         preset: String,
+        /// Instead of a preset: N×N chunks of 100 m at the bench's density
+        /// (128² terrain, 1 m sun texels), written chunk by chunk.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+        chunks: Option<u32>,
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -106,15 +110,34 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
-        Command::Gen { dir, preset, seed } => {
-            let preset = shadowcull::gen::Preset::from_name(&preset).with_context(|| {
-                format!("unknown preset `{preset}`: use small, village or bench")
+        Command::Gen {
+            dir,
+            preset,
+            chunks,
+            seed,
+        } => {
+            use shadowcull::gen::{generate_each, Preset, WorldSize};
+            let size = match chunks {
+                Some(n) => WorldSize::BenchChunks(n),
+                None => WorldSize::Preset(Preset::from_name(&preset).with_context(|| {
+                    format!("unknown preset `{preset}`: use small, village or bench")
+                })?),
+            };
+            let mut written = 0usize;
+            let started = std::time::Instant::now();
+            generate_each(size, seed, |path, bytes| {
+                formats::resources::write_atomic(&dir.join(path), &bytes)?;
+                written += 1;
+                if written % 2000 == 0 {
+                    eprintln!(
+                        "gen: {written} files written ({:.0} s)",
+                        started.elapsed().as_secs_f64()
+                    );
+                }
+                Ok::<(), shadowcull::error::Error>(())
             })?;
-            let world = shadowcull::gen::generate(preset, seed);
-            formats::resources::write_tree(&dir, &world.files)?;
             println!(
-                "wrote {} files to {}; bake it with: shadowcull bake {}",
-                world.files.len(),
+                "wrote {written} files to {}; bake it with: shadowcull bake {}",
                 dir.display(),
                 dir.join("bake.xml").display()
             );

@@ -88,9 +88,42 @@ impl GeneratedWorld {
 /// Name of the settings file at the root of a generated world.
 pub const SETTINGS_FILE: &str = "bake.xml";
 
-/// Generates a complete world.
+/// The size of a generated world: a preset, or the bench's density over
+/// any number of chunks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WorldSize {
+    Preset(Preset),
+    /// N × N chunks of 100 m at the bench's density, 128² terrain, a 1 m
+    /// texel sun (`shadowcull gen --chunks N`).
+    BenchChunks(u32),
+}
+
+/// Generates a complete world in memory, files sorted by path.
 pub fn generate(preset: Preset, seed: u64) -> GeneratedWorld {
-    let plan = world::plan(preset, seed);
+    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
+    let expected = generate_each(WorldSize::Preset(preset), seed, |path, bytes| {
+        files.push((path.to_string(), bytes));
+        Ok::<(), std::convert::Infallible>(())
+    })
+    .unwrap_or_else(|never| match never {});
+    files.sort_by(|a, b| a.0.cmp(&b.0));
+    GeneratedWorld { files, expected }
+}
+
+/// Generates a world file by file: `sink(path, bytes)` receives each file
+/// as soon as it is made (settings first, then each chunk's `.chunk` and
+/// `.cdata`, then the models), so a world of any size needs memory for one
+/// chunk at a time. The bytes are those of [`generate`] for a preset.
+pub fn generate_each<E>(
+    size: WorldSize,
+    seed: u64,
+    mut sink: impl FnMut(&str, Vec<u8>) -> Result<(), E>,
+) -> Result<Expected, E> {
+    let params = match size {
+        WorldSize::Preset(preset) => world::Params::of(preset),
+        WorldSize::BenchChunks(n) => world::Params::bench_of_size(n),
+    };
+    let mut plan = world::plan_frame(params, seed);
     let catalog = models::catalog(plan.params.detail);
     let stats: BTreeMap<models::Kind, models::ModelStats> =
         catalog.iter().map(|d| (d.kind, d.stats())).collect();
@@ -100,8 +133,17 @@ pub fn generate(preset: Preset, seed: u64) -> GeneratedWorld {
         terrain_blocks: plan.chunks.len() as u64,
         ..Expected::default()
     };
+    let space = plan.params.space();
+    sink(SETTINGS_FILE, world::bake_settings(&plan))?;
+    sink(
+        &format!("{space}/space.settings"),
+        world::space_settings(&plan.params),
+    )?;
     let mut used = std::collections::BTreeSet::new();
-    for ch in &plan.chunks {
+    let mut rng = plan.scatter_rng.clone();
+    for i in 0..plan.chunks.len() {
+        let mut ch = std::mem::take(&mut plan.chunks[i]);
+        world::scatter(&plan, &mut rng, &mut ch);
         for p in &ch.placements {
             expected.instances += 1;
             if p.shadow.receiver_only() {
@@ -116,30 +158,22 @@ pub fn generate(preset: Preset, seed: u64) -> GeneratedWorld {
                 expected.double_sided_groups += s.double_sided_groups;
             }
         }
+        let name = ch.name();
+        sink(&format!("{space}/{name}.chunk"), world::chunk_xml(&ch, plan.seed))?;
+        sink(
+            &format!("{space}/{name}.cdata"),
+            world::terrain_cdata(&plan, &ch),
+        )?;
+        // Keep the chunk's frame (grid position, hole) but not its
+        // placements: memory stays one chunk's worth.
+        ch.placements = Vec::new();
+        plan.chunks[i] = ch;
     }
     expected.models = used.len() as u64;
-
-    let space = plan.params.space();
-    let mut files: Vec<(String, Vec<u8>)> = Vec::new();
-    files.push((SETTINGS_FILE.to_string(), world::bake_settings(&plan)));
-    files.push((
-        format!("{space}/space.settings"),
-        world::space_settings(&plan.params),
-    ));
-    for ch in &plan.chunks {
-        let name = ch.name();
-        files.push((
-            format!("{space}/{name}.chunk"),
-            world::chunk_xml(ch, plan.seed),
-        ));
-        files.push((
-            format!("{space}/{name}.cdata"),
-            world::terrain_cdata(&plan, ch),
-        ));
-    }
     for def in catalog.iter().filter(|d| used.contains(&d.kind)) {
-        files.extend(models::files(def));
+        for (path, bytes) in models::files(def) {
+            sink(&path, bytes)?;
+        }
     }
-    files.sort_by(|a, b| a.0.cmp(&b.0));
-    GeneratedWorld { files, expected }
+    Ok(expected)
 }

@@ -41,7 +41,7 @@ pub(crate) struct Placement {
     pub shadow: Shadow,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub(crate) struct ChunkPlan {
     pub gx: i32,
     pub gz: i32,
@@ -115,6 +115,21 @@ impl Params {
         }
     }
 
+    /// A world of `n` × `n` chunks at the bench's density (100 m chunks,
+    /// 300 scattered instances each), 128² terrain and a 1 m-texel sun.
+    pub(crate) fn bench_of_size(n: u32) -> Params {
+        let n = n.max(1) as i32;
+        let lo = -(n / 2);
+        let grid = (lo, lo + n - 1);
+        let mut params = Params {
+            grid,
+            height_map_size: 128,
+            ..Params::of(Preset::Bench)
+        };
+        params.sun_texels = params.world_width();
+        params
+    }
+
     pub(crate) fn space(&self) -> String {
         format!("spaces/{}", self.name)
     }
@@ -183,6 +198,8 @@ pub(crate) struct WorldPlan {
     pub spot_target: [f64; 3],
     pub point_position: [f64; 3],
     pub seed: u64,
+    /// The random stream [`scatter`] draws from, chunk after chunk.
+    pub scatter_rng: Rng,
 }
 
 /// Scale · Rx(tilt) · Ry(yaw) (row-vector order: scale first), translation t.
@@ -296,9 +313,24 @@ fn pick_kind(rng: &mut Rng) -> Kind {
     Kind::Crate
 }
 
+#[cfg(test)]
 pub(crate) fn plan(preset: Preset, seed: u64) -> WorldPlan {
-    let params = Params::of(preset);
-    let mut rng = Rng::new(seed ^ 0x005E_ED0F_5A4D_0C11);
+    let mut plan = plan_frame(Params::of(preset), seed);
+    let mut rng = plan.scatter_rng.clone();
+    for i in 0..plan.chunks.len() {
+        let mut ch = std::mem::take(&mut plan.chunks[i]);
+        scatter(&plan, &mut rng, &mut ch);
+        plan.chunks[i] = ch;
+    }
+    plan
+}
+
+/// Everything of a world but the scattered instances, which
+/// [`scatter`] adds chunk by chunk (in chunk order, from
+/// [`WorldPlan::scatter_rng`]) so a large world can be written without
+/// holding all its placements.
+pub(crate) fn plan_frame(params: Params, seed: u64) -> WorldPlan {
+    let rng = Rng::new(seed ^ 0x005E_ED0F_5A4D_0C11);
     let hills = Hills {
         seed: mix(seed.wrapping_add(1)),
         amplitude: params.hill_height,
@@ -355,9 +387,41 @@ pub(crate) fn plan(preset: Preset, seed: u64) -> WorldPlan {
         ch.entity = true;
     }
 
-    for ch in chunks.iter_mut() {
+    // Entities on a few chunks besides the centre one; a hole in the first
+    // chunk, away from the showcase.
+    let n = chunks.len();
+    for (i, ch) in chunks.iter_mut().enumerate() {
+        if i % 4 == 3 && n > 4 {
+            ch.entity = true;
+        }
+    }
+    let hms = params.height_map_size;
+    if let Some(ch) = chunks.first_mut() {
+        ch.hole = Some((hms / 8, hms / 8, (hms / 8).max(2)));
+    }
+
+    let house = [c, hills.height(c, c), c];
+    let (px, pz) = (c - 12.0, c - 5.0);
+    WorldPlan {
+        params,
+        hills,
+        chunks,
+        spot_target: house,
+        point_position: [px, hills.height(px, pz) + 9.0, pz],
+        seed,
+        scatter_rng: rng,
+    }
+}
+
+/// Adds chunk `ch`'s randomly scattered instances.
+pub(crate) fn scatter(plan: &WorldPlan, rng: &mut Rng, ch: &mut ChunkPlan) {
+    let params = &plan.params;
+    let size = params.chunk_size;
+    let hills = &plan.hills;
+    let ground = |wx: f64, wz: f64| hills.height(wx, wz) - 0.05;
+    {
         for _ in 0..params.scatter {
-            let kind = pick_kind(&mut rng);
+            let kind = pick_kind(rng);
             let lx = rng.range(2.0, size - 2.0);
             let lz = rng.range(2.0, size - 2.0);
             let (wx, wz) = (lx + ch.gx as f64 * size, lz + ch.gz as f64 * size);
@@ -394,29 +458,6 @@ pub(crate) fn plan(preset: Preset, seed: u64) -> WorldPlan {
         }
     }
 
-    // Entities on a few chunks besides the centre one; a hole in the first
-    // chunk, away from the showcase.
-    let n = chunks.len();
-    for (i, ch) in chunks.iter_mut().enumerate() {
-        if i % 4 == 3 && n > 4 {
-            ch.entity = true;
-        }
-    }
-    let hms = params.height_map_size;
-    if let Some(ch) = chunks.first_mut() {
-        ch.hole = Some((hms / 8, hms / 8, (hms / 8).max(2)));
-    }
-
-    let house = [c, hills.height(c, c), c];
-    let (px, pz) = (c - 12.0, c - 5.0);
-    WorldPlan {
-        params,
-        hills,
-        chunks,
-        spot_target: house,
-        point_position: [px, hills.height(px, pz) + 9.0, pz],
-        seed,
-    }
 }
 
 pub(crate) fn chunk_xml(ch: &ChunkPlan, rng_seed: u64) -> Vec<u8> {

@@ -21,14 +21,11 @@
 
 use super::RasterResult;
 use crate::bake::casters::{CasterTable, Owner};
-use crate::bake::ground::Ground;
-use crate::bake::trace_light::{LightRays, RayRules, Tracer};
-use crate::bake::{geometry, BakeConfig};
+use crate::bake::setup::{BakeWorld, LightSetup};
+use crate::bake::trace_light::{LightRays, RayRules};
+use crate::bake::BakeConfig;
 use crate::classify::{Passes, RayHit};
-use crate::light::TexelGrid;
 use crate::scene::Scene;
-use crate::trace::Bvh;
-use glam::DVec3;
 use rayon::prelude::*;
 
 /// How far (texels) the edge re-test moves rays off a texel centre: more
@@ -115,32 +112,6 @@ struct Tally {
     watched: Vec<(u32, Texel)>,
     hits: Vec<RayHit>,
     seen: Vec<u32>,
-}
-
-/// Everything needed to trace one light: built once per light and dropped
-/// before the next, so one BVH is alive at a time.
-struct LightSetup {
-    grid: TexelGrid,
-    bvh: Bvh,
-    passes: Passes,
-}
-
-fn light_setup(
-    scene: &Scene,
-    config: &BakeConfig,
-    casters: &CasterTable,
-    bounds: Option<(DVec3, DVec3)>,
-    light: usize,
-) -> Option<LightSetup> {
-    let grid = TexelGrid::new(&config.lights[light], bounds?).ok()?;
-    let geo = geometry::light_geometry(scene, casters, &grid);
-    let bvh = Bvh::build(&geo.triangles);
-    let passes = if geo.reaches_alpha_tested {
-        Passes::AllAndOpaque
-    } else {
-        Passes::AllOnly
-    };
-    Some(LightSetup { grid, bvh, passes })
 }
 
 /// Traces every texel centre like the bake does: per caster, the texels
@@ -334,8 +305,7 @@ fn jitter_pass(rays: &LightRays, candidates: &[bool]) -> Vec<u64> {
 /// Traces every texel centre of every light like the bake does, counting
 /// per caster the texels where it is useful.
 pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> RayCounts {
-    let ground = Ground::new(scene);
-    let bounds = geometry::world_bounds(scene);
+    let world = BakeWorld::new(scene);
     let mut out = RayCounts {
         all: Vec::new(),
         any: Vec::new(),
@@ -345,20 +315,14 @@ pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> 
     let nobody = vec![false; casters.len()];
     for light in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let Some(setup) = light_setup(scene, config, casters, bounds, light) else {
+        let Ok(setup) = LightSetup::new(&world, config, light) else {
             out.all.push(vec![0; casters.len()]);
             out.any.push(vec![0; casters.len()]);
             out.tied.push(0);
             out.seconds.push(0.0);
             continue;
         };
-        let rays = LightRays {
-            grid: &setup.grid,
-            tracer: Tracer::Bvh(&setup.bvh),
-            casters,
-            ground: ground.as_ref(),
-            rules: RayRules::new(config, setup.passes),
-        };
+        let rays = setup.rays(&world, config);
         let centre = centre_pass(&rays, &nobody);
         out.all.push(centre.all);
         out.any.push(centre.any);
@@ -372,8 +336,7 @@ pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> 
 /// config.
 pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> XcheckReport {
     let casters = &raster.casters;
-    let ground = Ground::new(scene);
-    let bounds = geometry::world_bounds(scene);
+    let world = BakeWorld::new(scene);
     let mut report = XcheckReport {
         pairs: 0,
         agreeing: 0,
@@ -385,16 +348,10 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
     };
     for light in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let setup = light_setup(scene, config, casters, bounds, light);
+        let setup = LightSetup::new(&world, config, light).ok();
         let raster_useful: Vec<bool> = raster.masks.iter().map(|m| m & (1 << light) != 0).collect();
         let not_in_raster: Vec<bool> = raster_useful.iter().map(|u| !u).collect();
-        let rays = setup.as_ref().map(|s| LightRays {
-            grid: &s.grid,
-            tracer: Tracer::Bvh(&s.bvh),
-            casters,
-            ground: ground.as_ref(),
-            rules: RayRules::new(config, s.passes),
-        });
+        let rays = setup.as_ref().map(|s| s.rays(&world, config));
         let centre = match &rays {
             Some(rays) => centre_pass(rays, &not_in_raster),
             None => CentrePass {

@@ -40,11 +40,11 @@ const MIN_DIRECTION: f32 = 1e-18;
 /// [`BoxTree::input_index`] maps a slot back to the build input.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct BoxTree {
-    cwbvh: CwBvh,
+    pub(crate) cwbvh: CwBvh,
     /// Slot → index into the build input.
     order: Vec<u32>,
     /// Largest absolute coordinate of any box.
-    magnitude: f32,
+    pub(crate) magnitude: f32,
 }
 
 impl BoxTree {
@@ -252,7 +252,7 @@ impl BoxRay {
     /// scalar version.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn hitmask_sse(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
+    pub(crate) fn hitmask_sse(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
         use std::arch::x86_64::*;
         let p = Vec3A::from(node.p);
         let scale = node.compute_extent() * self.inv;
@@ -307,7 +307,7 @@ impl BoxRay {
 
     #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
     #[inline(always)]
-    fn hitmask_scalar(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
+    pub(crate) fn hitmask_scalar(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
         let p = Vec3A::from(node.p);
         let scale = node.compute_extent() * self.inv;
         let near0 = (p - self.origin_near) * self.inv;

@@ -279,9 +279,9 @@ mod tests {
                 t_min: rng.range(-10.0, 10.0) as f32,
                 t_max: rng.range(10.0, 200.0) as f32,
             };
-            let boxes = BoxRay::new(&ray, bvh.magnitude);
-            let oct = bvh.cwbvh.new_traversal(Vec3A::from(ray.direction)).oct_inv4;
-            for node in &bvh.cwbvh.nodes {
+            let boxes = crate::trace::boxtree::BoxRay::new(&ray, bvh.tree.magnitude);
+            let oct = bvh.tree.cwbvh.new_traversal(Vec3A::from(ray.direction)).oct_inv4;
+            for node in &bvh.tree.cwbvh.nodes {
                 let a = boxes.hitmask_sse(node, oct, ray.t_min, ray.t_max);
                 assert_eq!(a, boxes.hitmask_scalar(node, oct, ray.t_min, ray.t_max));
                 tested += 1;

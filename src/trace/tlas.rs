@@ -55,9 +55,10 @@ pub struct TopLevel {
     /// In tree order.
     pub(crate) entries: Vec<Entry>,
     pub(crate) reference: DVec3,
-    /// Parts that could not be placed (no bounds, a box that is not finite
-    /// or beyond [`MAX_COORDINATE`], a transform that cannot be inverted).
-    left_out: usize,
+    /// Triangles of parts that could not be placed (a box that is not
+    /// finite or beyond [`MAX_COORDINATE`], a transform that cannot be
+    /// inverted).
+    left_out_triangles: usize,
 }
 
 /// World box of a model-space box under `world`.
@@ -116,7 +117,7 @@ impl TopLevel {
     ) -> TopLevel {
         let mut boxes = Vec::with_capacity(parts.len() + blocks.len());
         let mut entries = Vec::with_capacity(parts.len() + blocks.len());
-        let mut left_out = 0;
+        let mut left_out_triangles = 0;
         for part in parts {
             let placed = bottom
                 .models
@@ -128,7 +129,7 @@ impl TopLevel {
                     Some((relative_box(min, max, reference)?, to_model))
                 });
             let Some((b, to_model)) = placed else {
-                left_out += 1;
+                left_out_triangles += bottom.model_triangles(part.model as usize);
                 continue;
             };
             boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
@@ -140,12 +141,11 @@ impl TopLevel {
         }
         for placed in blocks {
             let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
-                left_out += 1;
                 continue;
             };
             let (lo, hi) = grid_bounds(grid, field);
             let Some(b) = relative_box(lo, hi, reference) else {
-                left_out += 1;
+                left_out_triangles += 2 * grid.cells_x * grid.cells_z;
                 continue;
             };
             boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
@@ -161,7 +161,7 @@ impl TopLevel {
             tree,
             entries,
             reference,
-            left_out,
+            left_out_triangles,
         }
     }
 
@@ -174,9 +174,9 @@ impl TopLevel {
         self.entries.is_empty()
     }
 
-    /// Parts and blocks that could not be placed (see [`TopLevel`]).
-    pub fn left_out(&self) -> usize {
-        self.left_out
+    /// Triangles of parts and blocks that could not be placed.
+    pub fn left_out_triangles(&self) -> usize {
+        self.left_out_triangles
     }
 
     pub fn heap_bytes(&self) -> usize {
