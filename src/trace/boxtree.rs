@@ -89,13 +89,14 @@ impl BoxTree {
             + (self.cwbvh.primitive_indices.len() + self.order.len()) * 4
     }
 
-    /// Calls `leaf(slot, t_max)` for every leaf box the ray segment
+    /// Calls `leaf(slot, t_max, node_test)` for every leaf box the ray segment
     /// `[ray.t_min, t_max]` touches (padded); `leaf` returns the new t_max
     /// (a larger or NaN value is ignored), and traversal stops once it falls
-    /// below t_min. `extra_magnitude` widens the padding for leaves whose
-    /// own tests work at a larger magnitude than the boxes.
+    /// below t_min. `node_test` is the padded box test of this ray, which a
+    /// leaf may reuse for boxes inside its own (its padding covers any
+    /// box within the tree's magnitude).
     #[inline]
-    pub(crate) fn visit(&self, ray: &TraceRay, mut leaf: impl FnMut(usize, f32) -> f32) {
+    pub(crate) fn visit(&self, ray: &TraceRay, mut leaf: impl FnMut(usize, f32, &BoxRay) -> f32) {
         if self.cwbvh.nodes.is_empty() || ray.t_min > ray.t_max || ray.t_min.is_nan() {
             return;
         }
@@ -116,7 +117,7 @@ impl BoxTree {
                     if slot >= self.order.len() {
                         continue;
                     }
-                    let next = leaf(slot, t_max);
+                    let next = leaf(slot, t_max, &boxes);
                     if next < t_max {
                         t_max = next;
                         if t_max < t_min {

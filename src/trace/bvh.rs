@@ -103,7 +103,7 @@ impl Bvh {
         let mut t_max = t_max;
         let t_min = ray.t_min;
         let segment = TraceRay { t_max, ..*ray };
-        self.tree.visit(&segment, |slot, _| {
+        self.tree.visit(&segment, |slot, _, _| {
             let entry = &self.triangles[slot];
             if let Some((t, back_facing)) = hit_t(&prepared, &entry.tri) {
                 if t >= t_min && t <= t_max {

@@ -225,14 +225,16 @@ impl HeightField {
 
     /// Every hit of the ray on the block's surface within `[t_min, t_max]`,
     /// as [`HeightGrid::brute_force_hits`] finds them, visiting only the
-    /// tiles whose padded box the ray touches, nearer tiles first.
-    /// `magnitude`: the largest light-relative coordinate of the block.
+    /// tiles (and, in a leaf tile, the cells) whose padded box the ray
+    /// touches, nearer tiles first. `boxes` is the top level's box test of
+    /// this ray: its padding (hundreds of ulps of the whole world's
+    /// magnitude) covers the rounding of tile corners computed here.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn hits(
         &self,
         grid: &HeightGrid,
         reference: DVec3,
-        magnitude: f32,
+        boxes: &BoxRay,
         ray: &TraceRay,
         caster: u32,
         t_max: f32,
@@ -243,13 +245,29 @@ impl HeightField {
         if !prepared.is_valid() || self.ranges.is_empty() {
             return t_max;
         }
-        let boxes = BoxRay::new(ray, magnitude);
-        let flip_x = ray.direction.x < 0.0;
-        let flip_z = ray.direction.z < 0.0;
+        // Light-relative corners, from the block's offset (f64): within a
+        // rounding or two of the vertices' own, far inside the padding.
+        let offset = grid.origin - reference;
+        let step_x = grid.chunk_size / grid.cells_x as f64;
+        let step_z = grid.chunk_size / grid.cells_z as f64;
+        let x_at = |cx: usize| (offset.x + cx as f64 * step_x) as f32;
+        let z_at = |cz: usize| (offset.z + cz as f64 * step_z) as f32;
+        let y_at = |h: f32| (offset.y + f64::from(h)) as f32;
+        let flip_x = usize::from(ray.direction.x >= 0.0);
+        let flip_z = usize::from(ray.direction.z >= 0.0);
         let top = self.level_start.len() - 1;
-        let mut stack: Vec<(usize, usize, usize)> = Vec::with_capacity(4 * (top + 1));
-        stack.push((top, 0, 0));
-        while let Some((level, i, j)) = stack.pop() {
+        // Depth-first with at most 3 siblings waiting per level; entries
+        // pack (level, i, j) into 6 + 29 + 29 bits (a side of at most 2^29
+        // tiles, far beyond any block that fits in memory).
+        let pack = |level: usize, i: usize, j: usize| ((level as u64) << 58) | ((i as u64) << 29) | j as u64;
+        let mut stack = [0u64; 3 * 32 + 1];
+        let mut len = 1;
+        stack[0] = pack(top, 0, 0);
+        while len > 0 {
+            len -= 1;
+            let entry = stack[len];
+            let mask = (1u64 << 29) - 1;
+            let (level, i, j) = ((entry >> 58) as usize, ((entry >> 29) & mask) as usize, (entry & mask) as usize);
             let (lo, hi) = self.ranges[self.level_start[level] + j * (self.side >> level) + i];
             if lo > hi {
                 continue;
@@ -258,44 +276,40 @@ impl HeightField {
             let (cx0, cz0) = (i * span, j * span);
             let cx1 = (cx0 + span).min(grid.cells_x);
             let cz1 = (cz0 + span).min(grid.cells_z);
-            if cx0 >= cx1 || cz0 >= cz1 {
-                continue;
-            }
-            let corner = |x: usize, z: usize, h: f32| {
-                let p = grid.vertex(x, z);
-                (DVec3::new(p.x, grid.origin.y + f64::from(h), p.z) - reference).as_vec3()
-            };
-            let (min, max) = (corner(cx0, cz0, lo), corner(cx1, cz1, hi));
+            let min = Vec3::new(x_at(cx0), y_at(lo), z_at(cz0));
+            let max = Vec3::new(x_at(cx1), y_at(hi), z_at(cz1));
             if !boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
                 continue;
             }
-            if level == 0 {
-                for cz in cz0..cz1 {
-                    for cx in cx0..cx1 {
-                        t_max = grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
-                    }
-                }
-                if t_max < ray.t_min {
-                    return t_max;
+            if level > 0 {
+                // Far children first on the stack, so the nearer pop first
+                // and shrink t_max before the farther are tested.
+                for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let (ci, cj) = (2 * i + (di ^ flip_x), 2 * j + (dj ^ flip_z));
+                    stack[len] = pack(level - 1, ci, cj);
+                    len += 1;
                 }
                 continue;
             }
-            // Far children first on the stack, so the nearer pop first and
-            // shrink t_max before the farther are tested.
-            let mut children = [(0, 0), (1, 0), (0, 1), (1, 1)];
-            for c in &mut children {
-                c.0 ^= usize::from(!flip_x);
-                c.1 ^= usize::from(!flip_z);
+            for cz in cz0..cz1 {
+                for cx in cx0..cx1 {
+                    let corners = [(cx, cz), (cx + 1, cz), (cx, cz + 1), (cx + 1, cz + 1)];
+                    let (lo, hi) = corners.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |r, &(x, z)| {
+                        let h = grid.height(x, z) as f32;
+                        (r.0.min(h), r.1.max(h))
+                    });
+                    let min = Vec3::new(x_at(cx), y_at(lo), z_at(cz));
+                    let max = Vec3::new(x_at(cx + 1), y_at(hi), z_at(cz + 1));
+                    if boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+                        t_max = grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
+                    }
+                }
             }
-            for (di, dj) in children {
-                stack.push((level - 1, 2 * i + di, 2 * j + dj));
+            if t_max < ray.t_min {
+                return t_max;
             }
         }
         t_max
     }
 }
 
-/// The largest absolute light-relative coordinate of a box.
-pub(crate) fn magnitude(min: Vec3, max: Vec3) -> f32 {
-    min.abs().max(max.abs()).max_element()
-}

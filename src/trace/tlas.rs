@@ -10,7 +10,8 @@
 
 use super::blas::BottomLevels;
 use super::boxtree::BoxTree;
-use super::heightfield::{magnitude, HeightField, HeightGrid};
+use super::boxtree::BoxRay;
+use super::heightfield::{HeightField, HeightGrid};
 use super::instance::ToModel;
 use super::{Hit, TraceRay, MAX_COORDINATE};
 use glam::{DMat4, DVec3, Vec3, Vec3A};
@@ -41,11 +42,7 @@ pub(crate) enum Entry {
         first_caster: u32,
         to_model: ToModel,
     },
-    Block {
-        block: u32,
-        caster: u32,
-        magnitude: f32,
-    },
+    Block { block: u32, caster: u32 },
 }
 
 /// One light's top level.
@@ -152,7 +149,6 @@ impl TopLevel {
             entries.push(Entry::Block {
                 block: placed.block,
                 caster: placed.caster,
-                magnitude: magnitude(b.0, b.1),
             });
         }
         let tree = BoxTree::build(&boxes, 1);
@@ -196,14 +192,15 @@ impl TopLevel {
         if brute_force {
             let mut t_max = ray.t_max;
             for entry in &self.entries {
-                t_max = self.entry_hits(bottom, entry, ray, t_max, true, &mut on_hit);
+                t_max = self.entry_hits(bottom, entry, ray, t_max, None, &mut on_hit);
                 if t_max < ray.t_min {
                     return;
                 }
             }
         } else {
-            self.tree.visit(ray, |slot, t_max| {
-                self.entry_hits(bottom, &self.entries[slot], ray, t_max, false, &mut on_hit)
+            self.tree.visit(ray, |slot, t_max, node_test| {
+                let entry = &self.entries[slot];
+                self.entry_hits(bottom, entry, ray, t_max, Some(node_test), &mut on_hit)
             });
         }
     }
@@ -215,7 +212,7 @@ impl TopLevel {
         entry: &Entry,
         ray: &TraceRay,
         t_max: f32,
-        brute_force: bool,
+        node_test: Option<&BoxRay>,
         on_hit: &mut impl FnMut(Hit) -> f32,
     ) -> f32 {
         match *entry {
@@ -232,22 +229,18 @@ impl TopLevel {
                         ..hit
                     })
                 };
-                if brute_force {
-                    super::brute::bvh_triangles_hits(bvh, &model_ray, t_max, &mut relay)
-                } else {
-                    bvh.hits_within(&model_ray, t_max, &mut relay)
+                match node_test {
+                    None => super::brute::bvh_triangles_hits(bvh, &model_ray, t_max, &mut relay),
+                    Some(_) => bvh.hits_within(&model_ray, t_max, &mut relay),
                 }
             }
-            Entry::Block {
-                block,
-                caster,
-                magnitude,
-            } => {
+            Entry::Block { block, caster } => {
                 let (grid, field) = &bottom.terrain[block as usize];
-                if brute_force {
-                    grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit)
-                } else {
-                    field.hits(grid, self.reference, magnitude, ray, caster, t_max, on_hit)
+                match node_test {
+                    None => grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit),
+                    Some(boxes) => {
+                        field.hits(grid, self.reference, boxes, ray, caster, t_max, on_hit)
+                    }
                 }
             }
         }
