@@ -1,16 +1,15 @@
-//! The bake on the generated `bench` world (seed 1): BVH build per light
-//! (triangles/s), traced rays/s per light kind with the two-hit traversal
-//! against obvhs's own closest-hit traversal on the same rays, and a whole
-//! bake end to end.
+//! The bake on a generated world: the bottom levels (once per bake), each
+//! light's top level, traced rays/s per light kind (the bake's grid pass,
+//! and the two-level traversal alone on the same rays), and a whole bake
+//! end to end. The world is `gen --preset bench` (seed 1), or with
+//! `SHADOWCULL_BENCH_CHUNKS=N` a bench-density world of N×N chunks
+//! (`gen --chunks N`).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use shadowcull::bake::casters::CasterTable;
-use shadowcull::bake::ground::Ground;
-use shadowcull::bake::trace_light::{LightRays, RayCounter, RayRules, Tracer};
-use shadowcull::bake::{self, geometry, BakeConfig, Silent};
-use shadowcull::classify::Passes;
-use shadowcull::light::TexelGrid;
-use shadowcull::trace::{Bvh, TraceRay};
+use shadowcull::bake::setup::{BakeWorld, LightSetup};
+use shadowcull::bake::trace_light::RayCounter;
+use shadowcull::bake::{self, BakeConfig, Silent};
+use shadowcull::trace::TraceRay;
 use std::time::Duration;
 
 mod common;
@@ -23,42 +22,36 @@ impl RayCounter for NoCount {
 
 fn bake_bench(c: &mut Criterion) {
     let (_dir, settings, scene) = bench_world();
-    let casters = CasterTable::new(&scene);
-    let bounds = geometry::world_bounds(&scene).expect("bench world has geometry");
-    let ground = Ground::new(&scene);
+    let config = BakeConfig::from_settings(&settings);
 
-    for light in &settings.lights {
+    let mut group = c.benchmark_group("build");
+    group.sample_size(10);
+    group.measurement_time(Duration::from_secs(8));
+    group.bench_function("bottom_levels", |b| b.iter(|| BakeWorld::new(&scene)));
+    group.finish();
+
+    let world = BakeWorld::new(&scene);
+    for index in 0..config.lights.len() {
+        let light = &config.lights[index];
         let kind = light.kind.type_name();
-        let grid = TexelGrid::new(light, bounds).expect("grid");
-        let light_geometry = geometry::light_geometry(&scene, &casters, &grid);
-        let triangles = &light_geometry.triangles;
+        let setup = LightSetup::new(&world, &config, index).expect("light setup");
         eprintln!(
-            "{kind} `{}`: {} rays, {} triangles in reach",
+            "{kind} `{}`: {} rays, {} instance parts and {} blocks in reach",
             light.name,
-            grid.texel_count(),
-            triangles.len()
+            setup.grid.texel_count(),
+            setup.top.len() - setup.reach.blocks.len(),
+            setup.reach.blocks.len()
         );
-
         let mut group = c.benchmark_group(format!("build/{kind}"));
         group.sample_size(10);
-        group.measurement_time(Duration::from_secs(8));
-        group.throughput(Throughput::Elements(triangles.len() as u64));
-        group.bench_function("bvh", |b| b.iter(|| Bvh::build(triangles)));
+        group.measurement_time(Duration::from_secs(5));
+        group.bench_function("top_level", |b| {
+            b.iter(|| LightSetup::new(&world, &config, index).expect("light setup"))
+        });
         group.finish();
 
-        let bvh = Bvh::build(triangles);
-        let passes = if light_geometry.reaches_alpha_tested {
-            Passes::AllAndOpaque
-        } else {
-            Passes::AllOnly
-        };
-        let rays_of_light = LightRays {
-            grid: &grid,
-            tracer: Tracer::Bvh(&bvh),
-            casters: &casters,
-            ground: ground.as_ref(),
-            rules: RayRules::new(&BakeConfig::from_settings(&settings), passes),
-        };
+        let rays_of_light = setup.rays(&world, &config);
+        let grid = &setup.grid;
         let mut group = c.benchmark_group(format!("trace/{kind}"));
         group.sample_size(10);
         group.measurement_time(Duration::from_secs(10));
@@ -66,10 +59,9 @@ fn bake_bench(c: &mut Criterion) {
         group.bench_function("bake_rays", |b| {
             b.iter(|| rays_of_light.trace_grid(1, &NoCount))
         });
-        // The same rays through the traversals alone (no classification),
-        // single-threaded loops over every texel: ours collecting hits with
-        // the early cut-off (two hits suffice on most rays), ours closest-hit,
-        // obvhs's closest-hit with its own triangle test.
+        // The same rays through the traversal alone (no classification),
+        // single-threaded, collecting hits with an early cut-off at the
+        // second (two hits suffice on most rays).
         let (width, height) = (grid.width(), grid.height());
         let rays: Vec<TraceRay> = (0..grid.faces())
             .flat_map(|f| (0..height).flat_map(move |y| (0..width).map(move |x| (f, x, y))))
@@ -81,7 +73,7 @@ fn bake_bench(c: &mut Criterion) {
                 for ray in &rays {
                     let mut hits = 0;
                     let mut limit = ray.t_max;
-                    bvh.for_each_hit(ray, |hit| {
+                    rays_of_light.tracer.for_each_hit(ray, |hit| {
                         hits += 1;
                         if hits >= 2 {
                             limit = limit.min(hit.t);
@@ -93,24 +85,13 @@ fn bake_bench(c: &mut Criterion) {
                 total
             })
         });
-        group.bench_function("closest_hit", |b| {
-            b.iter(|| rays.iter().filter(|r| bvh.closest_hit(r).is_some()).count())
-        });
-        group.bench_function("closest_hit_obvhs", |b| {
-            b.iter(|| {
-                rays.iter()
-                    .filter(|r| bvh.closest_hit_obvhs(r).is_some())
-                    .count()
-            })
-        });
         group.finish();
     }
 
-    let config = BakeConfig::from_settings(&settings);
     let mut group = c.benchmark_group("bake");
     group.sample_size(10);
     group.measurement_time(Duration::from_secs(20));
-    group.bench_function("bench_world_all_lights", |b| {
+    group.bench_function("all_lights", |b| {
         b.iter(|| bake::bake(&scene, &config, &Silent).expect("bake"))
     });
     group.finish();

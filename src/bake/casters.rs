@@ -172,7 +172,10 @@ mod tests {
             }
             expected += scene.models[part.model].groups.len() as u32;
         }
-        assert_eq!(expected, table.of_block.first().copied().unwrap_or(expected));
+        assert_eq!(
+            expected,
+            table.of_block.first().copied().unwrap_or(expected)
+        );
         assert!(expected > 100);
     }
 }

@@ -87,7 +87,11 @@ fn push_group(
     for triangle in model.triangles.get(group.triangles.clone()).unwrap_or(&[]) {
         let mut vertices = [Vec3::ZERO; 3];
         for (v, &i) in vertices.iter_mut().zip(triangle) {
-            let p = model.positions.get(i as usize).copied().unwrap_or(Vec3::NAN);
+            let p = model
+                .positions
+                .get(i as usize)
+                .copied()
+                .unwrap_or(Vec3::NAN);
             *v = (instance.world.transform_point3(p.as_dvec3()) - reference).as_vec3();
         }
         if instance.mirrored {
@@ -175,7 +179,15 @@ fn flat_geometry(
             if in_reach {
                 for group in 0..model.groups.len() {
                     let caster = part.first_caster + group as u32;
-                    push_group(scene, part.instance, part.model, group, caster, reference, &mut out);
+                    push_group(
+                        scene,
+                        part.instance,
+                        part.model,
+                        group,
+                        caster,
+                        reference,
+                        &mut out,
+                    );
                 }
             }
             out

@@ -37,7 +37,13 @@ pub fn refine(
         let groups = world.scene.models[part.model].groups.len() as u32;
         candidates.extend(part.first_caster..part.first_caster + groups);
     }
-    candidates.extend(setup.reach.blocks.iter().map(|&b| casters.of_block[b as usize]));
+    candidates.extend(
+        setup
+            .reach
+            .blocks
+            .iter()
+            .map(|&b| casters.of_block[b as usize]),
+    );
     candidates.retain(|&caster| {
         !already_useful.contains(caster) && !casters.casters[caster as usize].receiver_only
     });

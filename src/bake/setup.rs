@@ -118,7 +118,10 @@ impl NoSetup {
     /// Nothing to trace (the bake notes it and goes on), as opposed to a
     /// settings mistake.
     pub fn is_nothing_to_trace(&self) -> bool {
-        matches!(self, NoSetup::NoGeometry | NoSetup::Grid(GridError::EmptyWorld { .. }))
+        matches!(
+            self,
+            NoSetup::NoGeometry | NoSetup::Grid(GridError::EmptyWorld { .. })
+        )
     }
 }
 
@@ -136,7 +139,11 @@ pub struct LightSetup {
 
 impl LightSetup {
     /// Light `index` of `config` over `world`.
-    pub fn new(world: &BakeWorld, config: &BakeConfig, index: usize) -> Result<LightSetup, NoSetup> {
+    pub fn new(
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+    ) -> Result<LightSetup, NoSetup> {
         let light = &config.lights[index];
         let bounds = world.bounds.ok_or(NoSetup::NoGeometry)?;
         let grid = TexelGrid::new(light, bounds)?;
@@ -211,11 +218,13 @@ fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
         .parts
         .par_iter()
         .map(|part| {
-            world.bottom.models[part.model].bounds().is_some_and(|(min, max)| {
-                let placed = &scene.instances[part.instance].world;
-                let (min, max) = transform_box(placed, min.as_dvec3(), max.as_dvec3());
-                grid.reaches(min, max)
-            })
+            world.bottom.models[part.model]
+                .bounds()
+                .is_some_and(|(min, max)| {
+                    let placed = &scene.instances[part.instance].world;
+                    let (min, max) = transform_box(placed, min.as_dvec3(), max.as_dvec3());
+                    grid.reaches(min, max)
+                })
         })
         .collect();
     let mut reach = Reach::default();

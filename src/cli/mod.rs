@@ -128,7 +128,7 @@ fn run(cli: Cli) -> Result<()> {
             generate_each(size, seed, |path, bytes| {
                 formats::resources::write_atomic(&dir.join(path), &bytes)?;
                 written += 1;
-                if written % 2000 == 0 {
+                if written.is_multiple_of(2000) {
                     eprintln!(
                         "gen: {written} files written ({:.0} s)",
                         started.elapsed().as_secs_f64()

@@ -159,7 +159,10 @@ pub fn generate_each<E>(
             }
         }
         let name = ch.name();
-        sink(&format!("{space}/{name}.chunk"), world::chunk_xml(&ch, plan.seed))?;
+        sink(
+            &format!("{space}/{name}.chunk"),
+            world::chunk_xml(&ch, plan.seed),
+        )?;
         sink(
             &format!("{space}/{name}.cdata"),
             world::terrain_cdata(&plan, &ch),

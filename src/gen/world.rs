@@ -457,7 +457,6 @@ pub(crate) fn scatter(plan: &WorldPlan, rng: &mut Rng, ch: &mut ChunkPlan) {
             });
         }
     }
-
 }
 
 pub(crate) fn chunk_xml(ch: &ChunkPlan, rng_seed: u64) -> Vec<u8> {

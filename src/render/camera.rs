@@ -9,9 +9,9 @@
 //! light (directional: against its direction; spot and point: from the
 //! point to the light); no shadows. Sky: dark blue.
 
-use crate::bake::setup::BakeWorld;
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
 use crate::bake::geometry::{all_geometry, world_bounds};
+use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
 use crate::formats::bake_settings::LightKind;
 use crate::scene::Scene;

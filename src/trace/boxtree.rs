@@ -308,7 +308,13 @@ impl BoxRay {
 
     #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
     #[inline(always)]
-    pub(crate) fn hitmask_scalar(&self, node: &CwBvhNode, oct_inv4: u32, t_lo: f32, t_hi: f32) -> u32 {
+    pub(crate) fn hitmask_scalar(
+        &self,
+        node: &CwBvhNode,
+        oct_inv4: u32,
+        t_lo: f32,
+        t_hi: f32,
+    ) -> u32 {
         let p = Vec3A::from(node.p);
         let scale = node.compute_extent() * self.inv;
         let near0 = (p - self.origin_near) * self.inv;
@@ -342,4 +348,3 @@ impl BoxRay {
         hit_mask
     }
 }
-

@@ -280,7 +280,11 @@ mod tests {
                 t_max: rng.range(10.0, 200.0) as f32,
             };
             let boxes = crate::trace::boxtree::BoxRay::new(&ray, bvh.tree.magnitude);
-            let oct = bvh.tree.cwbvh.new_traversal(Vec3A::from(ray.direction)).oct_inv4;
+            let oct = bvh
+                .tree
+                .cwbvh
+                .new_traversal(Vec3A::from(ray.direction))
+                .oct_inv4;
             for node in &bvh.tree.cwbvh.nodes {
                 let a = boxes.hitmask_sse(node, oct, ray.t_min, ray.t_max);
                 assert_eq!(a, boxes.hitmask_scalar(node, oct, ray.t_min, ray.t_max));

@@ -259,7 +259,9 @@ impl HeightField {
         // Depth-first with at most 3 siblings waiting per level; entries
         // pack (level, i, j) into 6 + 29 + 29 bits (a side of at most 2^29
         // tiles, far beyond any block that fits in memory).
-        let pack = |level: usize, i: usize, j: usize| ((level as u64) << 58) | ((i as u64) << 29) | j as u64;
+        let pack = |level: usize, i: usize, j: usize| {
+            ((level as u64) << 58) | ((i as u64) << 29) | j as u64
+        };
         let mut stack = [0u64; 3 * 32 + 1];
         let mut len = 1;
         stack[0] = pack(top, 0, 0);
@@ -267,7 +269,11 @@ impl HeightField {
             len -= 1;
             let entry = stack[len];
             let mask = (1u64 << 29) - 1;
-            let (level, i, j) = ((entry >> 58) as usize, ((entry >> 29) & mask) as usize, (entry & mask) as usize);
+            let (level, i, j) = (
+                (entry >> 58) as usize,
+                ((entry >> 29) & mask) as usize,
+                (entry & mask) as usize,
+            );
             let (lo, hi) = self.ranges[self.level_start[level] + j * (self.side >> level) + i];
             if lo > hi {
                 continue;
@@ -294,14 +300,18 @@ impl HeightField {
             for cz in cz0..cz1 {
                 for cx in cx0..cx1 {
                     let corners = [(cx, cz), (cx + 1, cz), (cx, cz + 1), (cx + 1, cz + 1)];
-                    let (lo, hi) = corners.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |r, &(x, z)| {
-                        let h = grid.height(x, z) as f32;
-                        (r.0.min(h), r.1.max(h))
-                    });
+                    let (lo, hi) =
+                        corners
+                            .iter()
+                            .fold((f32::INFINITY, f32::NEG_INFINITY), |r, &(x, z)| {
+                                let h = grid.height(x, z) as f32;
+                                (r.0.min(h), r.1.max(h))
+                            });
                     let min = Vec3::new(x_at(cx), y_at(lo), z_at(cz));
                     let max = Vec3::new(x_at(cx + 1), y_at(hi), z_at(cz + 1));
                     if boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
-                        t_max = grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
+                        t_max =
+                            grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
                     }
                 }
             }
@@ -312,4 +322,3 @@ impl HeightField {
         t_max
     }
 }
-

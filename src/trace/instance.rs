@@ -83,7 +83,10 @@ mod tests {
             let world_point = reference + (ray.origin + ray.direction * t).as_dvec3();
             let model_point = world.inverse().transform_point3(world_point);
             let ours = (m.origin + m.direction * t).as_dvec3();
-            assert!((ours - model_point).length() < 1e-4, "{ours} vs {model_point}");
+            assert!(
+                (ours - model_point).length() < 1e-4,
+                "{ours} vs {model_point}"
+            );
         }
         assert_eq!((m.t_min, m.t_max), (0.0, 100.0));
     }

@@ -32,8 +32,8 @@ mod triangle;
 #[cfg(test)]
 mod tests;
 
-pub use brute::brute_force_hits;
 pub use blas::BottomLevels;
+pub use brute::brute_force_hits;
 pub use bvh::Bvh;
 pub use heightfield::{HeightField, HeightGrid};
 pub use instance::ToModel;
@@ -101,12 +101,8 @@ impl Tracer<'_> {
     /// set does not depend on the mode.
     #[inline]
     pub fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
-        self.top.for_each_hit(
-            self.bottom,
-            ray,
-            self.mode == TraceMode::BruteForce,
-            on_hit,
-        );
+        self.top
+            .for_each_hit(self.bottom, ray, self.mode == TraceMode::BruteForce, on_hit);
     }
 }
 

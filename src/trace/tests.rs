@@ -699,3 +699,364 @@ fn flat_plane_rays_along_axes_and_box_faces() {
         }
     }
 }
+
+// ---------------------------------------------------------------------------
+// Instances and height fields: the trees against the oracle, ray by ray.
+
+mod two_level {
+    use super::super::*;
+    use crate::rng::Rng;
+    use glam::{DMat4, DQuat, DVec3, Vec3};
+
+    /// Blocks of `cells`² cells of `size` metres in an `n` × `n` grid with
+    /// random heights that agree on shared borders (one height function
+    /// of world x, z), some holes.
+    fn terrain(n: i32, cells: usize, size: f64, holes: bool) -> Vec<(Vec<f32>, Vec<bool>, DVec3)> {
+        let h = |x: f64, z: f64| ((x * 0.37).sin() * 2.0 + (z * 0.21).cos() * 1.5) as f32;
+        let mut out = Vec::new();
+        for gz in 0..n {
+            for gx in 0..n {
+                let origin = DVec3::new(gx as f64 * size, 0.5, gz as f64 * size);
+                let mut heights = Vec::new();
+                for z in 0..=cells {
+                    for x in 0..=cells {
+                        let wx = origin.x + x as f64 * size / cells as f64;
+                        let wz = origin.z + z as f64 * size / cells as f64;
+                        heights.push(h(wx, wz));
+                    }
+                }
+                let mut hole = vec![false; cells * cells];
+                if holes {
+                    // A hole at the block's +x border, next to the neighbour.
+                    hole[(cells / 2) * cells + cells - 1] = true;
+                }
+                out.push((heights, hole, origin));
+            }
+        }
+        out
+    }
+
+    fn grids(
+        blocks: &[(Vec<f32>, Vec<bool>, DVec3)],
+        cells: usize,
+        size: f64,
+    ) -> Vec<HeightGrid<'_>> {
+        blocks
+            .iter()
+            .map(|(heights, holes, origin)| HeightGrid {
+                origin: *origin,
+                chunk_size: size,
+                cells_x: cells,
+                cells_z: cells,
+                heights,
+                holes,
+                alternating: true,
+            })
+            .collect()
+    }
+
+    fn hits(tracer: &Tracer, ray: &TraceRay) -> Vec<(u32, u32, bool, u32)> {
+        let mut out = Vec::new();
+        tracer.for_each_hit(ray, |h| {
+            out.push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+            f32::INFINITY
+        });
+        out.sort();
+        out
+    }
+
+    #[test]
+    fn terrain_edges_diagonals_borders_and_vertices_are_crossed_once() {
+        // 3 cells of 100/3 m: the cell edges are not exact in binary, so
+        // only one vertex function keeps shared vertices bit-equal.
+        let (cells, size) = (3, 100.0);
+        let blocks = terrain(2, cells, size, false);
+        let bottom = BottomLevels::build(0, |_| Vec::new(), grids(&blocks, cells, size));
+        let reference = DVec3::new(37.0, 0.0, 61.0);
+        let placed = (0..4).map(|b| PlacedBlock {
+            block: b,
+            caster: b,
+        });
+        let top = TopLevel::build(&bottom, std::iter::empty(), placed, reference);
+        let trees = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let oracle = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::BruteForce,
+        };
+        let mut checked = 0;
+        // Every vertex, every edge midpoint and every diagonal point of the
+        // 6 × 6 cells, straight down and slanted.
+        for zi in 0..=2 * 2 * cells {
+            for xi in 0..=2 * 2 * cells {
+                let step = size / cells as f64 / 2.0;
+                let (wx, wz) = (xi as f64 * step, zi as f64 * step);
+                if wx >= 2.0 * size || wz >= 2.0 * size {
+                    continue;
+                }
+                for d in [
+                    Vec3::NEG_Y,
+                    Vec3::new(0.3, -1.0, 0.2).normalize(),
+                    Vec3::new(-0.5, -1.0, 0.0).normalize(),
+                ] {
+                    // The ray passes exactly through the lattice point on
+                    // the surface: its origin is the surface point itself
+                    // (light-relative, as the vertex function rounds it),
+                    // the segment reaching 50 m both ways.
+                    let p = DVec3::new(wx, 0.0, wz) - reference;
+                    let origin = Vec3::new(p.x as f32, 40.0, p.z as f32);
+                    let ray = TraceRay {
+                        origin,
+                        direction: d,
+                        t_min: 0.0,
+                        t_max: 200.0,
+                    };
+                    let a = hits(&trees, &ray);
+                    assert_eq!(a, hits(&oracle, &ray), "ray {ray:?}");
+                    // Solid terrain everywhere: a ray from above crosses it
+                    // exactly once (no leak at an edge, no double crossing).
+                    let inside = |q: Vec3| {
+                        let w = q.as_dvec3() + reference;
+                        w.x > 0.0 && w.z > 0.0 && w.x < 2.0 * size && w.z < 2.0 * size
+                    };
+                    let exit = origin + d * 60.0;
+                    if inside(origin) && inside(exit) && d == Vec3::NEG_Y {
+                        assert_eq!(a.len(), 1, "ray {ray:?}: {a:?}");
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 300);
+    }
+
+    #[test]
+    fn vertical_rays_exactly_on_block_borders_cross_once() {
+        // Rays straight down exactly on x = 100 (the border of blocks 0 and
+        // 1) at many z, and on the corner shared by all four blocks.
+        let (cells, size) = (3, 100.0);
+        let blocks = terrain(2, cells, size, false);
+        let bottom = BottomLevels::build(0, |_| Vec::new(), grids(&blocks, cells, size));
+        // A reference point off the lattice, as a light's usually is: the
+        // border lies at an f32 value that only the shared vertex function
+        // reproduces exactly on both sides.
+        let reference = DVec3::new(-12.345678, 0.0, 7.654321);
+        let placed = (0..4).map(|b| PlacedBlock {
+            block: b,
+            caster: b,
+        });
+        let top = TopLevel::build(&bottom, std::iter::empty(), placed, reference);
+        let trees = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let mut rng = Rng::new(5);
+        for k in 0..400 {
+            let along = rng.range(1.0, 199.0) as f32;
+            let (x, z) = match k % 3 {
+                0 => (100.0, along as f64),
+                1 => (along as f64, 100.0),
+                _ => (100.0, 100.0),
+            };
+            let p = (DVec3::new(x, 0.0, z) - reference).as_vec3();
+            let ray = TraceRay {
+                origin: Vec3::new(p.x, 30.0, p.z),
+                direction: Vec3::NEG_Y,
+                t_min: 0.0,
+                t_max: 100.0,
+            };
+            let found = hits(&trees, &ray);
+            assert_eq!(found.len(), 1, "({x}, {z}): {found:?}");
+        }
+    }
+
+    #[test]
+    fn holes_at_a_block_border_let_rays_through_and_match_the_oracle() {
+        let (cells, size) = (4, 100.0);
+        let blocks = terrain(2, cells, size, true);
+        let bottom = BottomLevels::build(0, |_| Vec::new(), grids(&blocks, cells, size));
+        let placed = (0..4).map(|b| PlacedBlock {
+            block: b,
+            caster: b,
+        });
+        let top = TopLevel::build(&bottom, std::iter::empty(), placed, DVec3::ZERO);
+        let trees = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let oracle = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::BruteForce,
+        };
+        // Block 0's hole is its cell (3, 2): x 75..100, z 50..75.
+        let down = |x: f32, z: f32| TraceRay {
+            origin: Vec3::new(x, 30.0, z),
+            direction: Vec3::NEG_Y,
+            t_min: 0.0,
+            t_max: 100.0,
+        };
+        assert!(hits(&trees, &down(90.0, 60.0)).is_empty());
+        assert_eq!(hits(&trees, &down(110.0, 60.0)).len(), 1);
+        let mut rng = Rng::new(9);
+        for _ in 0..500 {
+            let d = Vec3::new(
+                rng.range(-1.0, 1.0) as f32,
+                -1.0,
+                rng.range(-1.0, 1.0) as f32,
+            )
+            .normalize();
+            let ray = TraceRay {
+                origin: Vec3::new(
+                    rng.range(60.0, 140.0) as f32,
+                    20.0,
+                    rng.range(30.0, 90.0) as f32,
+                ),
+                direction: d,
+                t_min: 0.0,
+                t_max: 100.0,
+            };
+            assert_eq!(hits(&trees, &ray), hits(&oracle, &ray));
+        }
+    }
+
+    #[test]
+    fn instanced_models_match_the_oracle_ray_by_ray() {
+        // Two models placed 300 times: rotated, non-uniformly scaled,
+        // mirrored, far from the origin (1e5 m), over terrain.
+        let mut rng = Rng::new(17);
+        let offset = DVec3::new(1e5, 0.0, -1e5);
+        let cube = |s: f32| -> Vec<TraceTriangle> {
+            // Two triangles a face, wound outward.
+            let mut out = Vec::new();
+            for axis in 0..3 {
+                for sign in [-1.0f32, 1.0] {
+                    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+                    let corner = |a: f32, b: f32| {
+                        let mut p = Vec3::ZERO;
+                        p[axis] = sign * s;
+                        p[u] = a * s;
+                        p[v] = b * s * sign;
+                        p
+                    };
+                    let q = [
+                        corner(-1.0, -1.0),
+                        corner(1.0, -1.0),
+                        corner(1.0, 1.0),
+                        corner(-1.0, 1.0),
+                    ];
+                    out.push(TraceTriangle {
+                        vertices: [q[0], q[1], q[2]],
+                        caster: 0,
+                    });
+                    out.push(TraceTriangle {
+                        vertices: [q[0], q[2], q[3]],
+                        caster: 0,
+                    });
+                }
+            }
+            out
+        };
+        let card = vec![
+            TraceTriangle {
+                vertices: [
+                    Vec3::new(-1.0, 0.0, -1.0),
+                    Vec3::new(-1.0, 0.0, 1.0),
+                    Vec3::new(1.0, 0.0, 1.0),
+                ],
+                caster: 0,
+            },
+            TraceTriangle {
+                vertices: [
+                    Vec3::new(1.0, 0.0, 1.0),
+                    Vec3::new(1.0, 0.0, -1.0),
+                    Vec3::new(-1.0, 0.0, -1.0),
+                ],
+                caster: 1,
+            },
+        ];
+        let models = [cube(0.7), card];
+        let blocks: Vec<(Vec<f32>, Vec<bool>, DVec3)> = terrain(1, 8, 100.0, true)
+            .into_iter()
+            .map(|(h, holes, o)| (h, holes, o + offset))
+            .collect();
+        let bottom = BottomLevels::build(2, |m| models[m].clone(), grids(&blocks, 8, 100.0));
+        let mut parts = Vec::new();
+        for i in 0..300 {
+            let mut scale = DVec3::new(
+                rng.range(0.3, 3.0),
+                rng.range(0.3, 3.0),
+                rng.range(0.3, 3.0),
+            );
+            if rng.below(3) == 0 {
+                scale.x = -scale.x;
+            }
+            let rotation = DQuat::from_euler(
+                glam::EulerRot::YXZ,
+                rng.range(0.0, 6.3),
+                rng.range(-0.6, 0.6),
+                rng.range(-0.6, 0.6),
+            );
+            let position = offset
+                + DVec3::new(
+                    rng.range(0.0, 100.0),
+                    rng.range(0.0, 5.0),
+                    rng.range(0.0, 100.0),
+                );
+            parts.push(PlacedPart {
+                model: i % 2,
+                world: DMat4::from_scale_rotation_translation(scale, rotation, position),
+                first_caster: 10 + 2 * i,
+            });
+        }
+        let reference = offset + DVec3::new(50.0, 0.0, 50.0);
+        let top = TopLevel::build(
+            &bottom,
+            parts.into_iter(),
+            std::iter::once(PlacedBlock {
+                block: 0,
+                caster: 1,
+            }),
+            reference,
+        );
+        let trees = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let oracle = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::BruteForce,
+        };
+        let mut with_hits = 0;
+        for _ in 0..3000 {
+            let d = Vec3::new(
+                rng.range(-1.0, 1.0) as f32,
+                rng.range(-1.0, -0.1) as f32,
+                rng.range(-1.0, 1.0) as f32,
+            )
+            .normalize();
+            let ray = TraceRay {
+                origin: Vec3::new(
+                    rng.range(-60.0, 60.0) as f32,
+                    30.0,
+                    rng.range(-60.0, 60.0) as f32,
+                ),
+                direction: d,
+                t_min: 0.0,
+                t_max: 200.0,
+            };
+            let a = hits(&trees, &ray);
+            with_hits += usize::from(a.len() > 1);
+            assert_eq!(a, hits(&oracle, &ray), "ray {ray:?}");
+        }
+        assert!(with_hits > 200, "{with_hits}");
+    }
+}

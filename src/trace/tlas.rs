@@ -9,8 +9,8 @@
 //! which the node padding (hundreds of ulps of the magnitude) covers.
 
 use super::blas::BottomLevels;
-use super::boxtree::BoxTree;
 use super::boxtree::BoxRay;
+use super::boxtree::BoxTree;
 use super::heightfield::{HeightField, HeightGrid};
 use super::instance::ToModel;
 use super::{Hit, TraceRay, MAX_COORDINATE};
@@ -42,7 +42,10 @@ pub(crate) enum Entry {
         first_caster: u32,
         to_model: ToModel,
     },
-    Block { block: u32, caster: u32 },
+    Block {
+        block: u32,
+        caster: u32,
+    },
 }
 
 /// One light's top level.
@@ -252,6 +255,10 @@ fn grid_bounds(grid: &HeightGrid, field: &HeightField) -> (DVec3, DVec3) {
     let (lo, hi) = field.height_range();
     let o = grid.origin;
     let min = DVec3::new(o.x, o.y + f64::from(lo), o.z);
-    let max = DVec3::new(o.x + grid.chunk_size, o.y + f64::from(hi), o.z + grid.chunk_size);
+    let max = DVec3::new(
+        o.x + grid.chunk_size,
+        o.y + f64::from(hi),
+        o.z + grid.chunk_size,
+    );
     (min, max)
 }
