@@ -5,6 +5,7 @@ mod bake_rules;
 mod bake_world;
 mod cli;
 mod generated;
+mod hardening;
 mod micro;
 mod packed_real;
 mod primitives_real;
