@@ -4,6 +4,7 @@ mod bad_input;
 mod bake_rules;
 mod bake_world;
 mod cli;
+mod fuzz;
 mod generated;
 mod hardening;
 mod micro;
