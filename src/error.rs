@@ -106,6 +106,11 @@ pub enum Error {
     },
     #[error("{}: {message}", path.display())]
     Invalid { path: PathBuf, message: String },
+    /// Files a write would have to replace but must not (read-only, not a
+    /// regular file, not writable by this user): checked before anything
+    /// is written, so nothing was.
+    #[error("nothing was written: {} file(s) cannot be replaced:{}", files.len(), files.iter().map(|(path, why)| format!("\n  {}: {why}", path.display())).collect::<String>())]
+    Refused { files: Vec<(PathBuf, String)> },
 }
 
 impl Error {

@@ -18,8 +18,10 @@ use rayon::prelude::*;
 /// `None` for a world with no geometry. A box that is not finite or reaches
 /// beyond [`MAX_COORDINATE`] (an absurd but finite transform, e.g. a scale
 /// of 1e20 from a damaged chunk) is left out: its triangles are never
-/// traced and it must not stretch a directional light's grid past any
-/// possible size.
+/// traced and it must not stretch a directional
+/// light's grid past any possible size. Nor is a box that lies entirely
+/// outside the space ([`crate::scene::SpaceRegion`], horizontally): the
+/// loader reports such stray placements and leaves them out.
 pub fn world_bounds(scene: &Scene) -> Option<(DVec3, DVec3)> {
     let model_bounds: Vec<Option<(DVec3, DVec3)>> = scene
         .models
@@ -27,9 +29,13 @@ pub fn world_bounds(scene: &Scene) -> Option<(DVec3, DVec3)> {
         .map(|m| m.bounds().map(|(a, b)| (a.as_dvec3(), b.as_dvec3())))
         .collect();
     let mut bounds: Option<(DVec3, DVec3)> = None;
+    let region = scene.region();
     let mut add = |min: DVec3, max: DVec3| {
         let limit = f64::from(MAX_COORDINATE);
-        if !(min.is_finite() && max.is_finite()) || min.abs().max(max.abs()).max_element() > limit {
+        if !(min.is_finite() && max.is_finite())
+            || min.abs().max(max.abs()).max_element() > limit
+            || !region.overlaps_horizontally(min, max)
+        {
             return;
         }
         bounds = Some(match bounds {

@@ -85,7 +85,7 @@ pub fn chunk_outputs(
         };
         let changed = match out_dir {
             None => bytes != original,
-            Some(_) => std::fs::read(&target)
+            Some(_) => resources::read_file(&target)
                 .map(|old| old != bytes)
                 .unwrap_or(true),
         };
@@ -99,15 +99,19 @@ pub fn chunk_outputs(
     Ok(outputs)
 }
 
-/// Writes the outputs that change something, each atomically. Returns how
-/// many files were written.
+/// Writes the outputs that change something, as one batch
+/// ([`resources::write_files`]): every target is checked before anything is
+/// written (a read-only chunk fails the batch, naming every such file), all
+/// temporary files are written and synced before the first rename. Returns
+/// how many files were written.
 pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
-    let mut written = 0;
-    for output in outputs.iter().filter(|o| o.changed) {
-        resources::write_atomic(&output.target, &output.bytes)?;
-        written += 1;
-    }
-    Ok(written)
+    let batch: Vec<(&Path, &[u8])> = outputs
+        .iter()
+        .filter(|o| o.changed)
+        .map(|o| (o.target.as_path(), o.bytes.as_slice()))
+        .collect();
+    resources::write_files(&batch)?;
+    Ok(batch.len())
 }
 
 /// The `--report` JSON (SPEC §8).

@@ -1,9 +1,47 @@
 //! Resource lookup over several res paths (like the engine's `paths.xml`,
-//! searched in order) and every file-system access of the crate: reads,
-//! folder walks and atomic writes.
+//! searched in order) and every file-system access of the crate: reads
+//! (regular files only, each kind of file with a size cap), folder walks,
+//! and replacing files (checked first, every temporary file written and
+//! synced before the first rename).
 
 use crate::error::{Error, Result};
-use std::path::{Path, PathBuf};
+use std::collections::BTreeMap;
+use std::fs::{self, File, Metadata};
+use std::io::{Read, Write};
+use std::path::{Component, Path, PathBuf};
+
+const MIB: u64 = 1 << 20;
+const GIB: u64 = 1 << 30;
+
+/// The most bytes read from one file, by the end of its name: the one place
+/// the caps are defined. The engine's XML files (chunks, models, visuals,
+/// materials, settings) are kilobytes to a few megabytes; `.primitives` and
+/// `.cdata` hold geometry and terrain and can reach hundreds of megabytes.
+pub const SIZE_CAPS: &[(&str, u64)] = &[
+    (".chunk", 64 * MIB),
+    (".model", 64 * MIB),
+    (".visual", 64 * MIB),
+    (".mfm", 64 * MIB),
+    (".settings", 64 * MIB),
+    (".primitives", GIB),
+    (".cdata", GIB),
+];
+
+/// The cap of any other file (the bake settings file, a `--out` target).
+pub const DEFAULT_SIZE_CAP: u64 = 64 * MIB;
+
+/// The size cap of `path`, and the kind of file it is the cap of.
+pub fn size_cap(path: &Path) -> (u64, String) {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    SIZE_CAPS
+        .iter()
+        .find(|(suffix, _)| name.ends_with(suffix))
+        .map(|&(suffix, cap)| (cap, format!("{suffix} files")))
+        .unwrap_or((DEFAULT_SIZE_CAP, "files of this kind".into()))
+}
 
 /// The resource roots, searched in order.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -20,21 +58,77 @@ pub fn normalise(name: &str) -> String {
         .to_string()
 }
 
+/// A normalised name that stays below the folder it is joined to: not
+/// empty, no `..`, no drive or root prefix.
+pub fn stays_inside(name: &str) -> bool {
+    !name.is_empty()
+        && Path::new(name)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_) | Component::CurDir))
+}
+
 impl ResPaths {
     pub fn new(roots: Vec<PathBuf>) -> Self {
         ResPaths { roots }
     }
 
-    /// The first root holding `name`, as a full path.
+    /// The first root holding `name`, as a full path. A name that climbs out
+    /// with `..`, or an entry whose symbolic links lead outside every root,
+    /// resolves to nothing ([`ResPaths::read`] says why).
     pub fn resolve(&self, name: &str) -> Option<PathBuf> {
+        self.locate(name).ok().flatten()
+    }
+
+    fn locate(&self, name: &str) -> Result<Option<PathBuf>> {
         let name = normalise(name);
-        if name.is_empty() || name.split('/').any(|part| part == "..") {
-            return None;
+        if !stays_inside(&name) {
+            return Ok(None);
         }
+        for root in &self.roots {
+            let path = root.join(&name);
+            // `metadata` follows links but opens nothing: a FIFO is found
+            // here and refused by `read_file`, never opened.
+            if fs::metadata(&path).is_ok_and(|m| !m.is_dir()) {
+                self.check_inside(&path)?;
+                return Ok(Some(path));
+            }
+        }
+        Ok(None)
+    }
+
+    /// Errors when `path`, with every symbolic link resolved, lies outside
+    /// every res root (a link planted in a res folder pointing elsewhere).
+    /// A path that does not exist passes: reading it says so.
+    pub fn check_inside(&self, path: &Path) -> Result<()> {
+        let real = match fs::canonicalize(path) {
+            Ok(real) => real,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(Error::io(path, "resolve", e)),
+        };
+        let inside = self
+            .roots
+            .iter()
+            .filter_map(|root| fs::canonicalize(root).ok())
+            .any(|root| real.starts_with(root));
+        if inside {
+            return Ok(());
+        }
+        Err(Error::invalid(
+            path,
+            format!(
+                "leads to {}, outside every res path ({}); refused: copy the file into a res path or add its folder to <resPaths>",
+                real.display(),
+                self.roots_list()
+            ),
+        ))
+    }
+
+    fn roots_list(&self) -> String {
         self.roots
             .iter()
-            .map(|root| root.join(&name))
-            .find(|path| path.is_file())
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 
     /// The root a full path lies under, and the path relative to it.
@@ -49,8 +143,15 @@ impl ResPaths {
     /// Reads resource `name`; `referenced_by` is the file that named it, for
     /// the error.
     pub fn read(&self, name: &str, referenced_by: &Path) -> Result<(PathBuf, Vec<u8>)> {
-        let path = self.resolve(name).ok_or_else(|| Error::NotFound {
-            name: normalise(name),
+        let normal = normalise(name);
+        if !normal.is_empty() && !stays_inside(&normal) {
+            return Err(Error::invalid(
+                referenced_by,
+                format!("resource `{normal}` climbs out of the res paths (`..` or a drive prefix); refused: name resources relative to a res path"),
+            ));
+        }
+        let path = self.locate(name)?.ok_or_else(|| Error::NotFound {
+            name: normal,
             referenced_by: referenced_by.to_path_buf(),
             searched: self.roots.clone(),
         })?;
@@ -59,22 +160,139 @@ impl ResPaths {
     }
 }
 
+/// What a file that is not a regular file is, in words.
+fn kind_of(meta: &Metadata) -> &'static str {
+    let kind = meta.file_type();
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_fifo() {
+            return "a FIFO (named pipe)";
+        }
+        if kind.is_char_device() {
+            return "a character device";
+        }
+        if kind.is_block_device() {
+            return "a block device";
+        }
+        if kind.is_socket() {
+            return "a socket";
+        }
+    }
+    if kind.is_dir() {
+        "a folder"
+    } else if kind.is_file() {
+        "a regular file"
+    } else {
+        "a special file"
+    }
+}
+
+fn not_regular(path: &Path, meta: &Metadata) -> Error {
+    let through_link = fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink());
+    Error::invalid(
+        path,
+        format!(
+            "is {}{}, not a regular file; only regular files are read (a pipe or device can block or never end): put the file itself there",
+            kind_of(meta),
+            if through_link {
+                " (through a symbolic link)"
+            } else {
+                ""
+            }
+        ),
+    )
+}
+
+fn too_large(path: &Path, cap: u64, kind: &str, size: Option<u64>) -> Error {
+    Error::invalid(
+        path,
+        format!(
+            "{} the cap of {} MiB for {kind}; no BigWorld file of this kind is that large: check the file",
+            match size {
+                Some(size) => format!("holds {size} bytes, more than"),
+                None => "grew past".to_string(),
+            },
+            cap / MIB
+        ),
+    )
+}
+
+/// Opens for reading without blocking: with `O_NONBLOCK`, a FIFO swapped in
+/// after the metadata check opens at once (and is then refused) instead of
+/// waiting for a writer.
+fn open_for_reading(path: &Path) -> std::io::Result<File> {
+    let mut options = fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    options.open(path)
+}
+
+/// At most `cap + 1` bytes of `reader`: one more than the cap tells a file
+/// that grew past it from one that fits exactly.
+fn read_at_most(reader: impl Read, cap: u64, size_hint: u64) -> std::io::Result<Vec<u8>> {
+    let mut bytes = Vec::with_capacity(size_hint.min(cap) as usize);
+    reader.take(cap + 1).read_to_end(&mut bytes)?;
+    Ok(bytes)
+}
+
+/// Reads a whole regular file (following symbolic links), refusing FIFOs,
+/// devices and folders before opening them and files larger than the cap
+/// of their kind ([`SIZE_CAPS`]).
 pub fn read_file(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|e| Error::io(path, "read", e))
+    let (cap, kind) = size_cap(path);
+    let meta = fs::metadata(path).map_err(|e| Error::io(path, "read", e))?;
+    if !meta.is_file() {
+        return Err(not_regular(path, &meta));
+    }
+    let file = open_for_reading(path).map_err(|e| Error::io(path, "read", e))?;
+    // The entry may have changed since the check: ask the open handle.
+    let meta = file.metadata().map_err(|e| Error::io(path, "read", e))?;
+    if !meta.is_file() {
+        return Err(not_regular(path, &meta));
+    }
+    if meta.len() > cap {
+        return Err(too_large(path, cap, &kind, Some(meta.len())));
+    }
+    let bytes = read_at_most(file, cap, meta.len()).map_err(|e| Error::io(path, "read", e))?;
+    if bytes.len() as u64 > cap {
+        return Err(too_large(path, cap, &kind, None));
+    }
+    Ok(bytes)
+}
+
+/// A folder walk: the matching regular files (symbolic links to regular
+/// files included), sorted, and the matching entries that are not regular
+/// files, each left out with an error saying what it is.
+#[derive(Debug, Default)]
+pub struct Walk {
+    pub files: Vec<PathBuf>,
+    pub refused: Vec<(PathBuf, Error)>,
 }
 
 /// Every file under `dir` (recursively) whose name ends with `suffix`,
-/// sorted, so callers see a deterministic order.
+/// sorted, so callers see a deterministic order. Entries that are not
+/// regular files are left out (see [`walk`] to hear about them).
 pub fn find_files(dir: &Path, suffix: &str) -> Result<Vec<PathBuf>> {
     find_files_in(dir, suffix, true)
 }
 
 /// As [`find_files`]; `recursive` false looks in `dir` itself only.
 pub fn find_files_in(dir: &Path, suffix: &str, recursive: bool) -> Result<Vec<PathBuf>> {
-    let mut found = Vec::new();
+    Ok(walk(dir, suffix, recursive)?.files)
+}
+
+/// The walk behind [`find_files_in`]: no entry is opened; symbolic links
+/// to folders are not followed (no loops).
+pub fn walk(dir: &Path, suffix: &str, recursive: bool) -> Result<Walk> {
+    let mut walk = Walk::default();
     let mut pending = vec![dir.to_path_buf()];
     while let Some(dir) = pending.pop() {
-        let entries = std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, "list folder", e))?;
+        let entries = fs::read_dir(&dir).map_err(|e| Error::io(&dir, "list folder", e))?;
         for entry in entries {
             let entry = entry.map_err(|e| Error::io(&dir, "list folder", e))?;
             let path = entry.path();
@@ -83,50 +301,290 @@ pub fn find_files_in(dir: &Path, suffix: &str, recursive: bool) -> Result<Vec<Pa
                 if recursive {
                     pending.push(path);
                 }
-            } else if path
+                continue;
+            }
+            let matches = path
                 .file_name()
                 .and_then(|n| n.to_str())
-                .is_some_and(|n| n.ends_with(suffix))
-            {
-                found.push(path);
+                .is_some_and(|n| n.ends_with(suffix));
+            if !matches {
+                continue;
+            }
+            if kind.is_file() {
+                walk.files.push(path);
+                continue;
+            }
+            match fs::metadata(&path) {
+                Ok(meta) if meta.is_file() => walk.files.push(path),
+                Ok(meta) => {
+                    let err = not_regular(&path, &meta);
+                    walk.refused.push((path, err));
+                }
+                Err(e) => {
+                    let err = Error::io(&path, "follow link", e);
+                    walk.refused.push((path, err));
+                }
             }
         }
     }
-    found.sort();
-    Ok(found)
+    walk.files.sort();
+    walk.refused.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(walk)
 }
 
-/// Replaces `path` atomically: the bytes go to a temporary file in the same
-/// folder, which is then renamed over the target, so a crash leaves either
-/// the old file or the new one, never half of either.
+/// Replaces `path` atomically (see [`write_files`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => dir,
-        _ => Path::new("."),
+    write_files(&[(path, bytes)])
+}
+
+/// Writes a tree of files (paths relative to `dir`, `/`-separated) with
+/// [`write_files`].
+pub fn write_tree(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
+    let paths: Vec<PathBuf> = files.iter().map(|(r, _)| dir.join(r)).collect();
+    let batch: Vec<(&Path, &[u8])> = paths
+        .iter()
+        .zip(files)
+        .map(|(p, (_, b))| (p.as_path(), b.as_slice()))
+        .collect();
+    write_files(&batch)
+}
+
+/// One file of a batch, after the checks.
+struct Planned<'a> {
+    /// The file itself: a symbolic link's target, resolved.
+    real: PathBuf,
+    folder: PathBuf,
+    /// The file it replaces, whose mode and owner the new file keeps.
+    existing: Option<Metadata>,
+    bytes: &'a [u8],
+}
+
+fn folder_of(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
+#[cfg(unix)]
+fn mode_of(meta: &Metadata) -> String {
+    use std::os::unix::fs::PermissionsExt;
+    format!("mode {:04o}", meta.permissions().mode() & 0o7777)
+}
+
+#[cfg(not(unix))]
+fn mode_of(_: &Metadata) -> String {
+    "read-only attribute".into()
+}
+
+/// Where the bytes for `target` go and what they replace, or why `target`
+/// must not be replaced.
+fn plan_target(target: &Path) -> std::result::Result<(PathBuf, Option<Metadata>), String> {
+    let Ok(entry) = fs::symlink_metadata(target) else {
+        // A new file (or a parent that is not a folder: reported when the
+        // folder is created).
+        return Ok((target.to_path_buf(), None));
     };
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create folder", e))?;
-    let file_name = path
+    let real = if entry.file_type().is_symlink() {
+        fs::canonicalize(target).map_err(|e| {
+            format!("is a symbolic link that cannot be followed ({e}): fix or remove the link")
+        })?
+    } else {
+        target.to_path_buf()
+    };
+    let meta = fs::metadata(&real).map_err(|e| format!("cannot be examined: {e}"))?;
+    if !meta.is_file() {
+        return Err(format!(
+            "is {}, not a regular file: only regular files are replaced",
+            kind_of(&meta)
+        ));
+    }
+    // A read-only file is locked, as lock-based version control (Perforce)
+    // leaves files not checked out. Even root, who could write it, must not.
+    if meta.permissions().readonly() {
+        return Err(format!(
+            "is read-only ({}): locked, e.g. not checked out; make it writable (`p4 edit`, `chmod u+w`) or write elsewhere with --out",
+            mode_of(&meta)
+        ));
+    }
+    // Can this user write it (access(W_OK) without libc)? Opening for
+    // writing without truncating changes nothing.
+    let mut options = fs::OpenOptions::new();
+    options.write(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    if let Err(e) = options.open(&real) {
+        return Err(format!(
+            "cannot be written by this user ({}: {e}); make it writable or write elsewhere with --out",
+            mode_of(&meta)
+        ));
+    }
+    Ok((real, Some(meta)))
+}
+
+/// `.NAME.shadowcull-PID.tmp`, beside `real`.
+fn temporary_path(real: &Path) -> PathBuf {
+    let name = real
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let temp = dir.join(format!(
-        ".{file_name}.shadowcull-{}.tmp",
-        std::process::id()
-    ));
-    let result = std::fs::write(&temp, bytes)
-        .map_err(|e| Error::io(&temp, "write", e))
-        .and_then(|()| std::fs::rename(&temp, path).map_err(|e| Error::io(path, "replace", e)));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&temp);
-    }
-    result
+    folder_of(real).join(format!(".{name}.shadowcull-{}.tmp", std::process::id()))
 }
 
-/// Writes a tree of files (paths relative to `dir`, `/`-separated), each
-/// atomically.
-pub fn write_tree(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
-    for (relative, bytes) in files {
-        write_atomic(&dir.join(relative), bytes)?;
+/// The process id in a temporary file name of [`temporary_path`]'s form.
+fn temporary_pid(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix('.')?.strip_suffix(".tmp")?;
+    let (_, pid) = rest.rsplit_once(".shadowcull-")?;
+    if pid.is_empty() || !pid.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    pid.parse().ok()
+}
+
+/// Whether process `pid` still runs (Linux: `/proc`; elsewhere assumed
+/// not, so its temporary files count as stale).
+fn process_alive(pid: u32) -> bool {
+    cfg!(target_os = "linux") && Path::new("/proc").join(pid.to_string()).exists()
+}
+
+/// Removes the temporary files that earlier runs, killed while writing,
+/// left in `dir`: those of processes no longer running. One that cannot be
+/// removed does not stop the write.
+fn remove_stale_temporaries(dir: &Path) {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(temporary_pid) else {
+            continue;
+        };
+        if pid == std::process::id() || process_alive(pid) {
+            continue;
+        }
+        if entry.file_type().is_ok_and(|t| !t.is_dir()) {
+            let _ = fs::remove_file(entry.path());
+        }
+    }
+}
+
+/// Writes one temporary file: a new file (never through an existing link),
+/// the mode and owner of the file it replaces, synced to disk.
+fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Result<()> {
+    let _ = fs::remove_file(temp);
+    let mut file = fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(temp)
+        .map_err(|e| Error::io(temp, "create", e))?;
+    file.write_all(bytes)
+        .map_err(|e| Error::io(temp, "write", e))?;
+    if let Some(meta) = existing {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            // Keeping another user's ownership needs privileges: kept where
+            // possible, else the file belongs to this user.
+            let _ = std::os::unix::fs::fchown(&file, Some(meta.uid()), Some(meta.gid()));
+        }
+        file.set_permissions(meta.permissions())
+            .map_err(|e| Error::io(temp, "set the mode of", e))?;
+    }
+    file.sync_all().map_err(|e| Error::io(temp, "sync", e))
+}
+
+/// Replaces every file of a batch so that a crash or kill never leaves a
+/// torn file:
+/// 1. every target is checked first (a regular file or new, writable, not
+///    read-only; symbolic links resolved to their target); any refusal
+///    fails the batch with every refused file named and nothing written;
+/// 2. stale temporary files of earlier runs are removed from the folders;
+/// 3. each file's bytes go to a temporary file beside its target, keeping
+///    the target's mode (and owner where possible), synced to disk; a
+///    failure removes them all, so nothing was replaced;
+/// 4. only then are they renamed over their targets, one by one;
+/// 5. the folders are synced so the renames last.
+///
+/// A kill during 3 leaves temporary files only (removed by the next run);
+/// a kill during 4 leaves some targets replaced, each whole, and the rest
+/// as they were: running again completes the batch.
+pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
+    let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
+    let mut refused = Vec::new();
+    let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
+    for &(target, bytes) in files {
+        match plan_target(target) {
+            Ok((real, existing)) => {
+                if let Some(first) = claimed.get(&real) {
+                    refused.push((
+                        target.to_path_buf(),
+                        format!(
+                            "is the same file as {}: two outputs would replace it",
+                            first.display()
+                        ),
+                    ));
+                    continue;
+                }
+                claimed.insert(real.clone(), target);
+                planned.push(Planned {
+                    folder: folder_of(&real),
+                    real,
+                    existing,
+                    bytes,
+                });
+            }
+            Err(why) => refused.push((target.to_path_buf(), why)),
+        }
+    }
+    if !refused.is_empty() {
+        return Err(Error::Refused { files: refused });
+    }
+
+    let mut folders: Vec<&Path> = planned.iter().map(|p| p.folder.as_path()).collect();
+    folders.sort();
+    folders.dedup();
+    for folder in &folders {
+        fs::create_dir_all(folder).map_err(|e| Error::io(*folder, "create folder", e))?;
+        remove_stale_temporaries(folder);
+    }
+
+    let mut temporaries: Vec<PathBuf> = Vec::with_capacity(planned.len());
+    for file in &planned {
+        let temp = temporary_path(&file.real);
+        let written = write_temporary(&temp, file.bytes, file.existing.as_ref());
+        temporaries.push(temp);
+        if let Err(err) = written {
+            for temp in &temporaries {
+                let _ = fs::remove_file(temp);
+            }
+            return Err(err);
+        }
+    }
+
+    for (index, (file, temp)) in planned.iter().zip(&temporaries).enumerate() {
+        if let Err(e) = fs::rename(temp, &file.real) {
+            for temp in &temporaries[index..] {
+                let _ = fs::remove_file(temp);
+            }
+            let action = if index == 0 {
+                "replace (nothing was replaced)"
+            } else {
+                "replace (files before it were replaced; run again to complete)"
+            };
+            return Err(Error::io(&file.real, action, e));
+        }
+    }
+
+    // Makes the renames durable. Not every file system can sync a folder;
+    // the files themselves are complete either way.
+    #[cfg(unix)]
+    for folder in &folders {
+        if let Ok(handle) = File::open(folder) {
+            let _ = handle.sync_all();
+        }
     }
     Ok(())
 }
@@ -156,6 +614,221 @@ mod tests {
         assert!(
             message.starts_with("c.chunk:") && message.contains("sets/none.model"),
             "{message}"
+        );
+    }
+
+    #[test]
+    fn names_that_climb_out_are_refused() {
+        for name in ["a/b.model", "./a.model", "x"] {
+            assert!(stays_inside(name), "{name}");
+        }
+        for name in ["", "../a.model", "a/../../b", "a/.."] {
+            assert!(!stays_inside(name), "{name}");
+        }
+        let root = tempfile::tempdir().unwrap();
+        let paths = ResPaths::new(vec![root.path().join("res")]);
+        write_atomic(&root.path().join("secret.model"), b"x").unwrap();
+        let message = paths
+            .read("../secret.model", Path::new("c.chunk"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with("c.chunk:") && message.contains("climbs out"),
+            "{message}"
+        );
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn links_out_of_the_res_paths_are_refused() {
+        let root = tempfile::tempdir().unwrap();
+        let outside = tempfile::tempdir().unwrap();
+        write_atomic(&outside.path().join("b.model"), b"outside").unwrap();
+        write_atomic(&root.path().join("real/c.model"), b"inside").unwrap();
+        std::fs::create_dir_all(root.path().join("sets")).unwrap();
+        std::os::unix::fs::symlink(
+            outside.path().join("b.model"),
+            root.path().join("sets/b.model"),
+        )
+        .unwrap();
+        std::os::unix::fs::symlink(
+            root.path().join("real/c.model"),
+            root.path().join("sets/c.model"),
+        )
+        .unwrap();
+        let paths = ResPaths::new(vec![root.path().into()]);
+        let message = paths
+            .read("sets/b.model", Path::new("c.chunk"))
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("outside every res path"), "{message}");
+        assert_eq!(paths.resolve("sets/b.model"), None);
+        // A link that stays inside the roots is followed.
+        assert_eq!(
+            paths.read("sets/c.model", Path::new("c.chunk")).unwrap().1,
+            b"inside"
+        );
+    }
+
+    #[test]
+    fn reads_stop_one_byte_past_the_cap() {
+        let endless = std::io::repeat(7);
+        assert_eq!(read_at_most(endless, 10, 1 << 40).unwrap().len(), 11);
+        assert_eq!(read_at_most(&b"abc"[..], 10, 3).unwrap(), b"abc");
+    }
+
+    #[test]
+    fn caps_are_per_kind_of_file() {
+        assert_eq!(size_cap(Path::new("a/b.chunk")).0, 64 * MIB);
+        assert_eq!(size_cap(Path::new("b.PRIMITIVES")).0, GIB);
+        assert_eq!(size_cap(Path::new("x.cdata")).0, GIB);
+        assert_eq!(size_cap(Path::new("bake.xml")).0, DEFAULT_SIZE_CAP);
+        // A sparse file one byte over the cap is refused without reading.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("big.chunk");
+        File::create(&path).unwrap().set_len(64 * MIB + 1).unwrap();
+        let message = read_file(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("big.chunk") && message.contains("cap of 64 MiB for .chunk files"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn folders_are_not_read() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("x.chunk")).unwrap();
+        let message = read_file(&dir.path().join("x.chunk"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("is a folder, not a regular file"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn temporary_names_give_their_process() {
+        assert_eq!(temporary_pid(".a.chunk.shadowcull-123.tmp"), Some(123));
+        assert_eq!(
+            temporary_pid(".a.shadowcull-x.chunk.shadowcull-9.tmp"),
+            Some(9)
+        );
+        assert_eq!(temporary_pid("a.chunk.shadowcull-123.tmp"), None);
+        assert_eq!(temporary_pid(".a.chunk.shadowcull-.tmp"), None);
+        assert_eq!(temporary_pid(".a.chunk.shadowcull-1x.tmp"), None);
+        let temp = temporary_path(Path::new("d/x.chunk"));
+        let name = temp.file_name().unwrap().to_str().unwrap();
+        assert_eq!(temporary_pid(name), Some(std::process::id()));
+    }
+
+    /// Names in `dir`, sorted.
+    fn names(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn a_read_only_file_fails_the_whole_batch_before_any_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b, c) = (
+            dir.path().join("a.chunk"),
+            dir.path().join("b.chunk"),
+            dir.path().join("c.chunk"),
+        );
+        for path in [&a, &b, &c] {
+            write_atomic(path, b"old").unwrap();
+        }
+        for path in [&b, &c] {
+            let mut permissions = std::fs::metadata(path).unwrap().permissions();
+            permissions.set_readonly(true);
+            std::fs::set_permissions(path, permissions).unwrap();
+        }
+        let err = write_files(&[(&a, b"new"), (&b, b"new"), (&c, b"new")]).unwrap_err();
+        let message = err.to_string();
+        assert!(
+            message.contains("nothing was written: 2 file(s)")
+                && message.contains("b.chunk: is read-only")
+                && message.contains("c.chunk: is read-only"),
+            "{message}"
+        );
+        for path in [&a, &b, &c] {
+            assert_eq!(std::fs::read(path).unwrap(), b"old");
+        }
+        assert_eq!(names(dir.path()), ["a.chunk", "b.chunk", "c.chunk"]);
+    }
+
+    #[test]
+    fn every_temporary_file_is_written_before_the_first_rename() {
+        // The second file's temporary file cannot be created (a folder
+        // holds its name): the first file must not have been replaced yet.
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.chunk"), dir.path().join("b.chunk"));
+        write_atomic(&a, b"old").unwrap();
+        std::fs::create_dir(temporary_path(&b)).unwrap();
+        assert!(write_files(&[(&a, b"new"), (&b, b"new")]).is_err());
+        assert_eq!(std::fs::read(&a).unwrap(), b"old");
+        assert!(!temporary_path(&a).exists());
+        assert!(!b.exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn mode_is_kept_and_links_are_written_through() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let elsewhere = tempfile::tempdir().unwrap();
+        let real = elsewhere.path().join("real.chunk");
+        write_atomic(&real, b"old").unwrap();
+        std::fs::set_permissions(&real, std::fs::Permissions::from_mode(0o640)).unwrap();
+        let link = dir.path().join("x.chunk");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&real).unwrap(), b"new");
+        assert_eq!(
+            std::fs::metadata(&real).unwrap().permissions().mode() & 0o7777,
+            0o640
+        );
+        assert_eq!(names(dir.path()), ["x.chunk"]);
+        assert_eq!(names(elsewhere.path()), ["real.chunk"]);
+        // Two links to one file in one batch: refused.
+        let second = dir.path().join("y.chunk");
+        std::os::unix::fs::symlink(&real, &second).unwrap();
+        let message = write_files(&[(&link, b"1"), (&second, b"2")])
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("is the same file as"), "{message}");
+        // A dangling link: refused.
+        std::fs::remove_file(&real).unwrap();
+        let message = write_atomic(&link, b"x").unwrap_err().to_string();
+        assert!(
+            message.contains("symbolic link that cannot be followed"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn stale_temporary_files_of_dead_runs_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        // No process has this id (above Linux's pid_max, 2^22).
+        let stale = dir.path().join(".x.chunk.shadowcull-4194305.tmp");
+        let other = dir.path().join(".x.chunk.shadowcull-4194305.keep");
+        std::fs::write(&stale, b"half").unwrap();
+        std::fs::write(&other, b"not ours").unwrap();
+        write_atomic(&dir.path().join("x.chunk"), b"new").unwrap();
+        assert!(!stale.exists());
+        assert!(other.exists());
+        assert_eq!(
+            names(dir.path()),
+            [".x.chunk.shadowcull-4194305.keep", "x.chunk"]
         );
     }
 

@@ -4,7 +4,7 @@
 //! missing resource, not just the first); only a world that cannot be read
 //! at all (no settings, no chunks) is an error.
 
-use super::{Chunk, Group, Instance, Model, Problem, Scene, TerrainBlock};
+use super::{Chunk, Group, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::error::{Error, Result};
 use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
@@ -54,14 +54,27 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 
     // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
     // space.settings says <singleDir>.
-    let chunk_files = resources::find_files_in(&space_dir, ".chunk", !settings.single_dir)?;
+    // Entries that are not regular files (a FIFO, a link to a device) are
+    // never opened: each is a problem.
+    let walk = resources::walk(&space_dir, ".chunk", !settings.single_dir)?;
+    let chunk_files = walk.files;
+    let mut problems: Vec<Problem> = walk
+        .refused
+        .into_iter()
+        .map(|(path, err)| Problem {
+            what: path.display().to_string(),
+            why: format!("{err}; ignored"),
+        })
+        .collect();
     if chunk_files.is_empty() {
         return Err(Error::invalid(
             &space_dir,
-            "the space holds no .chunk files: nothing to bake",
+            match problems.first() {
+                None => "the space holds no .chunk files: nothing to bake".to_string(),
+                Some(p) => format!("the space holds no readable .chunk file: {}", p.why),
+            },
         ));
     }
-    let mut problems = Vec::new();
     let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
         .par_iter()
         .map(|path| {
@@ -155,6 +168,12 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         }
     }
 
+    let region = SpaceRegion::of(&settings);
+    let model_bounds: Vec<Option<(DVec3, DVec3)>> = models
+        .iter()
+        .map(|m| m.bounds().map(|(a, b)| (a.as_dvec3(), b.as_dvec3())))
+        .collect();
+
     let mut chunks = Vec::new();
     let mut instances = Vec::new();
     let mut terrain = Vec::new();
@@ -206,11 +225,32 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
                     });
                     continue;
                 }
-                let parts = element
+                let parts: Vec<Option<usize>> = element
                     .resources
                     .iter()
                     .map(|r| model_names.get(&resources::normalise(r)).copied())
                     .collect();
+                // The box of the parts that loaded, or the placement's
+                // origin when none did.
+                let (min, max) = parts
+                    .iter()
+                    .flatten()
+                    .filter_map(|&m| model_bounds[m])
+                    .map(|(min, max)| world_box(&world, min, max))
+                    .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+                    .unwrap_or((world.w_axis.truncate(), world.w_axis.truncate()));
+                if !region.contains(min, max) {
+                    problems.push(Problem {
+                        what: format!(
+                            "{} <{}[{}]/transform>",
+                            path.display(),
+                            element.kind.tag(),
+                            element.index
+                        ),
+                        why: region.stray_reason(min, max),
+                    });
+                    continue;
+                }
                 instances.push(Instance {
                     chunk: chunk_index,
                     index: element.index,
@@ -247,6 +287,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .into_par_iter()
         .map(|(chunk, chunk_path, resource, transform)| {
             let block = load_terrain(
+                &config.res_paths,
                 &chunk_path,
                 &resource,
                 transform.w_axis.truncate(),
@@ -257,6 +298,13 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .collect();
     for (chunk, block) in blocks {
         match block {
+            Ok(block) if !region.contains(block.bounds().0, block.bounds().1) => {
+                let (min, max) = block.bounds();
+                problems.push(Problem {
+                    what: format!("{} <terrain>", chunks[chunk].file.display()),
+                    why: region.stray_reason(min, max),
+                });
+            }
             Ok(block) => {
                 chunks[chunk].terrain = Some(terrain.len());
                 terrain.push(block);
@@ -292,9 +340,26 @@ pub(crate) fn read_section(path: &Path) -> Result<formats::Section> {
     formats::parse_data_section(&bytes).map_err(|e| e.in_file(path))
 }
 
+/// The box around a model-space box placed by `m`.
+fn world_box(m: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
+    (0..8)
+        .map(|corner| {
+            m.transform_point3(DVec3::new(
+                if corner & 1 == 0 { min.x } else { max.x },
+                if corner & 2 == 0 { min.y } else { max.y },
+                if corner & 4 == 0 { min.z } else { max.z },
+            ))
+        })
+        .fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), p| (lo.min(p), hi.max(p)),
+        )
+}
+
 /// A chunk's terrain resource (`xxx.cdata/terrain2`) is relative to the
-/// chunk's folder.
+/// chunk's folder; like every resource it must stay inside the res paths.
 fn load_terrain(
+    res_paths: &ResPaths,
     chunk_path: &Path,
     resource: &str,
     origin: DVec3,
@@ -310,6 +375,12 @@ fn load_terrain(
             format!("terrain resource `{resource}` does not name a .cdata entry (expected `NAME.cdata/terrain2`)"),
         ));
     };
+    if !resources::stays_inside(&file) {
+        return Err(Error::invalid(
+            chunk_path,
+            format!("terrain resource `{resource}` climbs out of the chunk's folder (`..` or a drive prefix); refused: name the .cdata relative to the chunk"),
+        ));
+    }
     let dir = chunk_path.parent().unwrap_or(Path::new("."));
     // Engines write the name relative to the chunk folder; some tools write
     // it with the space folder prefixed, so the bare file name is tried too.
@@ -319,6 +390,7 @@ fn load_terrain(
             cdata_path = dir.join(name);
         }
     }
+    res_paths.check_inside(&cdata_path)?;
     let bytes = resources::read_file(&cdata_path)?;
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
     TerrainBlock::new(&data, origin, chunk_size)

@@ -7,7 +7,7 @@ pub mod terrain;
 
 use crate::formats::chunk::InstanceKind;
 use crate::formats::space_settings::SpaceSettings;
-use glam::{DMat4, Vec3};
+use glam::{DMat4, DVec3, Vec3};
 use std::ops::Range;
 use std::path::PathBuf;
 
@@ -28,6 +28,62 @@ pub struct Scene {
     pub terrain: Vec<TerrainBlock>,
     /// What could not be loaded and was left out, in a stable order.
     pub problems: Vec<Problem>,
+}
+
+/// How far, in chunks, geometry may reach beyond the space's chunk grid
+/// (horizontally) before it is a stray placement.
+pub const STRAY_MARGIN_CHUNKS: f64 = 1.0;
+
+/// How far above or below height 0 geometry may reach, in metres, before it
+/// is a stray placement (real terrain spans a few kilometres).
+pub const STRAY_HEIGHT_LIMIT: f64 = 10_000.0;
+
+/// Where the geometry of a space may lie: its chunk grid (the space.settings
+/// bounds × the chunk size) grown by [`STRAY_MARGIN_CHUNKS`] on every side,
+/// and heights within ±[`STRAY_HEIGHT_LIMIT`]. A placement whose world box
+/// is not inside is *far outside the space*: a problem, left out (one bad
+/// transform must not stretch a light's grid to the size of its error).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpaceRegion {
+    pub min: DVec3,
+    pub max: DVec3,
+}
+
+impl SpaceRegion {
+    pub fn of(settings: &SpaceSettings) -> SpaceRegion {
+        let size = settings.chunk_size;
+        let margin = STRAY_MARGIN_CHUNKS * size;
+        SpaceRegion {
+            min: DVec3::new(
+                f64::from(settings.min_x) * size - margin,
+                -STRAY_HEIGHT_LIMIT,
+                f64::from(settings.min_z) * size - margin,
+            ),
+            max: DVec3::new(
+                f64::from(settings.max_x + 1) * size + margin,
+                STRAY_HEIGHT_LIMIT,
+                f64::from(settings.max_z + 1) * size + margin,
+            ),
+        }
+    }
+
+    /// The box `min`–`max` lies inside (and is finite).
+    pub fn contains(&self, min: DVec3, max: DVec3) -> bool {
+        min.is_finite() && max.is_finite() && min.cmpge(self.min).all() && max.cmple(self.max).all()
+    }
+
+    /// The box reaches into the region's horizontal extent at all.
+    pub fn overlaps_horizontally(&self, min: DVec3, max: DVec3) -> bool {
+        min.x <= self.max.x && max.x >= self.min.x && min.z <= self.max.z && max.z >= self.min.z
+    }
+
+    /// Why a box that is not inside is a stray placement, for the problem.
+    pub fn stray_reason(&self, min: DVec3, max: DVec3) -> String {
+        format!(
+            "far outside the space: its world box ({:.1}, {:.1}, {:.1})–({:.1}, {:.1}, {:.1}) m leaves the region geometry may occupy (the space's chunks grown by {STRAY_MARGIN_CHUNKS} chunk: x {:.1}..{:.1}, z {:.1}..{:.1}; heights ±{STRAY_HEIGHT_LIMIT} m); a stray transform? left out",
+            min.x, min.y, min.z, max.x, max.y, max.z, self.min.x, self.max.x, self.min.z, self.max.z
+        )
+    }
 }
 
 /// Something left out of the scene, with the file (and element) it came
@@ -147,6 +203,11 @@ pub struct Stats {
 }
 
 impl Scene {
+    /// Where the space's geometry may lie (see [`SpaceRegion`]).
+    pub fn region(&self) -> SpaceRegion {
+        SpaceRegion::of(&self.settings)
+    }
+
     /// Counts over placed instances: a model placed twice counts its groups
     /// and triangles twice; `models` counts distinct resources in use.
     pub fn stats(&self) -> Stats {

@@ -1,0 +1,590 @@
+//! Files that are not files, stray placements, paths out of the res roots,
+//! locked and linked chunks, interrupted runs (issue 16). Each test fails on
+//! the code before that issue.
+
+use shadowcull::bake::{self, output, BakeConfig, Silent};
+use shadowcull::formats::read_bake_settings;
+use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
+use shadowcull::scene::{load_scene, LoadConfig, Problem, Scene};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant, SystemTime};
+use tempfile::TempDir;
+
+const SPACE: &str = "spaces/small";
+const CHUNK: &str = "spaces/small/00000000o.chunk";
+
+fn small_world() -> TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &generate(Preset::Small, 1).files).unwrap();
+    dir
+}
+
+fn load(dir: &Path) -> Scene {
+    let settings = read_bake_settings(&dir.join(SETTINGS_FILE)).unwrap();
+    load_scene(&LoadConfig {
+        res_paths: ResPaths::new(settings.res_paths),
+        space: settings.space,
+    })
+    .unwrap()
+}
+
+fn replace_text(dir: &Path, file: &str, from: &str, to: &str) {
+    let path = dir.join(file);
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains(from), "{file} holds no `{from}`");
+    std::fs::write(path, text.replacen(from, to, 1)).unwrap();
+}
+
+fn problem<'a>(scene: &'a Scene, what_contains: &str) -> &'a Problem {
+    scene
+        .problems
+        .iter()
+        .find(|p| p.what.contains(what_contains))
+        .unwrap_or_else(|| panic!("no problem about {what_contains}: {:#?}", scene.problems))
+}
+
+/// Runs the binary, killing it and failing when it takes longer than
+/// `limit` (a hang).
+fn run_bounded(args: &[&str], limit: Duration) -> Output {
+    run_command_bounded(
+        Command::new(env!("CARGO_BIN_EXE_shadowcull")).args(args),
+        limit,
+    )
+}
+
+fn run_command_bounded(command: &mut Command, limit: Duration) -> Output {
+    let mut child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run shadowcull");
+    let started = Instant::now();
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            return child.wait_with_output().unwrap();
+        }
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{command:?} still ran after {limit:?}: it hangs");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// Every file under `dir` (not following links to folders): bytes and
+/// modification time, by path; links as their target path.
+fn snapshot(dir: &Path) -> BTreeMap<PathBuf, (Vec<u8>, Option<SystemTime>)> {
+    let mut files = BTreeMap::new();
+    let mut pending = vec![dir.to_path_buf()];
+    while let Some(dir) = pending.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let entry = entry.unwrap();
+            let path = entry.path();
+            let kind = entry.file_type().unwrap();
+            if kind.is_dir() {
+                pending.push(path);
+            } else if kind.is_symlink() {
+                let target = std::fs::read_link(&path).unwrap();
+                files.insert(path, (target.to_string_lossy().as_bytes().to_vec(), None));
+            } else if kind.is_file() {
+                let modified = entry.metadata().unwrap().modified().ok();
+                files.insert(path, (std::fs::read(entry.path()).unwrap(), modified));
+            }
+        }
+    }
+    files
+}
+
+/// Temporary files of the write path anywhere under `dir`.
+fn temporaries(dir: &Path) -> Vec<PathBuf> {
+    snapshot(dir)
+        .into_keys()
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.contains(".shadowcull-"))
+        })
+        .collect()
+}
+
+/// The bake settings of the small world with coarse lights (the tests here
+/// are about files, not rays).
+fn coarse_settings(dir: &Path) -> PathBuf {
+    let path = dir.join(SETTINGS_FILE);
+    replace_text(dir, SETTINGS_FILE, "0.195312", "1.000000");
+    replace_text(dir, SETTINGS_FILE, "\t512\t", "\t64\t");
+    replace_text(dir, SETTINGS_FILE, "\t256\t", "\t32\t");
+    path
+}
+
+fn bake_in_place(settings: &Path) -> Output {
+    run_bounded(
+        &["bake", settings.to_str().unwrap()],
+        Duration::from_secs(120),
+    )
+}
+
+// ---------------------------------------------------------------------------
+// 1. Files that are not files.
+
+#[cfg(unix)]
+fn mkfifo(path: &Path) {
+    let status = Command::new("mkfifo").arg(path).status().expect("mkfifo");
+    assert!(status.success(), "mkfifo {}", path.display());
+}
+
+#[cfg(unix)]
+#[test]
+fn fifo_chunk_and_cdata_are_problems_not_hangs() {
+    // `mkfifo W/spaces/small/x.chunk` used to block inspect and bake
+    // forever (opening a FIFO waits for a writer).
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let space = dir.path().join(SPACE);
+    mkfifo(&space.join("x.chunk"));
+    std::fs::remove_file(space.join("0000ffffo.cdata")).unwrap();
+    mkfifo(&space.join("0000ffffo.cdata"));
+
+    let output = run_bounded(
+        &["inspect", settings.to_str().unwrap(), "--json"],
+        Duration::from_secs(60),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let problems = json["problems"].as_array().unwrap();
+    let about = |what: &str| {
+        problems
+            .iter()
+            .find(|p| p["what"].as_str().unwrap().ends_with(what))
+            .unwrap_or_else(|| panic!("no problem about {what}: {problems:#?}"))["why"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    assert!(about("x.chunk").contains("is a FIFO (named pipe), not a regular file"));
+    assert!(about("0000ffffo.chunk <terrain>").contains("0000ffffo.cdata: is a FIFO"));
+    assert_eq!(json["chunks"], 4);
+    assert_eq!(json["terrain_blocks"], 3);
+
+    let out = tempfile::tempdir().unwrap();
+    let output = run_bounded(
+        &[
+            "bake",
+            settings.to_str().unwrap(),
+            "--out",
+            out.path().to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert!(text(&output.stderr).contains("problems"));
+}
+
+#[cfg(unix)]
+#[test]
+fn links_to_dev_zero_and_oversized_files_are_refused_without_reading() {
+    // A chunk linked to /dev/zero used to be read until memory ran out.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let space = dir.path().join(SPACE);
+    std::os::unix::fs::symlink("/dev/zero", space.join("zero.chunk")).unwrap();
+    std::fs::remove_file(space.join("ffff0000o.cdata")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", space.join("ffff0000o.cdata")).unwrap();
+    // A 1 GiB + 1 byte terrain file (sparse: nothing is stored).
+    let huge = std::fs::File::create(space.join("ffffffffo.cdata")).unwrap();
+    huge.set_len((1 << 30) + 1).unwrap();
+    drop(huge);
+
+    let output = run_bounded(
+        &["inspect", settings.to_str().unwrap()],
+        Duration::from_secs(60),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let report = text(&output.stdout);
+    for expected in [
+        "zero.chunk: is a character device (through a symbolic link), not a regular file",
+        // Terrain files must lie inside the res roots: refused before that.
+        "ffff0000o.cdata: leads to /dev/zero, outside every res path",
+        "ffffffffo.cdata: holds 1073741825 bytes, more than the cap of 1024 MiB for .cdata files",
+    ] {
+        assert!(report.contains(expected), "no `{expected}` in\n{report}");
+    }
+    let scene = load(dir.path());
+    assert_eq!((scene.chunks.len(), scene.terrain.len()), (4, 2));
+}
+
+// ---------------------------------------------------------------------------
+// 3. One stray placement.
+
+#[test]
+fn a_stray_placement_is_a_problem_and_the_sun_grid_stays_the_space() {
+    // The issue's edit: model 0's <row3> moved 2^31 m along z made every
+    // light fail ("the shadow map would be 1 × 3103009112 × 10343362205
+    // texels") while inspect said "no problems". Model 1 lifted 20 km.
+    let clean = small_world();
+    let stray = small_world();
+    replace_text(
+        stray.path(),
+        CHUNK,
+        "0.000000 -0.941000 0.000000",
+        "0 -0.941 -2147483649",
+    );
+    replace_text(
+        stray.path(),
+        CHUNK,
+        "16.000000 -0.371000 4.000000",
+        "16 20000 4",
+    );
+    let clean_scene = load(clean.path());
+    let scene = load(stray.path());
+    for element in ["model[0]/transform", "model[1]/transform"] {
+        let problem = problem(&scene, &format!("00000000o.chunk <{element}>"));
+        assert!(
+            problem
+                .why
+                .starts_with("far outside the space: its world box")
+                && problem.why.contains("x -100.0..100.0, z -100.0..100.0"),
+            "{problem:?}"
+        );
+    }
+    assert_eq!(scene.problems.len(), 2, "{:#?}", scene.problems);
+    assert_eq!(scene.instances.len() + 2, clean_scene.instances.len());
+    let inspection = shadowcull::inspect::inspect(&scene).to_text();
+    assert!(
+        inspection.contains("2 problem(s)") && inspection.contains("far outside the space"),
+        "{inspection}"
+    );
+
+    let settings = read_bake_settings(&stray.path().join(SETTINGS_FILE)).unwrap();
+    let mut config = BakeConfig::from_settings(&settings);
+    config.lights.truncate(1);
+    let baked = bake::bake(&scene, &config, &Silent).expect("the bake runs");
+    let clean_baked = bake::bake(&clean_scene, &config, &Silent).unwrap();
+    // The sun's grid covers the same ground as without the stray house.
+    assert_eq!(baked.lights[0].rays, clean_baked.lights[0].rays);
+    assert!(baked.lights[0].rays < 1_000_000);
+    for element in ["model[0]/transform", "model[1]/transform"] {
+        assert!(
+            baked
+                .skipped
+                .iter()
+                .any(|s| s.what.contains(element) && s.why.contains("far outside")),
+            "{:#?}",
+            baked.skipped
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------
+// 4. Paths out of the res roots.
+
+#[test]
+fn terrain_resource_climbing_out_of_the_res_roots_is_refused() {
+    let dir = small_world();
+    let outside = tempfile::tempdir().unwrap();
+    std::fs::copy(
+        dir.path().join("spaces/small/00000000o.cdata"),
+        outside.path().join("evil.cdata"),
+    )
+    .unwrap();
+    let climb = format!(
+        "{}{}/evil.cdata/terrain2",
+        "../".repeat(12),
+        outside.path().display().to_string().trim_start_matches('/')
+    );
+    replace_text(dir.path(), CHUNK, "00000000o.cdata/terrain2", &climb);
+    // An absolute name is taken relative to the chunk's folder, where no
+    // such file is: not found, never read from outside.
+    let absolute = format!("{}/evil.cdata/terrain2", outside.path().display());
+    replace_text(
+        dir.path(),
+        "spaces/small/0000ffffo.chunk",
+        "0000ffffo.cdata/terrain2",
+        &absolute,
+    );
+    let scene = load(dir.path());
+    let climbed = problem(&scene, "00000000o.chunk <terrain>");
+    assert!(
+        climbed.why.contains("00000000o.chunk")
+            && climbed.why.contains("climbs out of the chunk's folder"),
+        "{climbed:?}"
+    );
+    let absolute = problem(&scene, "0000ffffo.chunk <terrain>");
+    assert!(
+        absolute.why.contains("spaces/small/evil.cdata"),
+        "{absolute:?}"
+    );
+    assert_eq!(scene.terrain.len(), 2);
+}
+
+#[cfg(unix)]
+#[test]
+fn links_leading_out_of_the_res_roots_are_refused() {
+    let dir = small_world();
+    let outside = tempfile::tempdir().unwrap();
+    for (from, to) in [
+        ("spaces/small/ffffffffo.cdata", "evil.cdata"),
+        ("sets/gen/props/crate.model", "crate.model"),
+    ] {
+        let inside = dir.path().join(from);
+        std::fs::rename(&inside, outside.path().join(to)).unwrap();
+        std::os::unix::fs::symlink(outside.path().join(to), &inside).unwrap();
+    }
+    let scene = load(dir.path());
+    let terrain = problem(&scene, "ffffffffo.chunk <terrain>");
+    assert!(
+        terrain.why.contains("outside every res path"),
+        "{terrain:?}"
+    );
+    let model = problem(&scene, "sets/gen/props/crate.model");
+    assert!(model.why.contains("outside every res path"), "{model:?}");
+    assert_eq!(scene.terrain.len(), 3);
+}
+
+// ---------------------------------------------------------------------------
+// 5. Locked and linked chunks.
+
+#[test]
+fn read_only_chunks_are_refused_and_nothing_is_written() {
+    // Perforce leaves files not checked out read-only (0444); the bake used
+    // to replace them with writable files, even as a non-root user.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    for chunk in ["00000000o.chunk", "ffffffffo.chunk"] {
+        let path = dir.path().join(SPACE).join(chunk);
+        let mut permissions = std::fs::metadata(&path).unwrap().permissions();
+        permissions.set_readonly(true);
+        std::fs::set_permissions(&path, permissions).unwrap();
+    }
+    let before = snapshot(dir.path());
+    let output = bake_in_place(&settings);
+    assert_eq!(output.status.code(), Some(1), "{}", text(&output.stderr));
+    let stderr = text(&output.stderr);
+    assert!(
+        stderr.contains("nothing was written: 2 file(s) cannot be replaced"),
+        "{stderr}"
+    );
+    for chunk in ["00000000o.chunk", "ffffffffo.chunk"] {
+        assert!(
+            stderr.contains(&format!("{chunk}: is read-only (mode 0444)")),
+            "{stderr}"
+        );
+    }
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+}
+
+/// The effective user is root (who can chown and drop privileges).
+#[cfg(unix)]
+fn running_as_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| text(&o.stdout).trim() == "0")
+}
+
+#[cfg(unix)]
+#[test]
+fn a_non_root_user_cannot_replace_locked_or_foreign_chunks() {
+    // As root, run the bake as `nobody` (uid 65534) on a world nobody owns,
+    // with one chunk 0444 and one owned by root (0644: nobody cannot write
+    // it). As a non-root user the test above already runs as non-root.
+    let setpriv = Path::new("/usr/bin/setpriv");
+    if !running_as_root() || !setpriv.exists() {
+        eprintln!("NOT RUN: a_non_root_user_cannot_replace_locked_or_foreign_chunks needs root and setpriv (as non-root, read_only_chunks_are_refused_and_nothing_is_written covers it)");
+        return;
+    }
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let chown = |owner: &str, path: &Path, recursive: bool| {
+        let mut command = Command::new("chown");
+        if recursive {
+            command.arg("-R");
+        }
+        assert!(command.arg(owner).arg(path).status().unwrap().success());
+    };
+    chown("65534:65534", dir.path(), true);
+    let locked = dir.path().join(SPACE).join("00000000o.chunk");
+    let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
+    permissions.set_readonly(true);
+    std::fs::set_permissions(&locked, permissions).unwrap();
+    chown(
+        "0:0",
+        &dir.path().join(SPACE).join("0000ffffo.chunk"),
+        false,
+    );
+
+    let before = snapshot(dir.path());
+    let output = run_command_bounded(
+        Command::new(setpriv)
+            .args([
+                "--reuid=65534",
+                "--regid=65534",
+                "--clear-groups",
+                env!("CARGO_BIN_EXE_shadowcull"),
+                "bake",
+            ])
+            .arg(&settings),
+        Duration::from_secs(120),
+    );
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("00000000o.chunk: is read-only (mode 0444)")
+            && stderr.contains("0000ffffo.chunk: cannot be written by this user (mode 0644"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("2 file(s) cannot be replaced"), "{stderr}");
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+}
+
+#[cfg(unix)]
+#[test]
+fn a_linked_chunk_is_written_through_and_modes_and_owners_are_kept() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    let reference = small_world();
+    let reference_settings = coarse_settings(reference.path());
+    let output = bake_in_place(&reference_settings);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let space = dir.path().join(SPACE);
+    // 00000000o.chunk: a link to a file in another folder (a shared
+    // checkout); ffffffffo.chunk: mode 0640; 0000ffffo.chunk (as root):
+    // owned by uid/gid 12345.
+    let store = tempfile::tempdir().unwrap();
+    let target = store.path().join("00000000o.chunk");
+    std::fs::rename(space.join("00000000o.chunk"), &target).unwrap();
+    std::os::unix::fs::symlink(&target, space.join("00000000o.chunk")).unwrap();
+    std::fs::set_permissions(
+        space.join("ffffffffo.chunk"),
+        std::fs::Permissions::from_mode(0o640),
+    )
+    .unwrap();
+    let root = running_as_root();
+    if root {
+        std::os::unix::fs::chown(space.join("0000ffffo.chunk"), Some(12345), Some(12345)).unwrap();
+    }
+    let output = bake_in_place(&settings);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+
+    let link = std::fs::symlink_metadata(space.join("00000000o.chunk")).unwrap();
+    assert!(link.file_type().is_symlink(), "the link is still a link");
+    let baked = |world: &Path, chunk: &str| std::fs::read(world.join(SPACE).join(chunk)).unwrap();
+    assert_eq!(
+        std::fs::read(&target).unwrap(),
+        baked(reference.path(), "00000000o.chunk"),
+        "the link's target holds the baked chunk"
+    );
+    for chunk in ["0000ffffo.chunk", "ffffffffo.chunk"] {
+        assert_eq!(baked(dir.path(), chunk), baked(reference.path(), chunk));
+    }
+    let mode = std::fs::metadata(space.join("ffffffffo.chunk"))
+        .unwrap()
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o7777, 0o640);
+    if root {
+        let meta = std::fs::metadata(space.join("0000ffffo.chunk")).unwrap();
+        assert_eq!((meta.uid(), meta.gid()), (12345, 12345));
+    } else {
+        eprintln!("NOT RUN: the owner part of a_linked_chunk_is_written_through_and_modes_and_owners_are_kept needs root");
+    }
+    assert!(temporaries(dir.path()).is_empty());
+    assert!(temporaries(store.path()).is_empty());
+}
+
+// ---------------------------------------------------------------------------
+// 6. Interrupted runs.
+
+#[test]
+fn a_rerun_removes_stale_temporaries_and_completes_an_interrupted_bake() {
+    // What a kill during the renames leaves: some chunks baked, the others
+    // as they were, and the temporary files of those others. A re-run
+    // removes the temporaries and gives the same files as one whole bake.
+    let whole = small_world();
+    let output = bake_in_place(&coarse_settings(whole.path()));
+    assert!(output.status.success(), "{}", text(&output.stderr));
+
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let output = bake_in_place(&settings);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let generated = generate(Preset::Small, 1);
+    // No process has this id (above Linux's pid_max, 2^22).
+    let dead = 4_194_305;
+    for chunk in ["ffff0000o.chunk", "ffffffffo.chunk"] {
+        let relative = format!("{SPACE}/{chunk}");
+        let path = dir.path().join(&relative);
+        let baked = std::fs::read(&path).unwrap();
+        let original = generated.file(&relative).unwrap();
+        assert_ne!(baked, original, "the bake changes {chunk}");
+        std::fs::write(&path, original).unwrap();
+        let temp = dir
+            .path()
+            .join(SPACE)
+            .join(format!(".{chunk}.shadowcull-{dead}.tmp"));
+        std::fs::write(temp, &baked[..baked.len() / 2]).unwrap();
+    }
+    assert_eq!(temporaries(dir.path()).len(), 2);
+
+    let output = bake_in_place(&settings);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert!(
+        text(&output.stdout).contains("wrote 2 of 4 chunk files in place"),
+        "{}",
+        text(&output.stdout)
+    );
+    assert!(
+        temporaries(dir.path()).is_empty(),
+        "stale temporaries removed"
+    );
+    let chunks = |world: &Path| {
+        snapshot(&world.join(SPACE))
+            .into_iter()
+            .map(|(path, (bytes, _))| (path.file_name().unwrap().to_owned(), bytes))
+            .collect::<BTreeMap<_, _>>()
+    };
+    assert_eq!(chunks(dir.path()), chunks(whole.path()));
+}
+
+// ---------------------------------------------------------------------------
+// The library's write path, as `bake --out` uses it.
+
+#[test]
+fn bake_out_refuses_a_read_only_target_before_writing_any() {
+    let dir = small_world();
+    let out = tempfile::tempdir().unwrap();
+    let scene = load(dir.path());
+    let settings = read_bake_settings(&dir.path().join(SETTINGS_FILE)).unwrap();
+    let mut config = BakeConfig::from_settings(&settings);
+    config.lights.truncate(1);
+    let result = bake::bake(&scene, &config, &Silent).unwrap();
+    let res_paths = ResPaths::new(settings.res_paths);
+    let outputs = output::chunk_outputs(&scene, &result, &res_paths, Some(out.path())).unwrap();
+    // An old output, locked.
+    let locked = out.path().join(SPACE).join("ffffffffo.chunk");
+    std::fs::create_dir_all(locked.parent().unwrap()).unwrap();
+    std::fs::write(&locked, b"old").unwrap();
+    let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
+    permissions.set_readonly(true);
+    std::fs::set_permissions(&locked, permissions).unwrap();
+    let message = output::write_outputs(&outputs).unwrap_err().to_string();
+    assert!(
+        message.contains("ffffffffo.chunk: is read-only"),
+        "{message}"
+    );
+    assert_eq!(
+        snapshot(out.path()).len(),
+        1,
+        "only the locked file is there"
+    );
+}
