@@ -492,3 +492,36 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
         }
     }
 }
+
+#[test]
+fn streamed_generation_equals_the_in_memory_one_and_any_size_loads() {
+    use crate::formats::resources::{write_tree, ResPaths};
+    use crate::scene::{load_scene, LoadConfig};
+    let world = generate(Preset::Village, 3);
+    let mut streamed = Vec::new();
+    let expected = generate_each(WorldSize::Preset(Preset::Village), 3, |path, bytes| {
+        streamed.push((path.to_string(), bytes));
+        Ok::<(), ()>(())
+    })
+    .unwrap();
+    streamed.sort();
+    assert_eq!(streamed, world.files);
+    assert_eq!(expected, world.expected);
+
+    let dir = tempfile::tempdir().unwrap();
+    let expected = generate_each(WorldSize::BenchChunks(2), 1, |path, bytes| {
+        write_tree(dir.path(), &[(path.to_string(), bytes)])
+    })
+    .unwrap();
+    assert_eq!((expected.chunks, expected.terrain_blocks), (4, 4));
+    assert!(expected.instances >= 4 * 300, "{expected:?}");
+    let scene = load_scene(&LoadConfig {
+        res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
+        space: "spaces/bench".into(),
+    })
+    .unwrap();
+    assert!(scene.problems.is_empty(), "{:?}", scene.problems);
+    assert_eq!(scene.stats().instances as u64, expected.instances);
+    assert_eq!(scene.stats().triangles as u64, expected.triangles);
+    assert!(scene.terrain.iter().all(|b| b.cells() == (128, 128)));
+}
