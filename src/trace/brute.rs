@@ -2,7 +2,7 @@
 //! the same triangle test and the same callback contract, so the two can be
 //! compared hit for hit (SPEC §7).
 
-use super::triangle::{hit_t, PreparedRay};
+use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};
 
 /// Calls `on_hit` for every triangle the ray crosses with
@@ -18,25 +18,12 @@ pub fn brute_force_hits(
     if !prepared.is_valid() {
         return;
     }
-    let t_min = ray.t_min;
     let mut t_max = ray.t_max;
     for (index, tri) in triangles.iter().enumerate().take(super::bvh::MAX_TRIANGLES) {
         if !tri.is_usable() {
             continue;
         }
-        if let Some((t, back_facing)) = hit_t(&prepared, tri) {
-            if t >= t_min && t <= t_max {
-                let next = on_hit(Hit {
-                    t,
-                    triangle: index as u32,
-                    caster: tri.caster,
-                    back_facing,
-                });
-                if next < t_max {
-                    t_max = next;
-                }
-            }
-        }
+        t_max = report_hit(&prepared, tri, index as u32, t_max, &mut on_hit);
     }
 }
 
@@ -55,19 +42,7 @@ pub(crate) fn bvh_triangles_hits(
         return t_max;
     }
     for (index, tri) in bvh.triangles() {
-        if let Some((t, back_facing)) = hit_t(&prepared, tri) {
-            if t >= ray.t_min && t <= t_max {
-                let next = on_hit(Hit {
-                    t,
-                    triangle: index,
-                    caster: tri.caster,
-                    back_facing,
-                });
-                if next < t_max {
-                    t_max = next;
-                }
-            }
-        }
+        t_max = report_hit(&prepared, tri, index, t_max, on_hit);
     }
     t_max
 }

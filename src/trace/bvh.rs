@@ -4,7 +4,7 @@
 //! camera view builds one over a flat list of world triangles.
 
 use super::boxtree::BoxTree;
-use super::triangle::{hit_t, PreparedRay};
+use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};
 use glam::{Vec3, Vec3A};
 use obvhs::aabb::Aabb;
@@ -101,23 +101,10 @@ impl Bvh {
             return t_max;
         }
         let mut t_max = t_max;
-        let t_min = ray.t_min;
         let segment = TraceRay { t_max, ..*ray };
         self.tree.visit(&segment, |slot, _, _| {
             let entry = &self.triangles[slot];
-            if let Some((t, back_facing)) = hit_t(&prepared, &entry.tri) {
-                if t >= t_min && t <= t_max {
-                    let next = on_hit(Hit {
-                        t,
-                        triangle: entry.index,
-                        caster: entry.tri.caster,
-                        back_facing,
-                    });
-                    if next < t_max {
-                        t_max = next;
-                    }
-                }
-            }
+            t_max = report_hit(&prepared, &entry.tri, entry.index, t_max, on_hit);
             t_max
         });
         t_max

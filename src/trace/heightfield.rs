@@ -13,7 +13,7 @@
 //! padded like tree nodes, so the hits are those of testing every cell.
 
 use super::boxtree::BoxRay;
-use super::triangle::{hit_t, PreparedRay};
+use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};
 use glam::{DVec3, Vec3};
 
@@ -114,19 +114,8 @@ impl HeightGrid<'_> {
                 vertices: triangle.map(|p| (p - reference).as_vec3()),
                 caster,
             };
-            if let Some((t, back_facing)) = hit_t(prepared, &tri) {
-                if t >= prepared.t_min && t <= t_max {
-                    let next = on_hit(Hit {
-                        t,
-                        triangle: ((cz * self.cells_x + cx) * 2 + k) as u32,
-                        caster,
-                        back_facing,
-                    });
-                    if next < t_max {
-                        t_max = next;
-                    }
-                }
-            }
+            let index = ((cz * self.cells_x + cx) * 2 + k) as u32;
+            t_max = report_hit(prepared, &tri, index, t_max, on_hit);
         }
         t_max
     }

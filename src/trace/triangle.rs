@@ -119,6 +119,33 @@ pub fn intersect(ray: &PreparedRay, tri: &TraceTriangle) -> Option<(f32, bool)> 
     (t >= ray.t_min && t <= ray.t_max).then_some((t, back))
 }
 
+/// One triangle of a multi-hit traversal: if the ray crosses it within
+/// `[t_min, t_max]`, reports the hit (`index`: the caller's triangle number)
+/// and returns the caller's new t_max (a larger or NaN answer is ignored).
+#[inline(always)]
+pub(crate) fn report_hit(
+    ray: &PreparedRay,
+    tri: &TraceTriangle,
+    index: u32,
+    t_max: f32,
+    on_hit: &mut impl FnMut(super::Hit) -> f32,
+) -> f32 {
+    if let Some((t, back_facing)) = hit_t(ray, tri) {
+        if t >= ray.t_min && t <= t_max {
+            let next = on_hit(super::Hit {
+                t,
+                triangle: index,
+                caster: tri.caster,
+                back_facing,
+            });
+            if next < t_max {
+                return next;
+            }
+        }
+    }
+    t_max
+}
+
 /// The test without a range check, for traversals whose t_max shrinks.
 #[inline(always)]
 pub(crate) fn hit_t(ray: &PreparedRay, tri: &TraceTriangle) -> Option<(f32, bool)> {
