@@ -12,6 +12,17 @@ use crate::trace::{Hit, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 
+/// Whether the ray's early cut-off is worth recomputing after its `hits`-th
+/// kept hit. Every hit while there are few (the common ray has two or three,
+/// and an early cut keeps the traversal short), then at powers of two: a
+/// stack of n coincident copies ties n hits at one distance, and sorting and
+/// scanning the list after each of them made such a ray O(n² log n); at
+/// powers of two the sorts add up to O(n log n). A late cut-off only lets
+/// hits through that cannot change the answer (see `classify::cutoff`).
+fn cutoff_due(hits: usize) -> bool {
+    hits <= 8 || hits.is_power_of_two()
+}
+
 /// Receives the number of rays traced, tile by tile, from worker threads.
 pub trait RayCounter: Sync {
     fn add(&self, rays: u64);
@@ -142,11 +153,14 @@ impl LightRays<'_> {
                 return limit;
             };
             hits.push(kept);
-            classify::sort_hits(hits);
-            limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
+            if cutoff_due(hits.len()) {
+                classify::sort_hits(hits);
+                limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
+            }
             limit
         });
         hits.retain(|h| h.t <= limit);
+        classify::sort_hits(hits);
         classify::classify_ray(hits, rules.tie_epsilon, rules.passes, on_useful);
     }
 

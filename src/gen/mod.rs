@@ -180,3 +180,25 @@ pub fn generate_each<E>(
     }
     Ok(expected)
 }
+
+/// A chunk's XML with its first `<model>` placed `copies` times at the same
+/// transform: stacked coincident geometry, which a level editor's duplicate
+/// key makes easily and which the bake must survive in time near-linear in
+/// the copies (the `coincident` bench and the hardening tests). `None` when
+/// the chunk holds no model.
+pub fn stack_first_model(chunk_xml: &[u8], copies: usize) -> Option<Vec<u8>> {
+    let text = std::str::from_utf8(chunk_xml).ok()?;
+    let start = text.find("<model>")?;
+    let end = start + text[start..].find("</model>")? + "</model>".len();
+    let model = &text[start..end];
+    let mut out = String::with_capacity(text.len() + model.len() * copies);
+    out.push_str(&text[..start]);
+    for copy in 0..copies {
+        if copy > 0 {
+            out.push_str("\n\t");
+        }
+        out.push_str(model);
+    }
+    out.push_str(&text[end..]);
+    Some(out.into_bytes())
+}

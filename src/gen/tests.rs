@@ -525,3 +525,23 @@ fn streamed_generation_equals_the_in_memory_one_and_any_size_loads() {
     assert_eq!(scene.stats().triangles as u64, expected.triangles);
     assert!(scene.terrain.iter().all(|b| b.cells() == (128, 128)));
 }
+
+#[test]
+fn stacked_copies_repeat_the_first_model_and_nothing_else() {
+    let world = generate(Preset::Small, 1);
+    let (path, chunk) = world
+        .files
+        .iter()
+        .find(|(p, _)| p.ends_with(".chunk"))
+        .unwrap();
+    let count = |bytes: &[u8]| String::from_utf8_lossy(bytes).matches("<model>").count();
+    let stacked = stack_first_model(chunk, 5).unwrap();
+    assert_eq!(count(&stacked), count(chunk) + 4, "{path}");
+    let root = crate::formats::parse_data_section(&stacked).unwrap();
+    let parsed = crate::formats::chunk::parse(&root).unwrap();
+    let first = &parsed.instances[0];
+    assert!(parsed.instances[..5]
+        .iter()
+        .all(|m| m.resources == first.resources && m.transform == first.transform));
+    assert_eq!(stack_first_model(b"<root></root>", 3), None);
+}
