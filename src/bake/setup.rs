@@ -18,8 +18,8 @@ use crate::classify::Passes;
 use crate::light::{GridError, TexelGrid};
 use crate::scene::Scene;
 use crate::trace::{
-    transform_box, BottomLevels, PlacedBlock, PlacedPart, TopLevel, TraceMode, TraceTriangle,
-    Tracer,
+    transform_box, BottomLevels, PartsFrom, PlacedBlock, PlacedPart, TopLevel, TraceMode,
+    TraceTriangle, Tracer,
 };
 use glam::DVec3;
 use rayon::prelude::*;
@@ -154,14 +154,17 @@ impl LightSetup {
         let scene = world.scene;
         let top = TopLevel::build(
             &world.bottom,
-            reach.parts.iter().map(|&p| {
-                let part = &world.parts[p as usize];
-                PlacedPart {
-                    model: part.model as u32,
-                    world: scene.instances[part.instance].world,
-                    first_caster: part.first_caster,
-                }
-            }),
+            &PartsFrom {
+                count: reach.parts.len(),
+                part: |i| {
+                    let part = &world.parts[reach.parts[i] as usize];
+                    PlacedPart {
+                        model: part.model as u32,
+                        world: scene.instances[part.instance].world,
+                        first_caster: part.first_caster,
+                    }
+                },
+            },
             reach.blocks.iter().map(|&block| PlacedBlock {
                 block,
                 caster: world.casters.of_block[block as usize],

@@ -49,7 +49,8 @@ pub struct TerrainBlock {
     /// Visible vertex heights, `(cells_x + 1) × (cells_z + 1)`, row-major by
     /// z; kept in f32 as the files store them (4 bytes a sample).
     heights: Vec<f32>,
-    /// One flag per height cell, row-major by z.
+    /// One flag per height cell, row-major by z; empty when the block has
+    /// no hole (most blocks: that saves a byte per cell on big worlds).
     cell_holes: Vec<bool>,
     min_height: f64,
     max_height: f64,
@@ -133,6 +134,9 @@ impl TerrainBlock {
             }
         }
 
+        if !cell_holes.contains(&true) {
+            cell_holes = Vec::new();
+        }
         Ok(TerrainBlock {
             origin,
             chunk_size,
@@ -270,7 +274,8 @@ impl TerrainBlock {
     /// vertex orders.
     pub fn triangles(&self) -> Vec<[DVec3; 3]> {
         let grid = self.grid();
-        let mut out = Vec::with_capacity(2 * self.cell_holes.iter().filter(|&&h| !h).count());
+        let holes = self.cell_holes.iter().filter(|&&h| h).count();
+        let mut out = Vec::with_capacity(2 * (self.cells_x * self.cells_z - holes));
         for cz in 0..self.cells_z {
             for cx in 0..self.cells_x {
                 if !self.cell_is_hole(cx, cz) {

@@ -33,6 +33,7 @@ pub struct HeightGrid<'a> {
     /// (cells_z + 1)`, row-major by z.
     pub heights: &'a [f32],
     /// One flag per cell, row-major by z.
+    /// One flag per cell, row-major by z; empty: no hole.
     pub holes: &'a [bool],
     /// terrain2: the diagonal alternates with `(cx ^ cz) & 1`; terrain1:
     /// every diagonal joins (x, z)–(x+1, z+1).
@@ -161,7 +162,12 @@ impl HeightField {
         let tiles_x = grid.cells_x.div_ceil(TILE_CELLS);
         let tiles_z = grid.cells_z.div_ceil(TILE_CELLS);
         let side = tiles_x.max(tiles_z).max(1).next_power_of_two();
-        let mut ranges = vec![(f32::INFINITY, f32::NEG_INFINITY); side * side];
+        // Exactly the pyramid's entries (side² (1 + 1/4 + …)): growing by
+        // pushes would double the allocation, a third of a big world's
+        // terrain memory.
+        let entries = (4 * side * side - 1) / 3;
+        let mut ranges = Vec::with_capacity(entries);
+        ranges.resize(side * side, (f32::INFINITY, f32::NEG_INFINITY));
         for tz in 0..tiles_z {
             for tx in 0..tiles_x {
                 let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);

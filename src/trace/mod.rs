@@ -37,7 +37,7 @@ pub use brute::brute_force_hits;
 pub use bvh::Bvh;
 pub use heightfield::{HeightField, HeightGrid};
 pub use instance::ToModel;
-pub use tlas::{transform_box, PlacedBlock, PlacedPart, TopLevel};
+pub use tlas::{transform_box, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel};
 pub use triangle::{intersect, PreparedRay};
 
 use glam::Vec3;

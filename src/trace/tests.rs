@@ -777,7 +777,7 @@ mod two_level {
             block: b,
             caster: b,
         });
-        let top = TopLevel::build(&bottom, std::iter::empty(), placed, reference);
+        let top = TopLevel::build(&bottom, &[][..], placed, reference);
         let trees = Tracer {
             bottom: &bottom,
             top: &top,
@@ -849,7 +849,7 @@ mod two_level {
             block: b,
             caster: b,
         });
-        let top = TopLevel::build(&bottom, std::iter::empty(), placed, reference);
+        let top = TopLevel::build(&bottom, &[][..], placed, reference);
         let trees = Tracer {
             bottom: &bottom,
             top: &top,
@@ -884,7 +884,7 @@ mod two_level {
             block: b,
             caster: b,
         });
-        let top = TopLevel::build(&bottom, std::iter::empty(), placed, DVec3::ZERO);
+        let top = TopLevel::build(&bottom, &[][..], placed, DVec3::ZERO);
         let trees = Tracer {
             bottom: &bottom,
             top: &top,
@@ -1018,7 +1018,7 @@ mod two_level {
         let reference = offset + DVec3::new(50.0, 0.0, 50.0);
         let top = TopLevel::build(
             &bottom,
-            parts.into_iter(),
+            &parts[..],
             std::iter::once(PlacedBlock {
                 block: 0,
                 caster: 1,
