@@ -6,6 +6,7 @@
 pub mod casters;
 pub mod geometry;
 pub mod ground;
+pub mod memory;
 pub mod output;
 pub mod refine;
 pub mod setup;

@@ -201,6 +201,11 @@ impl TerrainBlock {
         }
     }
 
+    /// Visible height samples held.
+    pub fn samples(&self) -> usize {
+        self.heights.len()
+    }
+
     /// Bytes of height samples and hole flags held.
     pub fn heap_bytes(&self) -> usize {
         self.heights.len() * 4 + self.cell_holes.len()

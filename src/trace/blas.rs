@@ -67,11 +67,16 @@ impl<'a> BottomLevels<'a> {
     /// Heap bytes of every bottom level (BVH nodes, triangles, pyramids;
     /// the height samples themselves belong to the scene).
     pub fn heap_bytes(&self) -> usize {
-        self.models.iter().map(Bvh::heap_bytes).sum::<usize>()
-            + self
-                .terrain
-                .iter()
-                .map(|(_, f)| f.heap_bytes())
-                .sum::<usize>()
+        self.model_bytes() + self.terrain_bytes()
+    }
+
+    /// Heap bytes of the models' BVHs (nodes, slot tables, triangles).
+    pub fn model_bytes(&self) -> usize {
+        self.models.iter().map(Bvh::heap_bytes).sum()
+    }
+
+    /// Heap bytes of the terrain blocks' min/max pyramids.
+    pub fn terrain_bytes(&self) -> usize {
+        self.terrain.iter().map(|(_, f)| f.heap_bytes()).sum()
     }
 }

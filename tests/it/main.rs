@@ -7,6 +7,7 @@ mod cli;
 mod fuzz;
 mod generated;
 mod hardening;
+mod memory;
 mod micro;
 mod packed_real;
 mod primitives_real;
