@@ -46,6 +46,61 @@ pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkS
     ChunkShadows { instances, terrain }
 }
 
+/// Puts back the bits this bake did not decide (lights of other settings
+/// files, or left out by `--light`) from the chunk files' existing
+/// `<shadow>`s, so a bake of some lights never clobbers the others. Per
+/// group where the old `<shadow>` has the same shape, else the old
+/// instance mask for every group; receiver-only instances stay 0. A
+/// chunk that cannot be read back is an error (it was readable at load).
+pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
+    let keep = !result.baked_bits;
+    if keep == 0 {
+        return Ok(());
+    }
+    for chunk in &scene.chunks {
+        let bytes = resources::read_file(&chunk.file)?;
+        let old = crate::formats::parse_data_section(&bytes)
+            .and_then(|root| shadow_write::read_chunk_shadows(&root))
+            .map_err(|e| e.in_source(&chunk.file, &bytes))?;
+        for index in chunk.instances.clone() {
+            let instance = &scene.instances[index];
+            let (Some(first), Some(Some(shadow))) = (
+                result.casters.first_of_instance[index],
+                old.instances.get(instance.index),
+            ) else {
+                continue;
+            };
+            if !instance.casts_shadow {
+                continue;
+            }
+            let ids = first as usize..first as usize + instance_casters(scene, instance);
+            let groups: Vec<u32> = shadow.groups().collect();
+            for (n, id) in ids.clone().enumerate() {
+                let old_bits = if groups.len() == ids.len() {
+                    groups[n]
+                } else {
+                    shadow.mask
+                };
+                result.masks[id] |= old_bits & keep;
+            }
+        }
+        if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
+            result.masks[result.casters.of_block[block] as usize] |= mask & keep;
+        }
+    }
+    Ok(())
+}
+
+/// How many caster ids (groups) an instance has.
+fn instance_casters(scene: &Scene, instance: &crate::scene::Instance) -> usize {
+    instance
+        .parts
+        .iter()
+        .flatten()
+        .map(|&m| scene.models[m].groups.len())
+        .sum()
+}
+
 /// One chunk file's new content and where it goes.
 #[derive(Debug, Clone)]
 pub struct ChunkOutput {
@@ -114,9 +169,21 @@ pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
     Ok(batch.len())
 }
 
+/// The version of the report's layout: raised when a field changes
+/// meaning or goes away (new fields may appear without it).
+pub const REPORT_VERSION: u32 = 2;
+
 /// The `--report` JSON (SPEC §8).
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
+    /// [`REPORT_VERSION`].
+    pub report_version: u32,
+    /// The shadowcull version that wrote it.
+    pub tool_version: &'static str,
+    /// Chunk files written (none for `--dry-run` and `--check`).
+    pub files_written: Vec<String>,
+    /// Chunk files whose bytes the bake changes (or would change).
+    pub files_changed: Vec<String>,
     pub lights: Vec<LightReport>,
     pub casters: Vec<CasterEntry>,
     pub skipped: Vec<Skipped>,
@@ -193,6 +260,10 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
     }
     casters.sort_by(|a, b| (&a.chunk, a.kind, a.index).cmp(&(&b.chunk, b.kind, b.index)));
     Report {
+        report_version: REPORT_VERSION,
+        tool_version: env!("CARGO_PKG_VERSION"),
+        files_written: Vec::new(),
+        files_changed: Vec::new(),
         lights: result.lights.clone(),
         casters,
         skipped: result.skipped.clone(),
