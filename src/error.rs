@@ -140,12 +140,13 @@ impl std::error::Error for FormatError {}
 /// The library's error type.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{}: cannot {action}: {source}", path.display())]
+    /// The OS error is part of the message and deliberately not a
+    /// `#[source]`: error chains (anyhow's `{:#}`) would print it twice.
+    #[error("{}: cannot {action}: {os_error}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
-        #[source]
-        source: std::io::Error,
+        os_error: std::io::Error,
     },
     #[error("{}{}{at}: {message}", path.display(), position.map(|p| format!(":{p}")).unwrap_or_default())]
     Format {
@@ -175,7 +176,7 @@ impl Error {
         Error::Io {
             path: path.into(),
             action,
-            source,
+            os_error: source,
         }
     }
 

@@ -1,6 +1,7 @@
 //! From masks to results: the `<shadow>` content of every chunk (SPEC §5)
 //! and the JSON report (SPEC §8).
 
+use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
 use crate::formats::chunk::InstanceKind;
 use crate::formats::resources::{self, ResPaths};
@@ -48,15 +49,25 @@ pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkS
 
 /// Puts back the bits this bake did not decide (lights of other settings
 /// files, or left out by `--light`) from the chunk files' existing
-/// `<shadow>`s, so a bake of some lights never clobbers the others. Per
-/// group where the old `<shadow>` has the same shape, else the old
-/// instance mask for every group; receiver-only instances stay 0. A
-/// chunk that cannot be read back is an error (it was readable at load).
+/// `<shadow>`s, so a bake of some lights never clobbers the others.
 pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
     let keep = !result.baked_bits;
     if keep == 0 {
         return Ok(());
     }
+    let old = masks_from_chunks(scene, &result.casters)?;
+    for (mask, old) in result.masks.iter_mut().zip(old) {
+        *mask |= old & keep;
+    }
+    Ok(())
+}
+
+/// The masks the chunk files hold now, per caster id: per group where an
+/// instance's `<shadow>` has its model's shape, else the instance mask for
+/// every group; 0 where there is none, and for receiver-only instances. A
+/// chunk that cannot be read back is an error naming it.
+pub fn masks_from_chunks(scene: &Scene, casters: &CasterTable) -> Result<Vec<u32>> {
+    let mut masks = vec![0u32; casters.casters.len()];
     for chunk in &scene.chunks {
         let bytes = resources::read_file(&chunk.file)?;
         let old = crate::formats::parse_data_section(&bytes)
@@ -65,7 +76,7 @@ pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
         for index in chunk.instances.clone() {
             let instance = &scene.instances[index];
             let (Some(first), Some(Some(shadow))) = (
-                result.casters.first_of_instance[index],
+                casters.first_of_instance[index],
                 old.instances.get(instance.index),
             ) else {
                 continue;
@@ -76,19 +87,18 @@ pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
             let ids = first as usize..first as usize + instance_casters(scene, instance);
             let groups: Vec<u32> = shadow.groups().collect();
             for (n, id) in ids.clone().enumerate() {
-                let old_bits = if groups.len() == ids.len() {
+                masks[id] = if groups.len() == ids.len() {
                     groups[n]
                 } else {
                     shadow.mask
                 };
-                result.masks[id] |= old_bits & keep;
             }
         }
         if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
-            result.masks[result.casters.of_block[block] as usize] |= mask & keep;
+            masks[casters.of_block[block] as usize] = mask;
         }
     }
-    Ok(())
+    Ok(masks)
 }
 
 /// How many caster ids (groups) an instance has.

@@ -398,7 +398,7 @@ fn a_non_root_user_cannot_replace_locked_or_foreign_chunks() {
     // it). As a non-root user the test above already runs as non-root.
     let setpriv = Path::new("/usr/bin/setpriv");
     if !running_as_root() || !setpriv.exists() {
-        eprintln!("NOT RUN: a_non_root_user_cannot_replace_locked_or_foreign_chunks needs root and setpriv (as non-root, read_only_chunks_are_refused_and_nothing_is_written covers it)");
+        crate::support::say_not_run("a_non_root_user_cannot_replace_locked_or_foreign_chunks needs root and setpriv (as non-root, read_only_chunks_are_refused_and_nothing_is_written covers it)");
         return;
     }
     let dir = small_world();
@@ -496,7 +496,7 @@ fn a_linked_chunk_is_written_through_and_modes_and_owners_are_kept() {
         let meta = std::fs::metadata(space.join("0000ffffo.chunk")).unwrap();
         assert_eq!((meta.uid(), meta.gid()), (12345, 12345));
     } else {
-        eprintln!("NOT RUN: the owner part of a_linked_chunk_is_written_through_and_modes_and_owners_are_kept needs root");
+        crate::support::say_not_run("the owner part of a_linked_chunk_is_written_through_and_modes_and_owners_are_kept needs root");
     }
     assert!(temporaries(dir.path()).is_empty());
     assert!(temporaries(store.path()).is_empty());

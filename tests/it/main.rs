@@ -9,6 +9,7 @@ mod generated;
 mod hardening;
 mod micro;
 mod packed_real;
+mod pipeline;
 mod primitives_real;
 #[cfg(feature = "raster")]
 mod raster;
