@@ -438,3 +438,52 @@ impl trace_light::RayCounter for Counter<'_> {
         Counter::add(self, rays);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_allocation_is_an_error_naming_the_phase() {
+        // More than the address space: try_reserve fails without aborting.
+        let err = try_zeroed::<u64>(usize::MAX / 4, "making the caster masks").unwrap_err();
+        let message = err.to_string();
+        assert!(
+            message.contains("out of memory while making the caster masks"),
+            "{message}"
+        );
+        assert_eq!(try_zeroed::<u32>(3, "x").unwrap(), vec![0, 0, 0]);
+    }
+
+    #[test]
+    fn selected_lights_keep_their_bits() {
+        let settings = crate::formats::bake_settings::BakeSettings {
+            res_paths: Vec::new(),
+            space: String::new(),
+            face_culling: FaceCulling::Back,
+            height_bias: 0.05,
+            tie_epsilon: 1e-4,
+            lights: ["a", "b", "c"]
+                .map(|name| LightSettings {
+                    name: name.into(),
+                    kind: crate::formats::bake_settings::LightKind::Directional {
+                        direction: glam::DVec3::NEG_Y,
+                        texel_size: 1.0,
+                    },
+                })
+                .to_vec(),
+            bits: vec![4, 0, 9],
+            unknown: Vec::new(),
+        };
+        let config = BakeConfig::from_settings(&settings);
+        assert_eq!(config.baked_bits(), 1 << 4 | 1 | 1 << 9);
+        let picked = config
+            .select_lights(&["c".to_string(), "a".to_string()])
+            .unwrap();
+        assert_eq!(picked.lights.len(), 2);
+        assert_eq!((picked.bit(0), picked.bit(1)), (4, 9));
+        assert_eq!(picked.baked_bits(), 1 << 4 | 1 << 9);
+        let err = config.select_lights(&["z".to_string()]).unwrap_err();
+        assert!(err.contains("`z`") && err.contains("`a`, `b`, `c`"), "{err}");
+    }
+}

@@ -56,6 +56,8 @@ struct Open {
 
 pub struct Reporter {
     style: Style,
+    /// `--quiet`: no informational messages either.
+    quiet: bool,
     started: Instant,
     interval: Duration,
     open: Mutex<Option<Open>>,
@@ -72,6 +74,7 @@ impl Reporter {
         };
         Reporter {
             style,
+            quiet: args.quiet,
             started: Instant::now(),
             interval: Duration::from_secs_f64(args.progress_interval.clamp(0.0, 10.0)),
             open: Mutex::new(None),
@@ -81,7 +84,7 @@ impl Reporter {
     /// An informational message (not with `--quiet`; plain text also in
     /// json mode, which only governs progress lines).
     pub fn say(&self, message: &str) {
-        if matches!(self.style, Style::Silent) {
+        if self.quiet {
             return;
         }
         self.suspend(|| eprintln!("{message}"));
