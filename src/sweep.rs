@@ -139,6 +139,8 @@ fn bake_setting(
             .collect(),
         supersample: setting.supersample,
         refine_samples: setting.refine_samples,
+        // Rows compare light i at bit i: positions, not the file's <bit>s.
+        bits: Vec::new(),
         ..base.clone()
     };
     let started = Instant::now();

@@ -6,7 +6,8 @@
 use indicatif::{ProgressBar, ProgressStyle};
 use shadowcull::progress::{Phase, Progress};
 use std::io::IsTerminal;
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// How progress is shown (`--progress`).
@@ -51,16 +52,34 @@ struct Open {
     total: u64,
     started: Instant,
     last_line: Instant,
+    /// The latest count heard.
+    done: u64,
     bar: Option<ProgressBar>,
 }
 
-pub struct Reporter {
+/// What the reporting threads and the heartbeat share.
+struct Shared {
     style: Style,
-    /// `--quiet`: no informational messages either.
-    quiet: bool,
     started: Instant,
     interval: Duration,
     open: Mutex<Option<Open>>,
+    stop: AtomicBool,
+}
+
+pub struct Reporter {
+    shared: Arc<Shared>,
+    /// `--quiet`: no informational messages either.
+    quiet: bool,
+}
+
+/// Lines and JSON: a phase that hears of no progress (a long build) still
+/// gets a line at least this often.
+const HEARTBEAT: Duration = Duration::from_secs(8);
+
+impl Drop for Reporter {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+    }
 }
 
 impl Reporter {
@@ -72,12 +91,21 @@ impl Reporter {
             (_, ProgressMode::Auto) if std::io::stderr().is_terminal() => Style::Bar,
             (_, ProgressMode::Auto) => Style::Lines,
         };
-        Reporter {
+        let lines = matches!(style, Style::Lines | Style::Json);
+        let shared = Arc::new(Shared {
             style,
-            quiet: args.quiet,
             started: Instant::now(),
             interval: Duration::from_secs_f64(args.progress_interval.clamp(0.0, 10.0)),
             open: Mutex::new(None),
+            stop: AtomicBool::new(false),
+        });
+        if lines {
+            let beat = Arc::clone(&shared);
+            std::thread::spawn(move || beat.heartbeat());
+        }
+        Reporter {
+            shared,
+            quiet: args.quiet,
         }
     }
 
@@ -92,6 +120,7 @@ impl Reporter {
 
     fn suspend(&self, f: impl FnOnce()) {
         let bar = self
+            .shared
             .open
             .lock()
             .ok()
@@ -99,6 +128,25 @@ impl Reporter {
         match bar {
             Some(bar) => bar.suspend(f),
             None => f(),
+        }
+    }
+
+}
+
+impl Shared {
+    /// Until the reporter is dropped: a line for an open phase that has
+    /// printed none for [`HEARTBEAT`].
+    fn heartbeat(&self) {
+        while !self.stop.load(Ordering::Relaxed) {
+            std::thread::sleep(Duration::from_millis(250));
+            if let Ok(mut slot) = self.open.lock() {
+                if let Some(open) = slot.as_mut() {
+                    if open.last_line.elapsed() >= HEARTBEAT {
+                        open.last_line = Instant::now();
+                        self.line(open, open.done);
+                    }
+                }
+            }
         }
     }
 
@@ -145,10 +193,10 @@ fn eta_seconds(open: &Open, done: u64) -> Option<f64> {
 
 impl Progress for Reporter {
     fn begin(&self, phase: Phase, light: Option<&str>, total: u64) {
-        if matches!(self.style, Style::Silent) {
+        if matches!(self.shared.style, Style::Silent) {
             return;
         }
-        let bar = matches!(self.style, Style::Bar).then(|| {
+        let bar = matches!(self.shared.style, Style::Bar).then(|| {
             let bar = ProgressBar::new(total);
             bar.set_style(
                 ProgressStyle::with_template(
@@ -170,44 +218,46 @@ impl Progress for Reporter {
             total,
             started: now,
             last_line: now,
+            done: 0,
             bar,
         };
-        if matches!(self.style, Style::Json) {
-            self.line(&open, 0);
+        if matches!(self.shared.style, Style::Json) {
+            self.shared.line(&open, 0);
         }
-        if let Ok(mut slot) = self.open.lock() {
+        if let Ok(mut slot) = self.shared.open.lock() {
             *slot = Some(open);
         }
     }
 
     fn advance(&self, done: u64) {
-        let Ok(mut slot) = self.open.try_lock() else {
+        let Ok(mut slot) = self.shared.open.try_lock() else {
             // Another thread is reporting; the next call will.
             return;
         };
         let Some(open) = slot.as_mut() else { return };
+        open.done = open.done.max(done);
         if let Some(bar) = &open.bar {
             bar.set_position(done.max(bar.position()));
             return;
         }
-        if open.last_line.elapsed() >= self.interval && done < open.total {
+        if open.last_line.elapsed() >= self.shared.interval && done < open.total {
             open.last_line = Instant::now();
-            self.line(open, done);
+            self.shared.line(open, done);
         }
     }
 
     fn end(&self) {
-        let Some(open) = self.open.lock().ok().and_then(|mut o| o.take()) else {
+        let Some(open) = self.shared.open.lock().ok().and_then(|mut o| o.take()) else {
             return;
         };
         // Lines: a phase that was quick gets no line (a log of a small
         // bake stays short); tracing always says what it did.
-        let worth_a_line = matches!(self.style, Style::Json)
+        let worth_a_line = matches!(self.shared.style, Style::Json)
             || open.phase == Phase::Tracing
             || open.started.elapsed() >= Duration::from_secs(1);
         match &open.bar {
             Some(bar) => bar.finish_and_clear(),
-            None if worth_a_line => self.line(&open, open.total),
+            None if worth_a_line => self.shared.line(&open, open.total),
             None => {}
         }
     }

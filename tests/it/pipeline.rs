@@ -573,3 +573,60 @@ fn the_readme_stands_on_its_own() {
         assert!(line.contains("--release"), "one build for every example: {line}");
     }
 }
+
+// ---------------------------------------------------------------------------
+// 7. Pictures that find problems.
+
+#[test]
+fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
+    let dir = small();
+    let picture = dir.path().join("point.png");
+    let legend_path = dir.path().join("point.txt");
+    let settings_path = settings(&dir);
+    let render = |extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            settings_path.as_str(),
+            "--light",
+            "point",
+            "-o",
+            picture.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let out = run(&args);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        std::fs::read_to_string(&legend_path).unwrap()
+    };
+    // Nothing baked yet: the chunks hold no masks, so every caster is culled.
+    let unbaked = render(&["--from-chunks"]);
+    assert!(unbaked.contains("from the masks in the chunk files (bit 2"), "{unbaked}");
+    assert!(unbaked.contains("0 useful casters"), "{unbaked}");
+    let report = dir.path().join("r.json");
+    let bake = run(&["bake", &settings(&dir), "--quiet", "--report", report.to_str().unwrap()]);
+    assert!(bake.status.success());
+    let report = report_of(&report);
+    let point = &report["lights"][2];
+    let culled = point["culled_casters"].as_u64().unwrap();
+    let useful = point["useful_casters"].as_u64().unwrap();
+    let baked = render(&["--from-chunks"]);
+    assert!(
+        baked.contains(&format!("{useful} useful casters, {culled} culled casters")),
+        "{baked}"
+    );
+    let listed = baked
+        .split("culled casters (chunk, index, resource): ")
+        .nth(1)
+        .unwrap();
+    let count: u64 = listed.split_whitespace().next().unwrap().parse().unwrap();
+    assert_eq!(count, culled);
+    // Each model entry names chunk, element, index and resource.
+    assert!(listed.lines().skip(1).take(count as usize).all(|l| {
+        let l = l.trim();
+        l.ends_with(" terrain") || (l.contains(" model ") && l.contains(".model group "))
+    }), "{listed}");
+    assert!(baked.contains("Okabe-Ito") && baked.contains("colour blindness"));
+    assert!(baked.contains("each face is labelled"), "{baked}");
+    // The bake's own verdicts agree with the masks it wrote.
+    let fresh = render(&[]);
+    assert!(fresh.contains(&format!("{useful} useful casters, {culled} culled casters")));
+}
