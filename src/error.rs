@@ -48,9 +48,14 @@ impl TextPosition {
         if before.contains(&0) {
             return None;
         }
-        let line_start = before.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+        let line_start = before
+            .iter()
+            .rposition(|&b| b == b'\n')
+            .map_or(0, |i| i + 1);
         let line = 1 + before.iter().filter(|&&b| b == b'\n').count();
-        let column = 1 + String::from_utf8_lossy(&before[line_start..]).chars().count();
+        let column = 1 + String::from_utf8_lossy(&before[line_start..])
+            .chars()
+            .count();
         Some(TextPosition { line, column })
     }
 }
@@ -198,11 +203,20 @@ mod tests {
     fn text_positions_count_lines_and_characters() {
         let text = "<a>\n\t<bé>x</bé>\n</a>".as_bytes();
         let at = text.iter().position(|&b| b == b'x').unwrap() as u64;
-        assert_eq!(TextPosition::of(text, at), Some(TextPosition { line: 2, column: 6 }));
-        assert_eq!(TextPosition::of(text, 0), Some(TextPosition { line: 1, column: 1 }));
+        assert_eq!(
+            TextPosition::of(text, at),
+            Some(TextPosition { line: 2, column: 6 })
+        );
+        assert_eq!(
+            TextPosition::of(text, 0),
+            Some(TextPosition { line: 1, column: 1 })
+        );
         assert_eq!(TextPosition::of(text, 999), None);
         let err = FormatError::at_byte(at as usize, "bad").in_source("f.xml", text);
         assert_eq!(err.to_string(), format!("f.xml:2:6 at byte {at}: bad"));
-        assert_eq!(TextPosition::of(&crate::formats::packed_xml::MAGIC, 2), None);
+        assert_eq!(
+            TextPosition::of(&crate::formats::packed_xml::MAGIC, 2),
+            None
+        );
     }
 }

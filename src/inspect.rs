@@ -70,7 +70,11 @@ impl Inspection {
                 out,
                 "{} {}; a bake fails unless --keep-going, which leaves out what they name:",
                 self.problems.len(),
-                if self.problems.len() == 1 { "problem" } else { "problems" }
+                if self.problems.len() == 1 {
+                    "problem"
+                } else {
+                    "problems"
+                }
             );
             for problem in &self.problems {
                 let _ = writeln!(out, "  {}: {}", problem.what, problem.why);

@@ -69,7 +69,12 @@ pub struct Counter<'a> {
 
 impl<'a> Counter<'a> {
     /// Opens `phase` on `progress`; [`Counter::finish`] closes it.
-    pub fn begin(progress: &'a dyn Progress, phase: Phase, light: Option<&str>, total: u64) -> Self {
+    pub fn begin(
+        progress: &'a dyn Progress,
+        phase: Phase,
+        light: Option<&str>,
+        total: u64,
+    ) -> Self {
         progress.begin(phase, light, total);
         Counter {
             progress,

@@ -326,14 +326,24 @@ impl SweepReport {
         // False keeps are drawn as rings around where false culls are
         // dots, so a setting with both at one value shows both; settings
         // at the same place in one series are nudged apart sideways.
-        let series = [("false culls", "#c0392b", 0usize), ("false keeps", "#2471a3", 1usize)];
+        let series = [
+            ("false culls", "#c0392b", 0usize),
+            ("false keeps", "#2471a3", 1usize),
+        ];
         let mut markers: Vec<Vec<(f64, f64)>> = Vec::new();
         for (_, _, value) in series {
             let mut placed: Vec<(f64, f64)> = Vec::new();
             for row in &self.rows {
-                let e = if value == 0 { row.false_culls } else { row.false_keeps } as f64;
+                let e = if value == 0 {
+                    row.false_culls
+                } else {
+                    row.false_keeps
+                } as f64;
                 let (mut px, py) = (x(row.seconds), y(e));
-                while placed.iter().any(|&(qx, qy)| (qx - px).abs() < 9.0 && (qy - py).abs() < 9.0) {
+                while placed
+                    .iter()
+                    .any(|&(qx, qy)| (qx - px).abs() < 9.0 && (qy - py).abs() < 9.0)
+                {
                     px += 9.0;
                 }
                 placed.push((px, py));
@@ -345,17 +355,30 @@ impl SweepReport {
             .flatten()
             .map(|&(px, py)| LabelBox::around(px, py, 6.0))
             .collect();
-        let plot = LabelBox { x0: margin, y0: margin, x1: width - margin + 60.0, y1: height - margin };
+        let plot = LabelBox {
+            x0: margin,
+            y0: margin,
+            x1: width - margin + 60.0,
+            y1: height - margin,
+        };
         let labels = place_labels(
             &markers[0],
-            &self.rows.iter().map(|r| r.label.as_str()).collect::<Vec<_>>(),
+            &self
+                .rows
+                .iter()
+                .map(|r| r.label.as_str())
+                .collect::<Vec<_>>(),
             &boxes,
             plot,
         );
         for (series_index, (name, colour, value)) in series.into_iter().enumerate() {
             for (i, &(px, py)) in markers[series_index].iter().enumerate() {
                 let row = &self.rows[i];
-                let (fill, r) = if value == 0 { (colour, 3.5) } else { ("none", 6.0) };
+                let (fill, r) = if value == 0 {
+                    (colour, 3.5)
+                } else {
+                    ("none", 6.0)
+                };
                 let marker = if row.setting.refine_samples > 0 {
                     format!(
                         "<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>",
@@ -370,7 +393,11 @@ impl SweepReport {
                 let _ = writeln!(svg, "{marker}");
             }
             let legend_y = margin + 14.0 * value as f64;
-            let (fill, r) = if value == 0 { (colour, 3.5) } else { ("none", 6.0) };
+            let (fill, r) = if value == 0 {
+                (colour, 3.5)
+            } else {
+                ("none", 6.0)
+            };
             let _ = writeln!(
                 svg,
                 "<circle cx=\"{}\" cy=\"{}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/><text x=\"{}\" y=\"{}\">{name}</text>",
@@ -413,7 +440,12 @@ pub struct LabelBox {
 
 impl LabelBox {
     fn around(x: f64, y: f64, r: f64) -> LabelBox {
-        LabelBox { x0: x - r, y0: y - r, x1: x + r, y1: y + r }
+        LabelBox {
+            x0: x - r,
+            y0: y - r,
+            x1: x + r,
+            y1: y + r,
+        }
     }
 
     pub fn overlaps(&self, other: &LabelBox) -> bool {
@@ -448,9 +480,17 @@ fn place_labels(
             let dy = (step / 2) as f64 * LINE_HEIGHT * if step % 2 == 0 { -1.0 } else { 1.0 };
             for right in [true, false] {
                 let x0 = if right { px + 8.0 } else { px - 8.0 - w };
-                let candidate = LabelBox { x0, y0: py + dy - LINE_HEIGHT / 2.0, x1: x0 + w, y1: py + dy + LINE_HEIGHT / 2.0 };
+                let candidate = LabelBox {
+                    x0,
+                    y0: py + dy - LINE_HEIGHT / 2.0,
+                    x1: x0 + w,
+                    y1: py + dy + LINE_HEIGHT / 2.0,
+                };
                 let clashes = markers.iter().filter(|m| m.overlaps(&candidate)).count()
-                    + placed.iter().filter(|(_, b)| b.overlaps(&candidate)).count()
+                    + placed
+                        .iter()
+                        .filter(|(_, b)| b.overlaps(&candidate))
+                        .count()
                     + usize::from(!candidate.inside(&plot));
                 if best.is_none_or(|(c, _)| clashes < c) {
                     best = Some((clashes, candidate));
@@ -475,16 +515,31 @@ mod label_tests {
     fn crowded_labels_never_overlap_each_other_or_markers() {
         // Eleven settings within a few pixels of each other (the sweep's
         // low-density rows often are).
-        let points: Vec<(f64, f64)> = (0..11).map(|i| (300.0 + i as f64 * 3.0, 200.0 + (i % 3) as f64)).collect();
-        let names: Vec<String> = (0..11).map(|i| format!("density x{i}, refine 16")).collect();
+        let points: Vec<(f64, f64)> = (0..11)
+            .map(|i| (300.0 + i as f64 * 3.0, 200.0 + (i % 3) as f64))
+            .collect();
+        let names: Vec<String> = (0..11)
+            .map(|i| format!("density x{i}, refine 16"))
+            .collect();
         let labels: Vec<&str> = names.iter().map(String::as_str).collect();
-        let markers: Vec<LabelBox> = points.iter().map(|&(x, y)| LabelBox::around(x, y, 6.0)).collect();
-        let plot = LabelBox { x0: 70.0, y0: 70.0, x1: 750.0, y1: 390.0 };
+        let markers: Vec<LabelBox> = points
+            .iter()
+            .map(|&(x, y)| LabelBox::around(x, y, 6.0))
+            .collect();
+        let plot = LabelBox {
+            x0: 70.0,
+            y0: 70.0,
+            x1: 750.0,
+            y1: 390.0,
+        };
         let placed = place_labels(&points, &labels, &markers, plot);
         assert_eq!(placed.len(), 11);
         for (i, (_, a)) in placed.iter().enumerate() {
             assert!(a.inside(&plot), "{a:?}");
-            assert!(markers.iter().all(|m| !m.overlaps(a)), "label {i} on a marker");
+            assert!(
+                markers.iter().all(|m| !m.overlaps(a)),
+                "label {i} on a marker"
+            );
             for (_, b) in &placed[i + 1..] {
                 assert!(!a.overlaps(b), "{a:?} and {b:?}");
             }

@@ -87,7 +87,13 @@ pub fn plan(
     let started = Instant::now();
     let mut lights = Vec::new();
     for index in 0..config.lights.len() {
-        lights.push(plan_light(world, config, index, baseline.threads, progress)?);
+        lights.push(plan_light(
+            world,
+            config,
+            index,
+            baseline.threads,
+            progress,
+        )?);
     }
     let calibration_seconds = started.elapsed().as_secs_f64();
     let casters = world.casters.len();
@@ -235,8 +241,10 @@ mod tests {
         // 48 rows of 48 tiles: 48 would walk down one column; 49 does not.
         let every = sample_stride(48 * 48, 48);
         assert_eq!(every, 49);
-        let columns: std::collections::BTreeSet<u64> =
-            (0..48 * 48).step_by(every as usize).map(|t| t % 48).collect();
+        let columns: std::collections::BTreeSet<u64> = (0..48 * 48)
+            .step_by(every as usize)
+            .map(|t| t % 48)
+            .collect();
         assert!(columns.len() > 40, "{columns:?}");
     }
 

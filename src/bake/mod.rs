@@ -14,10 +14,10 @@ pub mod trace_light;
 
 use crate::classify::Passes;
 use crate::formats::bake_settings::{FaceCulling, LightSettings};
+use crate::progress::{Counter, Phase};
 use crate::scene::Scene;
 use casters::CasterTable;
 use setup::{BakeWorld, LightSetup, NoSetup};
-use crate::progress::{Counter, Phase};
 use std::time::Instant;
 use trace_light::CasterSet;
 
@@ -82,8 +82,16 @@ impl BakeConfig {
         if !unknown.is_empty() {
             return Err(format!(
                 "no light named {} in the settings file; its lights are {}",
-                unknown.iter().map(|n| format!("`{n}`")).collect::<Vec<_>>().join(", "),
-                self.lights.iter().map(|l| format!("`{}`", l.name)).collect::<Vec<_>>().join(", ")
+                unknown
+                    .iter()
+                    .map(|n| format!("`{n}`"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                self.lights
+                    .iter()
+                    .map(|l| format!("`{}`", l.name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             ));
         }
         let keep: Vec<usize> = (0..self.lights.len())
@@ -219,12 +227,16 @@ pub enum BakeError {
 
 /// A zeroed vector of `len` values, or [`BakeError::OutOfMemory`] naming
 /// `phase` (a failed allocation must not abort the process).
-pub fn try_zeroed<T: Clone + Default>(len: usize, phase: &'static str) -> Result<Vec<T>, BakeError> {
+pub fn try_zeroed<T: Clone + Default>(
+    len: usize,
+    phase: &'static str,
+) -> Result<Vec<T>, BakeError> {
     let mut v = Vec::new();
-    v.try_reserve_exact(len).map_err(|_| BakeError::OutOfMemory {
-        phase,
-        bytes: len.saturating_mul(std::mem::size_of::<T>()),
-    })?;
+    v.try_reserve_exact(len)
+        .map_err(|_| BakeError::OutOfMemory {
+            phase,
+            bytes: len.saturating_mul(std::mem::size_of::<T>()),
+        })?;
     v.resize(len, T::default());
     Ok(v)
 }
@@ -279,7 +291,10 @@ pub fn bake_world(
         let setup = match LightSetup::new(world, config, index) {
             Ok(setup) => setup,
             Err(nothing) if nothing.is_nothing_to_trace() => {
-                skipped.push(Skipped::info(light_name(config, index), nothing.to_string()));
+                skipped.push(Skipped::info(
+                    light_name(config, index),
+                    nothing.to_string(),
+                ));
                 continue;
             }
             Err(NoSetup::Grid(err)) => return Err(err.into()),
@@ -322,7 +337,12 @@ fn world_skipped(world: &BakeWorld) -> Vec<Skipped> {
         if world.casters.first_of_instance[index].is_none() {
             let chunk = &scene.chunks[instance.chunk];
             skipped.push(Skipped::error(
-                format!("{} instance {} ({})", chunk.name, instance.index, instance.resources.join(", ")),
+                format!(
+                    "{} instance {} ({})",
+                    chunk.name,
+                    instance.index,
+                    instance.resources.join(", ")
+                ),
                 "a <resource> part did not load (see its problem); its <shadow> is left as it was",
             ));
         }
@@ -484,6 +504,9 @@ mod tests {
         assert_eq!((picked.bit(0), picked.bit(1)), (4, 9));
         assert_eq!(picked.baked_bits(), 1 << 4 | 1 << 9);
         let err = config.select_lights(&["z".to_string()]).unwrap_err();
-        assert!(err.contains("`z`") && err.contains("`a`, `b`, `c`"), "{err}");
+        assert!(
+            err.contains("`z`") && err.contains("`a`, `b`, `c`"),
+            "{err}"
+        );
     }
 }

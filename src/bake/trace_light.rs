@@ -103,7 +103,9 @@ impl LightRays<'_> {
     /// Tiles of the grid (32×32 texels each, faces then rows then columns).
     pub fn tile_count(&self) -> u64 {
         let grid = self.grid;
-        grid.faces() as u64 * grid.width().div_ceil(TILE) as u64 * grid.height().div_ceil(TILE) as u64
+        grid.faces() as u64
+            * grid.width().div_ceil(TILE) as u64
+            * grid.height().div_ceil(TILE) as u64
     }
 
     /// Traces every `every`-th tile (1: the whole grid), for the ray rate

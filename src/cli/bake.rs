@@ -134,12 +134,18 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
         output::write_outputs(&outputs)?;
         counter.add(changed.len() as u64);
         counter.finish();
-        changed.iter().map(|o| o.target.display().to_string()).collect()
+        changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect()
     };
     let to_stdout = args.report.as_deref() == Some(std::path::Path::new("-"));
     if let Some(path) = &args.report {
         let mut report = output::report(&scene, &result);
-        report.files_changed = changed.iter().map(|o| o.target.display().to_string()).collect();
+        report.files_changed = changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect();
         report.files_written = written.clone();
         let json = serde_json::to_vec_pretty(&report).context("report")?;
         if to_stdout {
@@ -150,7 +156,15 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
             resources::write_atomic(path, &json)?;
         }
     }
-    let summary = summary(args, config, &result, &outputs, &changed, written.len(), started);
+    let summary = summary(
+        args,
+        config,
+        &result,
+        &outputs,
+        &changed,
+        written.len(),
+        started,
+    );
     if to_stdout {
         eprint!("{summary}");
     } else {
@@ -201,7 +215,16 @@ fn summary(
     let _ = writeln!(
         out,
         "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9} {:>9} {:>8} {:>8} {:>8}",
-        "bit", "light", "kind", "rays", "triangles", "bvh s", "trace s", "Mrays/s", "useful", "culled"
+        "bit",
+        "light",
+        "kind",
+        "rays",
+        "triangles",
+        "bvh s",
+        "trace s",
+        "Mrays/s",
+        "useful",
+        "culled"
     );
     for light in &result.lights {
         let _ = writeln!(

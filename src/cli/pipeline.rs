@@ -100,7 +100,11 @@ pub fn parse_size(text: &str) -> Result<u64, String> {
         "Mi" | "MI" | "mi" => 1024.0 * 1024.0,
         "Gi" | "GI" | "gi" => 1024.0 * 1024.0 * 1024.0,
         "Ti" | "TI" | "ti" => 1024.0f64.powi(4),
-        _ => return Err(format!("unknown unit in `{text}`; use k, M, G, T or Ki, Mi, Gi, Ti")),
+        _ => {
+            return Err(format!(
+                "unknown unit in `{text}`; use k, M, G, T or Ki, Mi, Gi, Ti"
+            ))
+        }
     };
     let bytes = value * factor;
     if bytes.is_finite() && bytes >= 1.0 {

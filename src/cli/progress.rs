@@ -130,7 +130,6 @@ impl Reporter {
             None => f(),
         }
     }
-
 }
 
 impl Shared {
@@ -174,7 +173,8 @@ impl Shared {
                     .unwrap_or_default(),
                 open.total,
                 done * 100 / open.total.max(1),
-                eta.map(|s| format!("{s:.0} s")).unwrap_or_else(|| "?".into())
+                eta.map(|s| format!("{s:.0} s"))
+                    .unwrap_or_else(|| "?".into())
             ),
             Style::Bar | Style::Silent => {}
         }

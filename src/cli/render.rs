@@ -111,7 +111,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     let chunk_masks = if args.from_chunks {
         let casters = shadowcull::bake::casters::CasterTable::new(&scene);
-        Some(shadowcull::bake::output::masks_from_chunks(&scene, &casters)?)
+        Some(shadowcull::bake::output::masks_from_chunks(
+            &scene, &casters,
+        )?)
     } else {
         None
     };

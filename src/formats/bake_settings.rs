@@ -679,7 +679,10 @@ mod tests {
         let s = parse_it(&settings(vec![sun(), spot(), point()], vec![])).unwrap();
         assert_eq!(s.bits, [0, 1, 2]);
         let s = parse_it(&settings(
-            vec![tweak(sun(), "bit", Some("5")), tweak(spot(), "bit", Some("31"))],
+            vec![
+                tweak(sun(), "bit", Some("5")),
+                tweak(spot(), "bit", Some("31")),
+            ],
             vec![],
         ))
         .unwrap();

@@ -30,7 +30,8 @@ use crate::formats::bake_settings::LightSettings;
 use crate::light::GridError;
 
 /// The colours' origin, named in every legend.
-pub const PALETTE: &str = "Okabe-Ito (Okabe & Ito 2008): blue / orange and bluish green / reddish purple stay \
+pub const PALETTE: &str =
+    "Okabe-Ito (Okabe & Ito 2008): blue / orange and bluish green / reddish purple stay \
 distinct with red-green colour blindness (protanopia, deuteranopia)";
 
 /// Largest picture side either view draws: a 16384² RGB buffer is 800 MB.
@@ -243,8 +244,7 @@ fn verdicts(
     let (useful, setup) = match LightSetup::new(world, config, light) {
         Ok(setup) => match source {
             Source::Bake => {
-                let (useful, _) =
-                    bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
+                let (useful, _) = bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
                 (useful, Some(setup))
             }
             Source::ChunkMasks { .. } => (CasterSet::new(casters.len()), Some(setup)),

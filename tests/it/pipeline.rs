@@ -6,8 +6,8 @@
 
 use crate::cli::shadowcull;
 use serde_json::Value;
-use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::formats::resources::write_tree;
+use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -112,7 +112,12 @@ fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
     std::fs::remove_file(&model).unwrap();
     let before = files(dir.path());
     let report = dir.path().join("report.json");
-    let failed = run(&["bake", &settings(&dir), "--report", report.to_str().unwrap()]);
+    let failed = run(&[
+        "bake",
+        &settings(&dir),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
     let stderr = text(&failed.stderr);
     assert_eq!(failed.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("0000ffffo.chunk"), "{stderr}");
@@ -137,7 +142,10 @@ fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
     let severity = |what: &str| -> Vec<String> {
         skipped
             .iter()
-            .filter(|s| s["what"].as_str().unwrap().contains(what) || s["why"].as_str().unwrap().contains(what))
+            .filter(|s| {
+                s["what"].as_str().unwrap().contains(what)
+                    || s["why"].as_str().unwrap().contains(what)
+            })
             .map(|s| s["severity"].as_str().unwrap().to_string())
             .collect()
     };
@@ -150,7 +158,9 @@ fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
         "one pass instead of two is info: {skipped:#?}"
     );
     assert!(
-        skipped.iter().all(|s| matches!(s["severity"].as_str(), Some("info" | "error"))),
+        skipped
+            .iter()
+            .all(|s| matches!(s["severity"].as_str(), Some("info" | "error"))),
         "{skipped:#?}"
     );
 }
@@ -178,7 +188,11 @@ fn a_stray_placement_fails_the_bake_unless_keep_going() {
     );
     assert_eq!(files(dir.path()), before);
     let inspect = run(&["inspect", &settings(&dir)]);
-    assert_eq!(inspect.status.code(), Some(1), "inspect lists it and exits 1");
+    assert_eq!(
+        inspect.status.code(),
+        Some(1),
+        "inspect lists it and exits 1"
+    );
     assert!(text(&inspect.stdout).contains("far outside the space"));
     let kept = run(&["bake", &settings(&dir), "--keep-going", "--quiet"]);
     assert!(kept.status.success(), "{}", text(&kept.stderr));
@@ -194,7 +208,11 @@ fn inspect_exits_1_only_when_it_lists_problems() {
     assert_eq!(broken.status.code(), Some(1));
     let json: Value = serde_json::from_slice(&broken.stdout).unwrap();
     assert_eq!(json["problems"].as_array().unwrap().len(), 1);
-    assert!(text(&broken.stderr).contains("1 problem listed"), "{}", text(&broken.stderr));
+    assert!(
+        text(&broken.stderr).contains("1 problem listed"),
+        "{}",
+        text(&broken.stderr)
+    );
 }
 
 #[test]
@@ -204,7 +222,11 @@ fn unknown_settings_elements_are_warned_with_line_and_column() {
     let original = std::fs::read_to_string(&path).unwrap();
     let at = original.find("<lights>").unwrap();
     let typo = "<heightBais> 0.5 </heightBais>\n\t";
-    std::fs::write(&path, format!("{}{typo}{}", &original[..at], &original[at..])).unwrap();
+    std::fs::write(
+        &path,
+        format!("{}{typo}{}", &original[..at], &original[at..]),
+    )
+    .unwrap();
     let line = original[..at].matches('\n').count() + 1;
     let column = at - original[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
     let out = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
@@ -269,7 +291,13 @@ fn every_light_is_validated_before_any_is_traced() {
 fn baking_one_light_keeps_every_other_bit() {
     let dir = small();
     let full = dir.path().join("full.json");
-    let out = run(&["bake", &settings(&dir), "--quiet", "--report", full.to_str().unwrap()]);
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--quiet",
+        "--report",
+        full.to_str().unwrap(),
+    ]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let full = masks(&report_of(&full));
     assert!(full.values().any(|(m, _)| m & 0b101 != 0 && m & 0b010 != 0));
@@ -288,7 +316,11 @@ fn baking_one_light_keeps_every_other_bit() {
         one.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", text(&out.stderr));
-    assert!(text(&out.stdout).contains("wrote 0 of 4"), "{}", text(&out.stdout));
+    assert!(
+        text(&out.stdout).contains("wrote 0 of 4"),
+        "{}",
+        text(&out.stdout)
+    );
     let mut after = files(dir.path());
     after.retain(|p, _| !p.ends_with("one.json"));
     assert_eq!(after, baked);
@@ -394,8 +426,13 @@ fn the_report_lists_files_and_versions_and_can_go_to_stdout() {
         .map(|f| f.as_str().unwrap())
         .collect();
     assert_eq!(written.len(), 4);
-    assert!(written.iter().all(|f| f.ends_with(".chunk") && Path::new(f).is_file()));
-    assert!(text(&out.stderr).contains("wrote 4 of 4"), "the table goes to stderr");
+    assert!(written
+        .iter()
+        .all(|f| f.ends_with(".chunk") && Path::new(f).is_file()));
+    assert!(
+        text(&out.stderr).contains("wrote 4 of 4"),
+        "the table goes to stderr"
+    );
     let again = run(&["bake", &settings(&dir), "--report", "-", "--quiet"]);
     let report: Value = serde_json::from_slice(&again.stdout).unwrap();
     assert_eq!(report["files_written"].as_array().unwrap().len(), 0);
@@ -419,20 +456,32 @@ fn plan_lists_every_light_and_max_memory_refuses_before_tracing() {
     }
     let text_plan = run(&["plan", &settings(&dir), "--quiet"]);
     let lines = text(&text_plan.stdout);
-    assert!(lines.contains("calibration") && lines.contains("peak memory"), "{lines}");
+    assert!(
+        lines.contains("calibration") && lines.contains("peak memory"),
+        "{lines}"
+    );
     // The bake prints the same lines first.
     let bake = run(&["bake", &settings(&dir), "--dry-run"]);
     assert!(text(&bake.stderr).contains("plan: light 0 `sun`"));
 
     let before = files(dir.path());
-    let refused = run(&["bake", &settings(&dir), "--max-memory", "1k", "--progress", "json"]);
+    let refused = run(&[
+        "bake",
+        &settings(&dir),
+        "--max-memory",
+        "1k",
+        "--progress",
+        "json",
+    ]);
     let stderr = text(&refused.stderr);
     assert_eq!(refused.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("above --max-memory 1.0 kB"), "{stderr}");
     assert!(!stderr.contains("\"tracing\""), "{stderr}");
     assert_eq!(files(dir.path()), before);
     assert_eq!(
-        run(&["bake", &settings(&dir), "--max-memory", "lots"]).status.code(),
+        run(&["bake", &settings(&dir), "--max-memory", "lots"])
+            .status
+            .code(),
         Some(2)
     );
 }
@@ -474,7 +523,9 @@ fn plan_within_a_factor_two(dir: &TempDir) {
 #[test]
 fn plan_estimates_are_within_a_factor_two_on_the_fixtures() {
     if !Path::new("/usr/bin/time").exists() {
-        crate::support::say_not_run("plan_estimates_are_within_a_factor_two_on_the_fixtures needs /usr/bin/time");
+        crate::support::say_not_run(
+            "plan_estimates_are_within_a_factor_two_on_the_fixtures needs /usr/bin/time",
+        );
         return;
     }
     plan_within_a_factor_two(&world(Preset::Small));
@@ -512,9 +563,9 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
         }
     }
     for light in ["sun", "spot", "point"] {
-        let done = objects.iter().find(|o| {
-            o["phase"] == "tracing" && o["light"] == light && o["done"] == o["total"]
-        });
+        let done = objects
+            .iter()
+            .find(|o| o["phase"] == "tracing" && o["light"] == light && o["done"] == o["total"]);
         assert!(done.is_some(), "{light}: {stderr}");
     }
     assert!(objects.iter().any(|o| o["phase"] == "chunks"));
@@ -529,10 +580,16 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
         "0",
     ]);
     let stderr = text(&lines.stderr);
-    let tracing: Vec<&str> = stderr.lines().filter(|l| l.contains("tracing light")).collect();
+    let tracing: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("tracing light"))
+        .collect();
     assert!(tracing.len() >= 3, "{stderr}");
     for line in tracing {
-        assert!(line.starts_with('[') && line.contains(" s] ") && line.contains("eta"), "{line}");
+        assert!(
+            line.starts_with('[') && line.contains(" s] ") && line.contains("eta"),
+            "{line}"
+        );
     }
     let quiet = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
     assert!(quiet.status.success());
@@ -553,7 +610,10 @@ fn small_things() {
     let out = run(&["bake", &settings(&dir), "--height-bias", "-1"]);
     let stderr = text(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("--height-bias must be a number ≥ 0, got -1"), "{stderr}");
+    assert!(
+        stderr.contains("--height-bias must be a number ≥ 0, got -1"),
+        "{stderr}"
+    );
     // "1 problem", not "1 problems".
     std::fs::write(dir.path().join(CHUNK), b"<root><model>").unwrap();
     let out = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
@@ -566,11 +626,17 @@ fn small_things() {
 fn the_readme_stands_on_its_own() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
-    assert!(!readme.contains("../shared/SPEC.md"), "README links outside the repository");
+    assert!(
+        !readme.contains("../shared/SPEC.md"),
+        "README links outside the repository"
+    );
     assert!(readme.contains("docs/contract.md"));
     assert!(root.join("docs/contract.md").is_file());
     for line in readme.lines().filter(|l| l.contains("cargo run")) {
-        assert!(line.contains("--release"), "one build for every example: {line}");
+        assert!(
+            line.contains("--release"),
+            "one build for every example: {line}"
+        );
     }
 }
 
@@ -599,10 +665,19 @@ fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
     };
     // Nothing baked yet: the chunks hold no masks, so every caster is culled.
     let unbaked = render(&["--from-chunks"]);
-    assert!(unbaked.contains("from the masks in the chunk files (bit 2"), "{unbaked}");
+    assert!(
+        unbaked.contains("from the masks in the chunk files (bit 2"),
+        "{unbaked}"
+    );
     assert!(unbaked.contains("0 useful casters"), "{unbaked}");
     let report = dir.path().join("r.json");
-    let bake = run(&["bake", &settings(&dir), "--quiet", "--report", report.to_str().unwrap()]);
+    let bake = run(&[
+        "bake",
+        &settings(&dir),
+        "--quiet",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
     assert!(bake.status.success());
     let report = report_of(&report);
     let point = &report["lights"][2];
@@ -620,10 +695,13 @@ fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
     let count: u64 = listed.split_whitespace().next().unwrap().parse().unwrap();
     assert_eq!(count, culled);
     // Each model entry names chunk, element, index and resource.
-    assert!(listed.lines().skip(1).take(count as usize).all(|l| {
-        let l = l.trim();
-        l.ends_with(" terrain") || (l.contains(" model ") && l.contains(".model group "))
-    }), "{listed}");
+    assert!(
+        listed.lines().skip(1).take(count as usize).all(|l| {
+            let l = l.trim();
+            l.ends_with(" terrain") || (l.contains(" model ") && l.contains(".model group "))
+        }),
+        "{listed}"
+    );
     assert!(baked.contains("Okabe-Ito") && baked.contains("colour blindness"));
     assert!(baked.contains("each face is labelled"), "{baked}");
     // The bake's own verdicts agree with the masks it wrote.
