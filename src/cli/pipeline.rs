@@ -65,7 +65,13 @@ pub fn select_lights(config: BakeConfig, names: &[String], file: &Path) -> Resul
 /// Broken input fails the bake before any work unless `--keep-going`:
 /// every problem is listed.
 pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
-    if scene.problems.is_empty() || keep_going {
+    if keep_going {
+        for problem in &scene.problems {
+            eprintln!("warning: left out: {}: {}", problem.what, problem.why);
+        }
+        return Ok(());
+    }
+    if scene.problems.is_empty() {
         return Ok(());
     }
     for problem in &scene.problems {
