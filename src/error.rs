@@ -19,6 +19,53 @@ pub enum Location {
     Element { path: String, offset: u64 },
 }
 
+impl Location {
+    /// The byte offset, when the location has one.
+    pub fn offset(&self) -> Option<u64> {
+        match self {
+            Location::File => None,
+            Location::Byte(offset) | Location::Element { offset, .. } => Some(*offset),
+        }
+    }
+}
+
+/// A 1-based line and column (in characters) inside a text file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TextPosition {
+    pub line: usize,
+    pub column: usize,
+}
+
+impl TextPosition {
+    /// Where byte `offset` of `bytes` lies, or `None` when the bytes are
+    /// not text (packed XML, a binary section) or the offset is past them.
+    pub fn of(bytes: &[u8], offset: u64) -> Option<TextPosition> {
+        let offset = usize::try_from(offset).ok()?;
+        if offset > bytes.len() || bytes.starts_with(&crate::formats::packed_xml::MAGIC) {
+            return None;
+        }
+        let before = &bytes[..offset];
+        if before.contains(&0) {
+            return None;
+        }
+        let line_start = before
+            .iter()
+            .rposition(|&b| b == b'\n')
+            .map_or(0, |i| i + 1);
+        let line = 1 + before.iter().filter(|&&b| b == b'\n').count();
+        let column = 1 + String::from_utf8_lossy(&before[line_start..])
+            .chars()
+            .count();
+        Some(TextPosition { line, column })
+    }
+}
+
+impl fmt::Display for TextPosition {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}:{}", self.line, self.column)
+    }
+}
+
 impl fmt::Display for Location {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -70,6 +117,19 @@ impl FormatError {
             path: path.into(),
             at: self.at,
             message: self.message,
+            position: None,
+        }
+    }
+
+    /// Attaches the file and, when its bytes are text, the line and column
+    /// of the byte location (editors jump to `file:line:column`).
+    pub fn in_source(self, path: impl Into<PathBuf>, bytes: &[u8]) -> Error {
+        let position = self.at.offset().and_then(|o| TextPosition::of(bytes, o));
+        Error::Format {
+            path: path.into(),
+            at: self.at,
+            message: self.message,
+            position,
         }
     }
 }
@@ -85,18 +145,21 @@ impl std::error::Error for FormatError {}
 /// The library's error type.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{}: cannot {action}: {source}", path.display())]
+    /// The OS error is part of the message and deliberately not a
+    /// `#[source]`: error chains (anyhow's `{:#}`) would print it twice.
+    #[error("{}: cannot {action}: {os_error}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
-        #[source]
-        source: std::io::Error,
+        os_error: std::io::Error,
     },
-    #[error("{}{at}: {message}", path.display())]
+    #[error("{}{}{at}: {message}", path.display(), position.map(|p| format!(":{p}")).unwrap_or_default())]
     Format {
         path: PathBuf,
         at: Location,
         message: String,
+        /// Line and column of `at` in a text file.
+        position: Option<TextPosition>,
     },
     #[error("{}: resource `{name}` not found in any res path ({}); check <resPaths> in the settings file", referenced_by.display(), searched.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "))]
     NotFound {
@@ -118,7 +181,7 @@ impl Error {
         Error::Io {
             path: path.into(),
             action,
-            source,
+            os_error: source,
         }
     }
 
@@ -131,3 +194,29 @@ impl Error {
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn text_positions_count_lines_and_characters() {
+        let text = "<a>\n\t<bé>x</bé>\n</a>".as_bytes();
+        let at = text.iter().position(|&b| b == b'x').unwrap() as u64;
+        assert_eq!(
+            TextPosition::of(text, at),
+            Some(TextPosition { line: 2, column: 6 })
+        );
+        assert_eq!(
+            TextPosition::of(text, 0),
+            Some(TextPosition { line: 1, column: 1 })
+        );
+        assert_eq!(TextPosition::of(text, 999), None);
+        let err = FormatError::at_byte(at as usize, "bad").in_source("f.xml", text);
+        assert_eq!(err.to_string(), format!("f.xml:2:6 at byte {at}: bad"));
+        assert_eq!(
+            TextPosition::of(&crate::formats::packed_xml::MAGIC, 2),
+            None
+        );
+    }
+}

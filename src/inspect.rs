@@ -68,8 +68,13 @@ impl Inspection {
         } else {
             let _ = writeln!(
                 out,
-                "{} problem(s); what they name is left out of a bake:",
-                self.problems.len()
+                "{} {}; a bake fails unless --keep-going, which leaves out what they name:",
+                self.problems.len(),
+                if self.problems.len() == 1 {
+                    "problem"
+                } else {
+                    "problems"
+                }
             );
             for problem in &self.problems {
                 let _ = writeln!(out, "  {}: {}", problem.what, problem.why);

@@ -8,6 +8,7 @@ pub mod formats;
 pub mod gen;
 pub mod inspect;
 pub mod light;
+pub mod progress;
 #[cfg(feature = "raster")]
 pub mod raster;
 pub mod render;

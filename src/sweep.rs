@@ -139,6 +139,8 @@ fn bake_setting(
             .collect(),
         supersample: setting.supersample,
         refine_samples: setting.refine_samples,
+        // Rows compare light i at bit i: positions, not the file's <bit>s.
+        bits: Vec::new(),
         ..base.clone()
     };
     let started = Instant::now();
@@ -321,62 +323,227 @@ impl SweepReport {
             height / 2.0,
             height / 2.0
         );
-        for (series, colour, value) in [
+        // False keeps are drawn as rings around where false culls are
+        // dots, so a setting with both at one value shows both; settings
+        // at the same place in one series are nudged apart sideways.
+        let series = [
             ("false culls", "#c0392b", 0usize),
             ("false keeps", "#2471a3", 1usize),
-        ] {
-            let points: Vec<(f64, f64, &Row)> = self
+        ];
+        let mut markers: Vec<Vec<(f64, f64)>> = Vec::new();
+        for (_, _, value) in series {
+            let mut placed: Vec<(f64, f64)> = Vec::new();
+            for row in &self.rows {
+                let e = if value == 0 {
+                    row.false_culls
+                } else {
+                    row.false_keeps
+                } as f64;
+                let (mut px, py) = (x(row.seconds), y(e));
+                while placed
+                    .iter()
+                    .any(|&(qx, qy)| (qx - px).abs() < 9.0 && (qy - py).abs() < 9.0)
+                {
+                    px += 9.0;
+                }
+                placed.push((px, py));
+            }
+            markers.push(placed);
+        }
+        let boxes: Vec<LabelBox> = markers
+            .iter()
+            .flatten()
+            .map(|&(px, py)| LabelBox::around(px, py, 6.0))
+            .collect();
+        let plot = LabelBox {
+            x0: margin,
+            y0: margin,
+            x1: width - margin + 60.0,
+            y1: height - margin,
+        };
+        let labels = place_labels(
+            &markers[0],
+            &self
                 .rows
                 .iter()
-                .map(|r| {
-                    let e = if value == 0 {
-                        r.false_culls
-                    } else {
-                        r.false_keeps
-                    } as f64;
-                    (x(r.seconds), y(e), r)
-                })
-                .collect();
-            for (i, (px, py, row)) in points.iter().enumerate() {
+                .map(|r| r.label.as_str())
+                .collect::<Vec<_>>(),
+            &boxes,
+            plot,
+        );
+        for (series_index, (name, colour, value)) in series.into_iter().enumerate() {
+            for (i, &(px, py)) in markers[series_index].iter().enumerate() {
+                let row = &self.rows[i];
+                let (fill, r) = if value == 0 {
+                    (colour, 3.5)
+                } else {
+                    ("none", 6.0)
+                };
                 let marker = if row.setting.refine_samples > 0 {
                     format!(
-                        "<rect x=\"{}\" y=\"{}\" width=\"8\" height=\"8\" fill=\"{colour}\"/>",
-                        px - 4.0,
-                        py - 4.0
+                        "<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>",
+                        px - r,
+                        py - r,
+                        2.0 * r,
+                        2.0 * r
                     )
                 } else {
-                    format!("<circle cx=\"{px}\" cy=\"{py}\" r=\"4\" fill=\"{colour}\"/>")
+                    format!("<circle cx=\"{px}\" cy=\"{py}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>")
                 };
                 let _ = writeln!(svg, "{marker}");
-                if value == 0 {
-                    // Alternate above and below so neighbours stay legible.
-                    let dy = if i % 2 == 0 { -8.0 } else { 16.0 };
-                    let _ = writeln!(
-                        svg,
-                        "<text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
-                        px + 6.0,
-                        py + dy,
-                        row.label
-                    );
-                }
             }
             let legend_y = margin + 14.0 * value as f64;
+            let (fill, r) = if value == 0 {
+                (colour, 3.5)
+            } else {
+                ("none", 6.0)
+            };
             let _ = writeln!(
                 svg,
-                "<circle cx=\"{}\" cy=\"{}\" r=\"4\" fill=\"{colour}\"/><text x=\"{}\" y=\"{}\">{series}</text>",
+                "<circle cx=\"{}\" cy=\"{}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/><text x=\"{}\" y=\"{}\">{name}</text>",
                 width - margin - 120.0,
                 legend_y,
                 width - margin - 110.0,
                 legend_y + 4.0
             );
         }
+        for (label, (point, at)) in labels.iter().enumerate() {
+            let (px, py) = *point;
+            let _ = writeln!(
+                svg,
+                "<line x1=\"{px}\" y1=\"{py}\" x2=\"{}\" y2=\"{}\" stroke=\"#bbb\"/><text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
+                at.x0,
+                (at.y0 + at.y1) / 2.0,
+                at.x0,
+                at.y1 - 2.0,
+                self.rows[label].label
+            );
+        }
         let _ = writeln!(
             svg,
-            "<text x=\"{}\" y=\"{}\" fill=\"#555\">squares: with refinement</text>\n</svg>",
+            "<text x=\"{}\" y=\"{}\" fill=\"#555\">squares: with refinement; dots: false culls, rings: false keeps</text>\n</svg>",
             width - margin - 124.0,
             margin + 32.0
         );
         svg
+    }
+}
+
+/// A label's or marker's box in SVG pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LabelBox {
+    pub x0: f64,
+    pub y0: f64,
+    pub x1: f64,
+    pub y1: f64,
+}
+
+impl LabelBox {
+    fn around(x: f64, y: f64, r: f64) -> LabelBox {
+        LabelBox {
+            x0: x - r,
+            y0: y - r,
+            x1: x + r,
+            y1: y + r,
+        }
+    }
+
+    pub fn overlaps(&self, other: &LabelBox) -> bool {
+        self.x0 < other.x1 && other.x0 < self.x1 && self.y0 < other.y1 && other.y0 < self.y1
+    }
+
+    fn inside(&self, outer: &LabelBox) -> bool {
+        self.x0 >= outer.x0 && self.x1 <= outer.x1 && self.y0 >= outer.y0 && self.y1 <= outer.y1
+    }
+}
+
+/// Width of a text of `chars` characters at font size 11 (sans-serif
+/// averages under 6.5 px a character).
+const CHAR_WIDTH: f64 = 6.5;
+const LINE_HEIGHT: f64 = 13.0;
+
+/// A box for each point's label that overlaps no other label and no
+/// marker: tried right, then left of the point, at growing distances up and
+/// down; the first free place wins (leader lines join label and point).
+/// Falls back to the least crowded place when none is free.
+fn place_labels(
+    points: &[(f64, f64)],
+    labels: &[&str],
+    markers: &[LabelBox],
+    plot: LabelBox,
+) -> Vec<((f64, f64), LabelBox)> {
+    let mut placed: Vec<((f64, f64), LabelBox)> = Vec::new();
+    for (&(px, py), label) in points.iter().zip(labels) {
+        let w = label.chars().count() as f64 * CHAR_WIDTH;
+        let mut best: Option<(usize, LabelBox)> = None;
+        'search: for step in 0..40 {
+            let dy = (step / 2) as f64 * LINE_HEIGHT * if step % 2 == 0 { -1.0 } else { 1.0 };
+            for right in [true, false] {
+                let x0 = if right { px + 8.0 } else { px - 8.0 - w };
+                let candidate = LabelBox {
+                    x0,
+                    y0: py + dy - LINE_HEIGHT / 2.0,
+                    x1: x0 + w,
+                    y1: py + dy + LINE_HEIGHT / 2.0,
+                };
+                let clashes = markers.iter().filter(|m| m.overlaps(&candidate)).count()
+                    + placed
+                        .iter()
+                        .filter(|(_, b)| b.overlaps(&candidate))
+                        .count()
+                    + usize::from(!candidate.inside(&plot));
+                if best.is_none_or(|(c, _)| clashes < c) {
+                    best = Some((clashes, candidate));
+                }
+                if clashes == 0 {
+                    break 'search;
+                }
+            }
+        }
+        if let Some((_, b)) = best {
+            placed.push(((px, py), b));
+        }
+    }
+    placed
+}
+
+#[cfg(test)]
+mod label_tests {
+    use super::*;
+
+    #[test]
+    fn crowded_labels_never_overlap_each_other_or_markers() {
+        // Eleven settings within a few pixels of each other (the sweep's
+        // low-density rows often are).
+        let points: Vec<(f64, f64)> = (0..11)
+            .map(|i| (300.0 + i as f64 * 3.0, 200.0 + (i % 3) as f64))
+            .collect();
+        let names: Vec<String> = (0..11)
+            .map(|i| format!("density x{i}, refine 16"))
+            .collect();
+        let labels: Vec<&str> = names.iter().map(String::as_str).collect();
+        let markers: Vec<LabelBox> = points
+            .iter()
+            .map(|&(x, y)| LabelBox::around(x, y, 6.0))
+            .collect();
+        let plot = LabelBox {
+            x0: 70.0,
+            y0: 70.0,
+            x1: 750.0,
+            y1: 390.0,
+        };
+        let placed = place_labels(&points, &labels, &markers, plot);
+        assert_eq!(placed.len(), 11);
+        for (i, (_, a)) in placed.iter().enumerate() {
+            assert!(a.inside(&plot), "{a:?}");
+            assert!(
+                markers.iter().all(|m| !m.overlaps(a)),
+                "label {i} on a marker"
+            );
+            for (_, b) in &placed[i + 1..] {
+                assert!(!a.overlaps(b), "{a:?} and {b:?}");
+            }
+        }
     }
 }
 

@@ -4,6 +4,7 @@
 //! in `classify`, the rays in `light`, the traversal in `trace`.
 
 pub mod casters;
+pub mod estimate;
 pub mod geometry;
 pub mod ground;
 pub mod memory;
@@ -14,10 +15,10 @@ pub mod trace_light;
 
 use crate::classify::Passes;
 use crate::formats::bake_settings::{FaceCulling, LightSettings};
+use crate::progress::{Counter, Phase};
 use crate::scene::Scene;
 use casters::CasterTable;
 use setup::{BakeWorld, LightSetup, NoSetup};
-use std::sync::atomic::AtomicU64;
 use std::time::Instant;
 use trace_light::CasterSet;
 
@@ -40,6 +41,9 @@ pub struct BakeConfig {
     /// Refinement: rays aimed at this many points of every caster's own
     /// surface that the grid did not prove useful (0: off).
     pub refine_samples: u32,
+    /// Per light, its bit in the masks (`<bit>`); empty or short: a light's
+    /// bit is its position. See [`BakeConfig::bit`].
+    pub bits: Vec<u32>,
 }
 
 impl BakeConfig {
@@ -53,7 +57,52 @@ impl BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            bits: settings.bits.clone(),
         }
+    }
+
+    /// Light `index`'s bit in every mask.
+    pub fn bit(&self, index: usize) -> u32 {
+        self.bits.get(index).copied().unwrap_or(index as u32)
+    }
+
+    /// The bits of every light this config bakes: the bits a bake replaces
+    /// (every other bit of an existing mask is kept).
+    pub fn baked_bits(&self) -> u32 {
+        (0..self.lights.len()).fold(0, |bits, i| bits | 1u32.wrapping_shl(self.bit(i)))
+    }
+
+    /// Only the named lights (each keeps its bit). Errors name the unknown
+    /// ones and list the lights there are.
+    pub fn select_lights(&self, names: &[String]) -> Result<BakeConfig, String> {
+        let unknown: Vec<&str> = names
+            .iter()
+            .filter(|n| !self.lights.iter().any(|l| &l.name == *n))
+            .map(String::as_str)
+            .collect();
+        if !unknown.is_empty() {
+            return Err(format!(
+                "no light named {} in the settings file; its lights are {}",
+                unknown
+                    .iter()
+                    .map(|n| format!("`{n}`"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                self.lights
+                    .iter()
+                    .map(|l| format!("`{}`", l.name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        let keep: Vec<usize> = (0..self.lights.len())
+            .filter(|&i| names.contains(&self.lights[i].name))
+            .collect();
+        Ok(BakeConfig {
+            lights: keep.iter().map(|&i| self.lights[i].clone()).collect(),
+            bits: keep.iter().map(|&i| self.bit(i)).collect(),
+            ..self.clone()
+        })
     }
 }
 
@@ -68,29 +117,19 @@ impl Default for BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            bits: Vec::new(),
         }
     }
 }
 
-/// Where a bake reports progress; the library never prints.
-pub trait Progress: Sync {
-    /// Before the bottom levels (one BVH per distinct model, one height
-    /// field per terrain block) are built, once per bake.
-    fn bottom_levels_building(&self, _models: usize, _terrain_blocks: usize) {}
-    /// Before the rays are traced.
-    fn light_started(&self, _index: usize, _light: &LightSettings, _rays: u64) {}
-    /// Called from worker threads with the running total of rays traced.
-    fn rays_traced(&self, _index: usize, _done: &AtomicU64) {}
-    fn light_finished(&self, _report: &LightReport) {}
-}
-
-/// No progress output.
-pub struct Silent;
-impl Progress for Silent {}
+pub use crate::progress::{Progress, Silent};
 
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct LightReport {
+    /// Position among the lights baked.
     pub index: usize,
+    /// Its bit in the masks.
+    pub bit: u32,
     pub name: String,
     pub kind: &'static str,
     /// Texel rays (texels × supersample²) plus refinement rays.
@@ -122,6 +161,36 @@ pub struct LightReport {
 pub struct Skipped {
     pub what: String,
     pub why: String,
+    pub severity: Severity,
+}
+
+/// Whether a skipped entry lost something.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Severity {
+    /// Work saved, nothing lost (one pass instead of two, a light that
+    /// reaches nothing, geometry outside a light's reach).
+    Info,
+    /// Input the bake could not use: its verdicts may be wrong.
+    Error,
+}
+
+impl Skipped {
+    pub fn info(what: impl Into<String>, why: impl Into<String>) -> Skipped {
+        Skipped {
+            what: what.into(),
+            why: why.into(),
+            severity: Severity::Info,
+        }
+    }
+
+    pub fn error(what: impl Into<String>, why: impl Into<String>) -> Skipped {
+        Skipped {
+            what: what.into(),
+            why: why.into(),
+            severity: Severity::Error,
+        }
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -131,8 +200,11 @@ pub struct BakeResult {
     /// Heap bytes of the bottom levels.
     pub bottom_level_bytes: usize,
     pub casters: CasterTable,
-    /// Per caster id: bit i set = useful for light i.
+    /// Per caster id: bit `config.bit(i)` set = useful for light i.
     pub masks: Vec<u32>,
+    /// The bits this bake decided ([`BakeConfig::baked_bits`]); the others
+    /// of every mask are zero here and kept from the chunk files on output.
+    pub baked_bits: u32,
     pub lights: Vec<LightReport>,
     pub skipped: Vec<Skipped>,
 }
@@ -145,6 +217,54 @@ pub enum BakeError {
     /// settings mistake, so the bake stops rather than skipping it.
     #[error(transparent)]
     Grid(#[from] crate::light::GridError),
+    /// Every light whose grid cannot be made, found before any is traced.
+    #[error("{} light(s) cannot be baked; nothing was traced:{}", .0.len(), .0.iter().map(|e| format!("\n  {e}")).collect::<String>())]
+    Grids(Vec<crate::light::GridError>),
+    /// A large allocation failed: the machine (or its limit) has too
+    /// little memory for this phase.
+    #[error("out of memory while {phase}: {bytes} bytes could not be allocated; bake fewer lights at a time (--light), coarsen <texelSize>/<resolution>, or use a machine with more memory")]
+    OutOfMemory { phase: &'static str, bytes: usize },
+}
+
+/// A zeroed vector of `len` values, or [`BakeError::OutOfMemory`] naming
+/// `phase` (a failed allocation must not abort the process).
+pub fn try_zeroed<T: Clone + Default>(
+    len: usize,
+    phase: &'static str,
+) -> Result<Vec<T>, BakeError> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len)
+        .map_err(|_| BakeError::OutOfMemory {
+            phase,
+            bytes: len.saturating_mul(std::mem::size_of::<T>()),
+        })?;
+    v.resize(len, T::default());
+    Ok(v)
+}
+
+/// Checks every light's grid against the world's bounds before anything
+/// is built or traced: a settings mistake in the last light must not cost
+/// the time of the first. Lights with nothing to cover are not errors.
+pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeError> {
+    if config.lights.len() > 32 {
+        return Err(BakeError::TooManyLights {
+            count: config.lights.len(),
+        });
+    }
+    let Some(bounds) = geometry::world_bounds(scene) else {
+        return Ok(());
+    };
+    let errors: Vec<crate::light::GridError> = config
+        .lights
+        .iter()
+        .filter_map(|light| crate::light::TexelGrid::new(light, bounds).err())
+        .filter(|e| !matches!(e, crate::light::GridError::EmptyWorld { .. }))
+        .collect();
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(BakeError::Grids(errors))
+    }
 }
 
 pub fn bake(
@@ -152,44 +272,51 @@ pub fn bake(
     config: &BakeConfig,
     progress: &dyn Progress,
 ) -> Result<BakeResult, BakeError> {
-    if config.lights.len() > 32 {
-        return Err(BakeError::TooManyLights {
-            count: config.lights.len(),
-        });
-    }
-    progress.bottom_levels_building(scene.models.len(), scene.terrain.len());
-    let world = BakeWorld::new(scene);
-    let mut masks = vec![0u32; world.casters.len()];
-    let mut skipped = world_skipped(&world);
+    validate_lights(scene, config)?;
+    let world = BakeWorld::build(scene, progress);
+    bake_world(&world, config, progress)
+}
+
+/// Bakes `config`'s lights over a world whose bottom levels are built
+/// (`plan` and `bake` share one [`BakeWorld`]). Call [`validate_lights`]
+/// first.
+pub fn bake_world(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+) -> Result<BakeResult, BakeError> {
+    let mut masks = try_zeroed::<u32>(world.casters.len(), "making the caster masks")?;
+    let mut skipped = world_skipped(world);
     let mut lights = Vec::new();
     for index in 0..config.lights.len() {
-        let setup = match LightSetup::new(&world, config, index) {
+        let setup = match LightSetup::new(world, config, index) {
             Ok(setup) => setup,
             Err(nothing) if nothing.is_nothing_to_trace() => {
-                skipped.push(Skipped {
-                    what: light_name(config, index),
-                    why: nothing.to_string(),
-                });
+                skipped.push(Skipped::info(
+                    light_name(config, index),
+                    nothing.to_string(),
+                ));
                 continue;
             }
             Err(NoSetup::Grid(err)) => return Err(err.into()),
             Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
         };
-        let (useful, report) = bake_light(&world, &setup, config, progress, &mut skipped);
+        let (useful, report) = bake_light(world, &setup, config, progress, &mut skipped);
+        let bit = 1u32.wrapping_shl(config.bit(index));
         for (id, mask) in masks.iter_mut().enumerate() {
             if useful.contains(id as u32) {
-                *mask |= 1 << index;
+                *mask |= bit;
             }
         }
-        progress.light_finished(&report);
         lights.push(report);
     }
     skipped.sort();
     Ok(BakeResult {
         bottom_level_seconds: world.bottom_seconds,
         bottom_level_bytes: world.bottom.heap_bytes(),
-        casters: world.casters,
+        casters: world.casters.clone(),
         masks,
+        baked_bits: config.baked_bits(),
         lights,
         skipped,
     })
@@ -205,25 +332,27 @@ fn world_skipped(world: &BakeWorld) -> Vec<Skipped> {
     let mut skipped: Vec<Skipped> = scene
         .problems
         .iter()
-        .map(|p| Skipped {
-            what: p.what.clone(),
-            why: p.why.clone(),
-        })
+        .map(|p| Skipped::error(p.what.clone(), p.why.clone()))
         .collect();
     for (index, instance) in scene.instances.iter().enumerate() {
         if world.casters.first_of_instance[index].is_none() {
             let chunk = &scene.chunks[instance.chunk];
-            skipped.push(Skipped {
-                what: format!("{} instance {} ({})", chunk.name, instance.index, instance.resources.join(", ")),
-                why: "a <resource> part did not load (see its problem); its <shadow> is left as it was".into(),
-            });
+            skipped.push(Skipped::error(
+                format!(
+                    "{} instance {} ({})",
+                    chunk.name,
+                    instance.index,
+                    instance.resources.join(", ")
+                ),
+                "a <resource> part did not load (see its problem); its <shadow> is left as it was",
+            ));
         }
     }
     if world.ground.is_none() {
-        skipped.push(Skipped {
-            what: "below-ground test".into(),
-            why: "the world has no terrain: no height tests".into(),
-        });
+        skipped.push(Skipped::info(
+            "below-ground test",
+            "the world has no terrain: no height tests",
+        ));
     }
     skipped
 }
@@ -244,51 +373,46 @@ pub fn bake_light(
     let name = light_name(config, index);
     let reach = &setup.reach;
     if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
-        skipped.push(Skipped {
-            what: name.clone(),
-            why: format!(
+        skipped.push(Skipped::info(
+            name.clone(),
+            format!(
                 "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
                 reach.parts_out_of_reach, reach.blocks_out_of_reach
             ),
-        });
+        ));
     }
     let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
     if left_out > 0 {
-        skipped.push(Skipped {
-            what: name.clone(),
-            why: format!(
+        skipped.push(Skipped::info(
+            name.clone(),
+            format!(
                 "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
                 crate::trace::MAX_COORDINATE
             ),
-        });
+        ));
     }
     if setup.passes == Passes::AllOnly {
-        skipped.push(Skipped {
-            what: name.clone(),
-            why: "reaches no alpha-tested group: one pass (All) instead of two".into(),
-        });
+        skipped.push(Skipped::info(
+            name.clone(),
+            "reaches no alpha-tested group: one pass (All) instead of two",
+        ));
     }
     let supersample = config.supersample.max(1);
     let mut rays = setup.grid.texel_count() * (supersample as u64).pow(2);
     let mut refine_rays = 0;
     let trace_started = Instant::now();
     let useful = if setup.top.is_empty() {
-        skipped.push(Skipped {
-            what: name.clone(),
-            why: "its frustum holds no geometry: no rays traced".into(),
-        });
+        skipped.push(Skipped::info(
+            name.clone(),
+            "its frustum holds no geometry: no rays traced",
+        ));
         rays = 0;
         CasterSet::new(world.casters.len())
     } else {
-        progress.light_started(index, light, rays);
         let rays_of_light = setup.rays(world, config);
-        let done = AtomicU64::new(0);
-        let reporter = ProgressRelay {
-            progress,
-            index,
-            done: &done,
-        };
-        let mut useful = rays_of_light.trace_grid(supersample, &reporter);
+        let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
+        let mut useful = rays_of_light.trace_grid(supersample, &counter);
+        counter.finish();
         if config.refine_samples > 0 {
             let (refined, traced) =
                 refine::refine(world, setup, &rays_of_light, &useful, config.refine_samples);
@@ -308,6 +432,7 @@ pub fn bake_light(
     let useful_casters = kept.len();
     let report = LightReport {
         index,
+        bit: config.bit(index),
         name: light.name.clone(),
         kind: light.kind.type_name(),
         rays,
@@ -329,17 +454,60 @@ pub fn bake_light(
     (kept, report)
 }
 
-/// Passes ray counts from the tracing threads to the caller's progress.
-struct ProgressRelay<'a> {
-    progress: &'a dyn Progress,
-    index: usize,
-    done: &'a AtomicU64,
+impl trace_light::RayCounter for Counter<'_> {
+    fn add(&self, rays: u64) {
+        Counter::add(self, rays);
+    }
 }
 
-impl trace_light::RayCounter for ProgressRelay<'_> {
-    fn add(&self, rays: u64) {
-        self.done
-            .fetch_add(rays, std::sync::atomic::Ordering::Relaxed);
-        self.progress.rays_traced(self.index, self.done);
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_allocation_is_an_error_naming_the_phase() {
+        // More than the address space: try_reserve fails without aborting.
+        let err = try_zeroed::<u64>(usize::MAX / 4, "making the caster masks").unwrap_err();
+        let message = err.to_string();
+        assert!(
+            message.contains("out of memory while making the caster masks"),
+            "{message}"
+        );
+        assert_eq!(try_zeroed::<u32>(3, "x").unwrap(), vec![0, 0, 0]);
+    }
+
+    #[test]
+    fn selected_lights_keep_their_bits() {
+        let settings = crate::formats::bake_settings::BakeSettings {
+            res_paths: Vec::new(),
+            space: String::new(),
+            face_culling: FaceCulling::Back,
+            height_bias: 0.05,
+            tie_epsilon: 1e-4,
+            lights: ["a", "b", "c"]
+                .map(|name| LightSettings {
+                    name: name.into(),
+                    kind: crate::formats::bake_settings::LightKind::Directional {
+                        direction: glam::DVec3::NEG_Y,
+                        texel_size: 1.0,
+                    },
+                })
+                .to_vec(),
+            bits: vec![4, 0, 9],
+            unknown: Vec::new(),
+        };
+        let config = BakeConfig::from_settings(&settings);
+        assert_eq!(config.baked_bits(), 1 << 4 | 1 | 1 << 9);
+        let picked = config
+            .select_lights(&["c".to_string(), "a".to_string()])
+            .unwrap();
+        assert_eq!(picked.lights.len(), 2);
+        assert_eq!((picked.bit(0), picked.bit(1)), (4, 9));
+        assert_eq!(picked.baked_bits(), 1 << 4 | 1 << 9);
+        let err = config.select_lights(&["z".to_string()]).unwrap_err();
+        assert!(
+            err.contains("`z`") && err.contains("`a`, `b`, `c`"),
+            "{err}"
+        );
     }
 }

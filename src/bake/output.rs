@@ -1,6 +1,7 @@
 //! From masks to results: the `<shadow>` content of every chunk (SPEC §5)
 //! and the JSON report (SPEC §8).
 
+use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
 use crate::formats::chunk::InstanceKind;
 use crate::formats::resources::{self, ResPaths};
@@ -44,6 +45,70 @@ pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkS
         .terrain
         .map(|block| result.masks[result.casters.of_block[block] as usize]);
     ChunkShadows { instances, terrain }
+}
+
+/// Puts back the bits this bake did not decide (lights of other settings
+/// files, or left out by `--light`) from the chunk files' existing
+/// `<shadow>`s, so a bake of some lights never clobbers the others.
+pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
+    let keep = !result.baked_bits;
+    if keep == 0 {
+        return Ok(());
+    }
+    let old = masks_from_chunks(scene, &result.casters)?;
+    for (mask, old) in result.masks.iter_mut().zip(old) {
+        *mask |= old & keep;
+    }
+    Ok(())
+}
+
+/// The masks the chunk files hold now, per caster id: per group where an
+/// instance's `<shadow>` has its model's shape, else the instance mask for
+/// every group; 0 where there is none, and for receiver-only instances. A
+/// chunk that cannot be read back is an error naming it.
+pub fn masks_from_chunks(scene: &Scene, casters: &CasterTable) -> Result<Vec<u32>> {
+    let mut masks = vec![0u32; casters.casters.len()];
+    for chunk in &scene.chunks {
+        let bytes = resources::read_file(&chunk.file)?;
+        let old = crate::formats::parse_data_section(&bytes)
+            .and_then(|root| shadow_write::read_chunk_shadows(&root))
+            .map_err(|e| e.in_source(&chunk.file, &bytes))?;
+        for index in chunk.instances.clone() {
+            let instance = &scene.instances[index];
+            let (Some(first), Some(Some(shadow))) = (
+                casters.first_of_instance[index],
+                old.instances.get(instance.index),
+            ) else {
+                continue;
+            };
+            if !instance.casts_shadow {
+                continue;
+            }
+            let ids = first as usize..first as usize + instance_casters(scene, instance);
+            let groups: Vec<u32> = shadow.groups().collect();
+            for (n, id) in ids.clone().enumerate() {
+                masks[id] = if groups.len() == ids.len() {
+                    groups[n]
+                } else {
+                    shadow.mask
+                };
+            }
+        }
+        if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
+            masks[casters.of_block[block] as usize] = mask;
+        }
+    }
+    Ok(masks)
+}
+
+/// How many caster ids (groups) an instance has.
+fn instance_casters(scene: &Scene, instance: &crate::scene::Instance) -> usize {
+    instance
+        .parts
+        .iter()
+        .flatten()
+        .map(|&m| scene.models[m].groups.len())
+        .sum()
 }
 
 /// One chunk file's new content and where it goes.
@@ -114,9 +179,21 @@ pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
     Ok(batch.len())
 }
 
+/// The version of the report's layout: raised when a field changes
+/// meaning or goes away (new fields may appear without it).
+pub const REPORT_VERSION: u32 = 2;
+
 /// The `--report` JSON (SPEC §8).
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
+    /// [`REPORT_VERSION`].
+    pub report_version: u32,
+    /// The shadowcull version that wrote it.
+    pub tool_version: &'static str,
+    /// Chunk files written (none for `--dry-run` and `--check`).
+    pub files_written: Vec<String>,
+    /// Chunk files whose bytes the bake changes (or would change).
+    pub files_changed: Vec<String>,
     pub lights: Vec<LightReport>,
     pub casters: Vec<CasterEntry>,
     pub skipped: Vec<Skipped>,
@@ -193,6 +270,10 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
     }
     casters.sort_by(|a, b| (&a.chunk, a.kind, a.index).cmp(&(&b.chunk, b.kind, b.index)));
     Report {
+        report_version: REPORT_VERSION,
+        tool_version: env!("CARGO_PKG_VERSION"),
+        files_written: Vec::new(),
+        files_changed: Vec::new(),
         lights: result.lights.clone(),
         casters,
         skipped: result.skipped.clone(),

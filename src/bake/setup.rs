@@ -42,6 +42,17 @@ pub struct BakeWorld<'a> {
 impl<'a> BakeWorld<'a> {
     /// Builds the bottom levels (in parallel across models and blocks).
     pub fn new(scene: &'a Scene) -> BakeWorld<'a> {
+        BakeWorld::build(scene, &crate::progress::Silent)
+    }
+
+    /// [`BakeWorld::new`], telling `progress`.
+    pub fn build(scene: &'a Scene, progress: &dyn crate::progress::Progress) -> BakeWorld<'a> {
+        let counter = crate::progress::Counter::begin(
+            progress,
+            crate::progress::Phase::BottomLevels,
+            None,
+            (scene.models.len() + scene.terrain.len()) as u64,
+        );
         let started = Instant::now();
         let casters = CasterTable::new(scene);
         let parts = casters.parts(scene).collect();
@@ -50,6 +61,8 @@ impl<'a> BakeWorld<'a> {
             |m| model_space_triangles(scene, m),
             scene.terrain.iter().map(|b| b.grid()).collect(),
         );
+        counter.add((scene.models.len() + scene.terrain.len()) as u64);
+        counter.finish();
         BakeWorld {
             scene,
             casters,

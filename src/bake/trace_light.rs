@@ -83,6 +83,10 @@ impl CasterSet {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+
+    pub fn heap_bytes(&self) -> u64 {
+        self.0.capacity() as u64 * 8
+    }
 }
 
 /// Everything one light's rays need: its grid, how to find hits, what the
@@ -104,17 +108,32 @@ impl LightRays<'_> {
     /// texel centre; k: a k×k pattern of sub-texel centres); `rays_done`
     /// hears of every finished tile so a caller can show progress.
     pub fn trace_grid(&self, samples: u32, rays_done: &dyn RayCounter) -> CasterSet {
+        self.trace_tiles(samples, 1, rays_done)
+    }
+
+    /// Tiles of the grid (32×32 texels each, faces then rows then columns).
+    pub fn tile_count(&self) -> u64 {
+        let grid = self.grid;
+        grid.faces() as u64
+            * grid.width().div_ceil(TILE) as u64
+            * grid.height().div_ceil(TILE) as u64
+    }
+
+    /// Traces every `every`-th tile (1: the whole grid), for the ray rate
+    /// of a light without tracing all of it.
+    pub fn trace_tiles(&self, samples: u32, every: u64, rays_done: &dyn RayCounter) -> CasterSet {
         let grid = self.grid;
         let casters = self.casters.len();
         let samples = samples.max(1);
         let tiles_x = grid.width().div_ceil(TILE);
         let tiles_y = grid.height().div_ceil(TILE);
-        let tiles = grid.faces() as u64 * tiles_x as u64 * tiles_y as u64;
-        (0..tiles)
+        let every = every.max(1);
+        (0..self.tile_count().div_ceil(every))
             .into_par_iter()
             .fold(
                 || (CasterSet::new(casters), Vec::new()),
-                |(mut useful, mut hits), tile| {
+                |(mut useful, mut hits), n| {
+                    let tile = n * every;
                     let face = (tile / (tiles_x as u64 * tiles_y as u64)) as usize;
                     let within = tile % (tiles_x as u64 * tiles_y as u64);
                     let x0 = (within % tiles_x as u64) as u32 * TILE;

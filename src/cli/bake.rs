@@ -1,13 +1,18 @@
-//! `shadowcull bake`: load, bake, write the chunks and the report, print the
-//! per-light table.
+//! `shadowcull bake`: load, refuse broken input, plan, bake, write the
+//! chunks and the report, print the per-light table. The pipeline flags
+//! live in `pipeline`, the estimate in `plan`, progress in `progress`.
 
-use super::progress::Reporter;
+use super::pipeline::{self, count, PipelineArgs};
+use super::progress::{ProgressArgs, Reporter};
 use super::{load_config, load_settings, SettingsArgs};
 use anyhow::{Context, Result};
-use shadowcull::bake::{self, output, BakeConfig};
-use shadowcull::formats::bake_settings::FaceCulling;
+use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::{self, output, BakeConfig, BakeResult};
+use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::formats::resources::{self, ResPaths};
-use shadowcull::scene;
+use shadowcull::progress::{Counter, Phase};
+use shadowcull::scene::{self, Scene};
+use std::io::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -19,10 +24,8 @@ pub struct BakeArgs {
     /// res root) instead of in place.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
-    /// Bake and report, but write no chunk file.
-    #[arg(long)]
-    dry_run: bool,
-    /// Write the machine-readable report (JSON) to FILE.
+    /// Write the machine-readable report (JSON) to FILE (`-`: standard
+    /// output; the table then goes to standard error).
     #[arg(long, value_name = "FILE")]
     report: Option<PathBuf>,
     /// Worker threads (default: one per core). Results are identical for any N.
@@ -32,10 +35,10 @@ pub struct BakeArgs {
     #[arg(long, value_name = "MODE", value_parser = ["back", "front", "none"])]
     face_culling: Option<String>,
     /// Override <heightBias> (metres).
-    #[arg(long, value_name = "M")]
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
     height_bias: Option<f64>,
     /// Override <tieEpsilon> (metres along a ray).
-    #[arg(long, value_name = "M")]
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
     tie_epsilon: Option<f64>,
     /// Rays per texel side: k traces a k×k pattern per texel.
     #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
@@ -51,15 +54,34 @@ pub struct BakeArgs {
     /// correctness oracle; slow).
     #[arg(long, hide = true)]
     brute_force: bool,
+    #[command(flatten)]
+    pipeline: PipelineArgs,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 pub fn run(args: BakeArgs) -> Result<()> {
+    let file = args.settings.settings.clone();
     let settings = load_settings(&args.settings)?;
+    pipeline::warn_unknown(&settings, &file);
+    let config = bake_config(&args, &settings)?;
+    let config = pipeline::select_lights(config, &args.pipeline.lights, &file)?;
+    anyhow::ensure!(
+        !config.lights.is_empty(),
+        "{}: no <light> in <lights>: nothing to bake",
+        file.display()
+    );
+    let pool = super::thread_pool(args.threads)?;
+    pool.install(|| bake_with(&args, &config, &settings))
+}
+
+/// The settings file's values with the command line's overrides.
+fn bake_config(args: &BakeArgs, settings: &BakeSettings) -> Result<BakeConfig> {
     let mut config = BakeConfig {
         brute_force: args.brute_force,
         supersample: args.supersample,
         refine_samples: if args.refine { args.refine_samples } else { 0 },
-        ..BakeConfig::from_settings(&settings)
+        ..BakeConfig::from_settings(settings)
     };
     if let Some(mode) = &args.face_culling {
         config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
@@ -81,29 +103,85 @@ pub fn run(args: BakeArgs) -> Result<()> {
     if let Some(epsilon) = args.tie_epsilon {
         config.tie_epsilon = epsilon;
     }
-    anyhow::ensure!(
-        !config.lights.is_empty(),
-        "{}: no <light> in <lights>: nothing to bake",
-        args.settings.settings.display()
-    );
-    let threads = args.threads.map(usize::from).unwrap_or(0);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .context("cannot start worker threads")?;
-    pool.install(|| bake_with(args, settings.res_paths.clone(), config, &settings))
+    Ok(config)
 }
 
-fn bake_with(
-    args: BakeArgs,
-    res_paths: Vec<PathBuf>,
-    config: BakeConfig,
-    settings: &shadowcull::formats::bake_settings::BakeSettings,
-) -> Result<()> {
+fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> Result<()> {
+    let file = &args.settings.settings;
     let started = Instant::now();
-    let scene = scene::load_scene(&load_config(settings))?;
+    let reporter = Reporter::new(&args.progress);
+    let scene = scene::load_scene_with(&load_config(settings), &reporter)?;
+    reporter.say(&loaded_line(&scene, started));
+    pipeline::refuse_problems(&scene, args.pipeline.keep_going)?;
+    bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
+    let world = BakeWorld::build(&scene, &reporter);
+    let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;
+    for line in super::plan::plan_lines(&plan) {
+        reporter.say(&line);
+    }
+    super::plan::check_memory(&plan, args.pipeline.max_memory)?;
+
+    let mut result =
+        bake::bake_world(&world, config, &reporter).with_context(|| file.display().to_string())?;
+    output::keep_other_bits(&scene, &mut result)?;
+    let res_paths = ResPaths::new(settings.res_paths.clone());
+    let outputs = output::chunk_outputs(&scene, &result, &res_paths, args.out.as_deref())?;
+    let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
+    let written = if args.pipeline.writes_nothing() {
+        Vec::new()
+    } else {
+        let counter = Counter::begin(&reporter, Phase::Writing, None, changed.len() as u64);
+        output::write_outputs(&outputs)?;
+        counter.add(changed.len() as u64);
+        counter.finish();
+        changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect()
+    };
+    let to_stdout = args.report.as_deref() == Some(std::path::Path::new("-"));
+    if let Some(path) = &args.report {
+        let mut report = output::report(&scene, &result);
+        report.files_changed = changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect();
+        report.files_written = written.clone();
+        let json = serde_json::to_vec_pretty(&report).context("report")?;
+        if to_stdout {
+            let mut stdout = std::io::stdout().lock();
+            stdout.write_all(&json)?;
+            writeln!(stdout)?;
+        } else {
+            resources::write_atomic(path, &json)?;
+        }
+    }
+    let summary = summary(
+        args,
+        config,
+        &result,
+        &outputs,
+        &changed,
+        written.len(),
+        started,
+    );
+    if to_stdout {
+        eprint!("{summary}");
+    } else {
+        print!("{summary}");
+    }
+    if args.pipeline.check && !changed.is_empty() {
+        anyhow::bail!(
+            "--check: {} would change (listed above); the baked masks are stale",
+            count(changed.len(), "chunk file", "chunk files")
+        );
+    }
+    Ok(())
+}
+
+fn loaded_line(scene: &Scene, started: Instant) -> String {
     let stats = scene.stats();
-    eprintln!(
+    format!(
         "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s{}",
         stats.chunks,
         stats.instances,
@@ -114,38 +192,30 @@ fn bake_with(
             String::new()
         } else {
             format!(
-                "; {} problems (see the report's `skipped`)",
-                scene.problems.len()
+                "; {} (see the report's `skipped`)",
+                count(scene.problems.len(), "problem", "problems")
             )
         }
-    );
-    for problem in scene.problems.iter().take(5) {
-        eprintln!("  {}: {}", problem.what, problem.why);
-    }
-    if scene.problems.len() > 5 {
-        eprintln!("  … and {} more", scene.problems.len() - 5);
-    }
+    )
+}
 
-    let reporter = Reporter::new();
-    let result = bake::bake(&scene, &config, &reporter)
-        .with_context(|| format!("{}", args.settings.settings.display()))?;
-    let res_paths = ResPaths::new(res_paths);
-    let outputs = output::chunk_outputs(&scene, &result, &res_paths, args.out.as_deref())?;
-    let changed = outputs.iter().filter(|o| o.changed).count();
-    let written = if args.dry_run {
-        0
-    } else {
-        output::write_outputs(&outputs)?
-    };
-    if let Some(path) = &args.report {
-        let report = output::report(&scene, &result);
-        let json = serde_json::to_vec_pretty(&report).context("report")?;
-        resources::write_atomic(path, &json)?;
-    }
-
-    println!(
+/// The per-light table, the files that would change (`--dry-run`,
+/// `--check`) and the closing line.
+fn summary(
+    args: &BakeArgs,
+    config: &BakeConfig,
+    result: &BakeResult,
+    outputs: &[output::ChunkOutput],
+    changed: &[&output::ChunkOutput],
+    written: usize,
+    started: Instant,
+) -> String {
+    use std::fmt::Write as _;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
         "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9} {:>9} {:>8} {:>8} {:>8}",
-        "#",
+        "bit",
         "light",
         "kind",
         "rays",
@@ -157,9 +227,10 @@ fn bake_with(
         "culled"
     );
     for light in &result.lights {
-        println!(
+        let _ = writeln!(
+            out,
             "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9.3} {:>9.3} {:>8.2} {:>8} {:>8}",
-            light.index,
+            light.bit,
             light.name,
             light.kind,
             light.rays,
@@ -173,16 +244,23 @@ fn bake_with(
     }
     let skipped_lights = config.lights.len() - result.lights.len();
     if skipped_lights > 0 {
-        println!("{skipped_lights} light(s) skipped: see the report's `skipped`");
+        let _ = writeln!(
+            out,
+            "{} skipped: see the report's `skipped`",
+            count(skipped_lights, "light", "lights")
+        );
     }
-    let verb = if args.dry_run {
-        "would change"
-    } else {
-        "wrote"
-    };
-    let count = if args.dry_run { changed } else { written };
-    println!(
-        "{verb} {count} of {} chunk files{}; {:.2} s in all",
+    let dry = args.pipeline.writes_nothing();
+    if dry {
+        for o in changed {
+            let _ = writeln!(out, "would change {}", o.target.display());
+        }
+    }
+    let _ = writeln!(
+        out,
+        "{} {} of {} chunk files{}; {:.2} s in all",
+        if dry { "would change" } else { "wrote" },
+        if dry { changed.len() } else { written },
         outputs.len(),
         match &args.out {
             Some(dir) => format!(" under {}", dir.display()),
@@ -190,5 +268,5 @@ fn bake_with(
         },
         started.elapsed().as_secs_f64()
     );
-    Ok(())
+    out
 }

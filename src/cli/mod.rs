@@ -2,6 +2,8 @@
 //! messages here; nothing below this module prints.
 
 mod bake;
+mod pipeline;
+mod plan;
 mod progress;
 mod render;
 mod sweep;
@@ -42,6 +44,8 @@ pub(crate) struct SettingsArgs {
 enum Command {
     /// Bake every light and write the masks into the chunk files.
     Bake(bake::BakeArgs),
+    /// Estimate a bake's time and peak memory, per light, without baking.
+    Plan(plan::PlanArgs),
     /// Classification error against run time over a ladder of settings.
     Sweep(sweep::SweepArgs),
     /// Print what the world holds, without baking.
@@ -96,6 +100,7 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
+        Command::Plan(args) => plan::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),
@@ -108,6 +113,11 @@ fn run(cli: Cli) -> Result<()> {
             } else {
                 print!("{}", inspection.to_text());
             }
+            anyhow::ensure!(
+                scene.problems.is_empty(),
+                "{} listed: a bake of this world fails unless --keep-going",
+                pipeline::count(scene.problems.len(), "problem", "problems")
+            );
             Ok(())
         }
         Command::Gen {
@@ -144,6 +154,14 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// A worker pool of `threads` (default: one per core).
+pub(crate) fn thread_pool(threads: Option<u16>) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.map(usize::from).unwrap_or(0))
+        .build()
+        .context("cannot start worker threads")
 }
 
 pub(crate) fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {

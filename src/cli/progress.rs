@@ -1,99 +1,264 @@
-//! Bake progress for people: a bar per light on a terminal, a few plain
-//! lines otherwise (batch logs should not fill with control characters).
+//! Progress for people and machines: a bar with an ETA on a terminal,
+//! plain lines (elapsed time, phase, light, ETA) when standard error is a
+//! pipe or a log, one JSON object per line with `--progress json`, nothing
+//! with `--quiet`. Everything goes to standard error.
 
 use indicatif::{ProgressBar, ProgressStyle};
-use shadowcull::bake::{LightReport, Progress};
-use shadowcull::formats::bake_settings::LightSettings;
+use shadowcull::progress::{Phase, Progress};
 use std::io::IsTerminal;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// How progress is shown (`--progress`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ProgressMode {
+    /// A bar on a terminal, lines otherwise.
+    Auto,
+    /// Lines with elapsed time, light and ETA.
+    Lines,
+    /// One JSON object per line: phase, light, done, total, eta_s.
+    Json,
+    /// Nothing (as `--quiet`).
+    None,
+}
+
+/// The progress flags every long-running command takes.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ProgressArgs {
+    /// Progress on standard error: auto (a bar on a terminal, lines
+    /// otherwise), lines, json (one object per line) or none.
+    #[arg(long, value_enum, default_value_t = ProgressMode::Auto)]
+    progress: ProgressMode,
+    /// No progress and no informational messages (errors and warnings
+    /// still print).
+    #[arg(long, short)]
+    pub quiet: bool,
+    /// Seconds between progress lines of a phase (lines and json).
+    #[arg(long, value_name = "S", default_value_t = 5.0, hide = true)]
+    progress_interval: f64,
+}
+
+enum Style {
+    Bar,
+    Lines,
+    Json,
+    Silent,
+}
+
+struct Open {
+    phase: Phase,
+    light: Option<String>,
+    total: u64,
+    started: Instant,
+    last_line: Instant,
+    /// The latest count heard.
+    done: u64,
+    bar: Option<ProgressBar>,
+}
+
+/// What the reporting threads and the heartbeat share.
+struct Shared {
+    style: Style,
+    started: Instant,
+    interval: Duration,
+    open: Mutex<Option<Open>>,
+    stop: AtomicBool,
+}
 
 pub struct Reporter {
-    terminal: bool,
-    bar: Mutex<Option<ProgressBar>>,
-    /// Plain mode: rays at which the next line is due, and the total.
-    next_line: AtomicU64,
-    total: AtomicU64,
+    shared: Arc<Shared>,
+    /// `--quiet`: no informational messages either.
+    quiet: bool,
+}
+
+/// Lines and JSON: a phase that hears of no progress (a long build) still
+/// gets a line at least this often.
+const HEARTBEAT: Duration = Duration::from_secs(8);
+
+impl Drop for Reporter {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+    }
 }
 
 impl Reporter {
-    pub fn new() -> Reporter {
+    pub fn new(args: &ProgressArgs) -> Reporter {
+        let style = match (args.quiet, args.progress) {
+            (true, _) | (_, ProgressMode::None) => Style::Silent,
+            (_, ProgressMode::Json) => Style::Json,
+            (_, ProgressMode::Lines) => Style::Lines,
+            (_, ProgressMode::Auto) if std::io::stderr().is_terminal() => Style::Bar,
+            (_, ProgressMode::Auto) => Style::Lines,
+        };
+        let lines = matches!(style, Style::Lines | Style::Json);
+        let shared = Arc::new(Shared {
+            style,
+            started: Instant::now(),
+            interval: Duration::from_secs_f64(args.progress_interval.clamp(0.0, 10.0)),
+            open: Mutex::new(None),
+            stop: AtomicBool::new(false),
+        });
+        if lines {
+            let beat = Arc::clone(&shared);
+            std::thread::spawn(move || beat.heartbeat());
+        }
         Reporter {
-            terminal: std::io::stderr().is_terminal(),
-            bar: Mutex::new(None),
-            next_line: AtomicU64::new(u64::MAX),
-            total: AtomicU64::new(0),
+            shared,
+            quiet: args.quiet,
+        }
+    }
+
+    /// An informational message (not with `--quiet`; plain text also in
+    /// json mode, which only governs progress lines).
+    pub fn say(&self, message: &str) {
+        if self.quiet {
+            return;
+        }
+        self.suspend(|| eprintln!("{message}"));
+    }
+
+    fn suspend(&self, f: impl FnOnce()) {
+        let bar = self
+            .shared
+            .open
+            .lock()
+            .ok()
+            .and_then(|o| o.as_ref().and_then(|o| o.bar.clone()));
+        match bar {
+            Some(bar) => bar.suspend(f),
+            None => f(),
         }
     }
 }
 
-impl Progress for Reporter {
-    fn bottom_levels_building(&self, models: usize, terrain_blocks: usize) {
-        // A bar cannot move during the build; one line says what happens.
-        eprintln!(
-            "building the bottom levels: {models} model BVHs, {terrain_blocks} terrain height fields"
-        );
+impl Shared {
+    /// Until the reporter is dropped: a line for an open phase that has
+    /// printed none for [`HEARTBEAT`].
+    fn heartbeat(&self) {
+        while !self.stop.load(Ordering::Relaxed) {
+            std::thread::sleep(Duration::from_millis(250));
+            if let Ok(mut slot) = self.open.lock() {
+                if let Some(open) = slot.as_mut() {
+                    if open.last_line.elapsed() >= HEARTBEAT {
+                        open.last_line = Instant::now();
+                        self.line(open, open.done);
+                    }
+                }
+            }
+        }
     }
 
-    fn light_started(&self, index: usize, light: &LightSettings, rays: u64) {
-        let label = format!("light {index} {} ({})", light.name, light.kind.type_name());
-        if self.terminal {
-            let bar = ProgressBar::new(rays);
+    fn line(&self, open: &Open, done: u64) {
+        let elapsed = self.started.elapsed().as_secs_f64();
+        let eta = eta_seconds(open, done);
+        match self.style {
+            Style::Json => {
+                let object = serde_json::json!({
+                    "phase": open.phase.name(),
+                    "light": open.light,
+                    "done": done,
+                    "total": open.total,
+                    "eta_s": eta,
+                    "elapsed_s": (elapsed * 1000.0).round() / 1000.0,
+                });
+                eprintln!("{object}");
+            }
+            Style::Lines => eprintln!(
+                "[{elapsed:>7.1} s] {}{}: {done}/{} ({}%), eta {}",
+                open.phase.name(),
+                open.light
+                    .as_deref()
+                    .map(|l| format!(" light {l}"))
+                    .unwrap_or_default(),
+                open.total,
+                done * 100 / open.total.max(1),
+                eta.map(|s| format!("{s:.0} s"))
+                    .unwrap_or_else(|| "?".into())
+            ),
+            Style::Bar | Style::Silent => {}
+        }
+    }
+}
+
+/// Seconds left at the phase's rate so far, `None` before anything is done.
+fn eta_seconds(open: &Open, done: u64) -> Option<f64> {
+    if done == 0 {
+        return None;
+    }
+    let spent = open.started.elapsed().as_secs_f64();
+    let left = open.total.saturating_sub(done) as f64;
+    Some((spent * left / done as f64 * 10.0).round() / 10.0)
+}
+
+impl Progress for Reporter {
+    fn begin(&self, phase: Phase, light: Option<&str>, total: u64) {
+        if matches!(self.shared.style, Style::Silent) {
+            return;
+        }
+        let bar = matches!(self.shared.style, Style::Bar).then(|| {
+            let bar = ProgressBar::new(total);
             bar.set_style(
                 ProgressStyle::with_template(
-                    "{prefix} [{bar:40}] {human_pos}/{human_len} rays, eta {eta}",
+                    "{prefix:>24} [{bar:40}] {human_pos}/{human_len} {elapsed_precise} eta {eta}",
                 )
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
             );
-            bar.set_prefix(label);
-            if let Ok(mut slot) = self.bar.lock() {
-                *slot = Some(bar);
-            }
-        } else {
-            eprintln!("{label}: tracing {rays} rays");
-            self.total.store(rays, Ordering::Relaxed);
-            self.next_line.store(rays / 4, Ordering::Relaxed);
+            bar.set_prefix(match light {
+                Some(light) => format!("{} {light}", phase.name()),
+                None => phase.name().to_string(),
+            });
+            bar
+        });
+        let now = Instant::now();
+        let open = Open {
+            phase,
+            light: light.map(str::to_string),
+            total,
+            started: now,
+            last_line: now,
+            done: 0,
+            bar,
+        };
+        if matches!(self.shared.style, Style::Json) {
+            self.shared.line(&open, 0);
+        }
+        if let Ok(mut slot) = self.shared.open.lock() {
+            *slot = Some(open);
         }
     }
 
-    fn rays_traced(&self, index: usize, done: &AtomicU64) {
-        let done = done.load(Ordering::Relaxed);
-        if self.terminal {
-            if let Ok(slot) = self.bar.lock() {
-                if let Some(bar) = slot.as_ref() {
-                    bar.set_position(done);
-                }
-            }
-        } else {
-            let due = self.next_line.load(Ordering::Relaxed);
-            let total = self.total.load(Ordering::Relaxed);
-            if done >= due
-                && done < total
-                && self
-                    .next_line
-                    .compare_exchange(due, due + total / 4, Ordering::Relaxed, Ordering::Relaxed)
-                    .is_ok()
-            {
-                eprintln!(
-                    "light {index}: {}% of rays traced",
-                    done * 100 / total.max(1)
-                );
-            }
+    fn advance(&self, done: u64) {
+        let Ok(mut slot) = self.shared.open.try_lock() else {
+            // Another thread is reporting; the next call will.
+            return;
+        };
+        let Some(open) = slot.as_mut() else { return };
+        open.done = open.done.max(done);
+        if let Some(bar) = &open.bar {
+            bar.set_position(done.max(bar.position()));
+            return;
+        }
+        if open.last_line.elapsed() >= self.shared.interval && done < open.total {
+            open.last_line = Instant::now();
+            self.shared.line(open, done);
         }
     }
 
-    fn light_finished(&self, report: &LightReport) {
-        if let Ok(mut slot) = self.bar.lock() {
-            if let Some(bar) = slot.take() {
-                bar.finish_and_clear();
-            }
-        }
-        if !self.terminal {
-            eprintln!(
-                "light {} {}: done in {:.2} s",
-                report.index, report.name, report.seconds
-            );
+    fn end(&self) {
+        let Some(open) = self.shared.open.lock().ok().and_then(|mut o| o.take()) else {
+            return;
+        };
+        // Lines: a phase that was quick gets no line (a log of a small
+        // bake stays short); tracing always says what it did.
+        let worth_a_line = matches!(self.shared.style, Style::Json)
+            || open.phase == Phase::Tracing
+            || open.started.elapsed() >= Duration::from_secs(1);
+        match &open.bar {
+            Some(bar) => bar.finish_and_clear(),
+            None if worth_a_line => self.shared.line(&open, open.total),
+            None => {}
         }
     }
 }

@@ -48,6 +48,10 @@ pub struct RenderArgs {
     /// Worker threads (default: one per core). Pictures are identical for any N.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
     threads: Option<u16>,
+    /// Draw the masks already written in the chunk files (at the light's
+    /// bit) instead of baking the light.
+    #[arg(long)]
+    from_chunks: bool,
 }
 
 fn parse_vec3(text: &str) -> Result<DVec3, String> {
@@ -105,8 +109,23 @@ pub fn run(args: RenderArgs) -> Result<()> {
     for problem in scene.problems.iter().take(5) {
         eprintln!("  {}: {}", problem.what, problem.why);
     }
+    let chunk_masks = if args.from_chunks {
+        let casters = shadowcull::bake::casters::CasterTable::new(&scene);
+        Some(shadowcull::bake::output::masks_from_chunks(
+            &scene, &casters,
+        )?)
+    } else {
+        None
+    };
+    let source = match &chunk_masks {
+        Some(masks) => render::Source::ChunkMasks {
+            masks,
+            bit: config.bit(light),
+        },
+        None => render::Source::Bake,
+    };
     let picture = pool.install(|| match args.view {
-        View::Light => render::light_view(&scene, &config, light, args.size),
+        View::Light => render::light_view_from(&scene, &config, light, args.size, source),
         View::Camera => {
             let (width, height) = args.size.unwrap_or((800, 600));
             let camera = CameraSpec {
@@ -116,7 +135,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 width,
                 height,
             };
-            render::camera_view(&scene, &config, light, &camera)
+            render::camera_view_from(&scene, &config, light, &camera, source)
         }
     })?;
     png_write::write_rgb(&args.output, picture.width, picture.height, &picture.rgb)?;

@@ -60,9 +60,68 @@ pub struct BakeSettings {
     pub height_bias: f64,
     /// Metres along a ray; see SPEC §4 (front-set tie tolerance).
     pub tie_epsilon: f64,
-    /// In file order: light `i` is bit `i` of every mask.
+    /// In file order.
     pub lights: Vec<LightSettings>,
+    /// Per light (same order): its bit in every mask, `<bit>` or its
+    /// position in the file. Distinct, each below [`MAX_LIGHTS`].
+    pub bits: Vec<u32>,
+    /// Elements the file holds that no setting reads (a typo such as
+    /// `<heightBais>`): not errors, but the caller should say so.
+    pub unknown: Vec<UnknownElement>,
 }
+
+/// An element of the settings file that nothing reads.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnknownElement {
+    /// Slash-separated path from the root, e.g. `shadowcull/heightBais`.
+    pub path: String,
+    /// Byte offset of its start tag (text XML) or its data (packed XML).
+    pub offset: usize,
+    /// What the parent may hold instead.
+    pub known: &'static [&'static str],
+    /// Line and column in a text file (set by the reader that has the bytes).
+    pub position: Option<crate::error::TextPosition>,
+}
+
+impl std::fmt::Display for UnknownElement {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let tag = self.path.rsplit('/').next().unwrap_or(&self.path);
+        match self.position {
+            Some(p) => write!(f, "{p}: ")?,
+            None => write!(f, "byte {}: ", self.offset)?,
+        }
+        write!(
+            f,
+            "unknown element <{tag}> ({}) is ignored; expected one of {}",
+            self.path,
+            self.known.join(", ")
+        )
+    }
+}
+
+/// The elements each level of the settings file may hold.
+const ROOT_TAGS: &[&str] = &[
+    "resPaths",
+    "space",
+    "faceCulling",
+    "heightBias",
+    "tieEpsilon",
+    "lights",
+];
+const RES_PATHS_TAGS: &[&str] = &["path"];
+const LIGHTS_TAGS: &[&str] = &["light"];
+const LIGHT_TAGS: &[&str] = &[
+    "name",
+    "type",
+    "bit",
+    "direction",
+    "texelSize",
+    "position",
+    "fov",
+    "near",
+    "far",
+    "resolution",
+];
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct LightSettings {
@@ -158,8 +217,13 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
     let height_bias = optional_non_negative(root, "heightBias", DEFAULT_HEIGHT_BIAS)?;
     let tie_epsilon = optional_non_negative(root, "tieEpsilon", DEFAULT_TIE_EPSILON)?;
 
+    let mut unknown = Vec::new();
+    unknown_children(root, ROOT_TAGS, &mut unknown);
+    unknown_children(res_section, RES_PATHS_TAGS, &mut unknown);
     let mut lights = Vec::new();
+    let mut bits = Vec::new();
     if let Some(lights_section) = root.child("lights") {
+        unknown_children(lights_section, LIGHTS_TAGS, &mut unknown);
         let count = lights_section.children_named("light").count();
         if count > MAX_LIGHTS {
             return Err(lights_section.error(format!(
@@ -168,7 +232,9 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
             )));
         }
         let mut names = HashSet::new();
+        let mut owners: Vec<Option<String>> = vec![None; MAX_LIGHTS];
         for (i, light) in lights_section.children_named("light").enumerate() {
+            unknown_children(light, LIGHT_TAGS, &mut unknown);
             let parsed = parse_light(light, i)?;
             if !names.insert(parsed.name.clone()) {
                 return Err(light.error(format!(
@@ -176,6 +242,16 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
                     parsed.name
                 )));
             }
+            let bit = light_bit(light, i)?;
+            if let Some(owner) = &owners[bit as usize] {
+                return Err(light.error(format!(
+                    "light `{}` and light `{owner}` both use bit {bit}; give each light its own <bit> (0..{})",
+                    parsed.name,
+                    MAX_LIGHTS - 1
+                )));
+            }
+            owners[bit as usize] = Some(parsed.name.clone());
+            bits.push(bit);
             lights.push(parsed);
         }
     }
@@ -187,7 +263,41 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
         height_bias,
         tie_epsilon,
         lights,
+        bits,
+        unknown,
     })
+}
+
+/// `<bit>`, or the light's position in the file.
+fn light_bit(light: &Section, index: usize) -> Result<u32, FormatError> {
+    let Some(s) = light.child("bit") else {
+        return Ok(index as u32);
+    };
+    let v = s.as_i64()?;
+    match u32::try_from(v) {
+        Ok(bit) if (bit as usize) < MAX_LIGHTS => Ok(bit),
+        _ => Err(s.error(format!(
+            "<bit> must be between 0 and {} (the mask has {MAX_LIGHTS} bits), found {v}",
+            MAX_LIGHTS - 1
+        ))),
+    }
+}
+
+fn unknown_children(
+    section: &Section,
+    known: &'static [&'static str],
+    out: &mut Vec<UnknownElement>,
+) {
+    for child in &section.children {
+        if !known.contains(&child.name.as_str()) {
+            out.push(UnknownElement {
+                path: child.path.clone(),
+                offset: child.span.start,
+                known,
+                position: None,
+            });
+        }
+    }
 }
 
 fn optional_non_negative(root: &Section, tag: &str, default: f64) -> Result<f64, FormatError> {
@@ -562,5 +672,51 @@ mod tests {
             vec![],
         ));
         assert!(e.contains("duplicate light name `light1`"), "{e}");
+    }
+
+    #[test]
+    fn bits_default_to_the_position_and_may_be_given() {
+        let s = parse_it(&settings(vec![sun(), spot(), point()], vec![])).unwrap();
+        assert_eq!(s.bits, [0, 1, 2]);
+        let s = parse_it(&settings(
+            vec![
+                tweak(sun(), "bit", Some("5")),
+                tweak(spot(), "bit", Some("31")),
+            ],
+            vec![],
+        ))
+        .unwrap();
+        assert_eq!(s.bits, [5, 31]);
+        for bad in ["32", "-1", "two"] {
+            let e = light_error(tweak(sun(), "bit", Some(bad)));
+            assert!(e.contains("bit"), "{bad}: {e}");
+        }
+        // The spot (light1) takes bit 0 explicitly; the sun has it by position.
+        let e = error_of(settings(
+            vec![sun(), tweak(spot(), "bit", Some("0"))],
+            vec![],
+        ));
+        assert!(
+            e.contains("light `light1` and light `sun` both use bit 0"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn unknown_elements_are_listed_not_refused() {
+        let s = parse_it(&settings(
+            vec![tweak(sun(), "texelSiz", Some("1"))],
+            vec![leaf("heightBais", "0.1")],
+        ))
+        .unwrap();
+        let paths: Vec<&str> = s.unknown.iter().map(|u| u.path.as_str()).collect();
+        assert_eq!(
+            paths,
+            ["shadowcull/heightBais", "shadowcull/lights/light/texelSiz"]
+        );
+        assert!(parse_it(&settings(vec![sun()], vec![]))
+            .unwrap()
+            .unknown
+            .is_empty());
     }
 }

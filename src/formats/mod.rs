@@ -35,10 +35,15 @@ pub fn parse_data_section(bytes: &[u8]) -> Result<Section, FormatError> {
 /// relative to the file's folder.
 pub fn read_bake_settings(path: &std::path::Path) -> crate::Result<bake_settings::BakeSettings> {
     let bytes = resources::read_file(path)?;
-    let root = parse_data_section(&bytes).map_err(|e| e.in_file(path))?;
     let dir = match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() => dir,
         _ => std::path::Path::new("."),
     };
-    bake_settings::parse(&root, dir).map_err(|e| e.in_file(path))
+    let mut settings = parse_data_section(&bytes)
+        .and_then(|root| bake_settings::parse(&root, dir))
+        .map_err(|e| e.in_source(path, &bytes))?;
+    for unknown in &mut settings.unknown {
+        unknown.position = crate::error::TextPosition::of(&bytes, unknown.offset as u64);
+    }
+    Ok(settings)
 }

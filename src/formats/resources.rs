@@ -240,6 +240,15 @@ fn read_at_most(reader: impl Read, cap: u64, size_hint: u64) -> std::io::Result<
     Ok(bytes)
 }
 
+/// The summed sizes of files (for estimates; a file that cannot be
+/// examined counts 0).
+pub fn total_size<'a>(paths: impl Iterator<Item = &'a Path>) -> u64 {
+    paths
+        .filter_map(|p| std::fs::metadata(p).ok())
+        .map(|m| m.len())
+        .sum()
+}
+
 /// Reads a whole regular file (following symbolic links), refusing FIFOs,
 /// devices and folders before opening them and files larger than the cap
 /// of their kind ([`SIZE_CAPS`]).

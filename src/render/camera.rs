@@ -9,7 +9,7 @@
 //! light (directional: against its direction; spot and point: from the
 //! point to the light); no shadows. Sky: dark blue.
 
-use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
+use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
 use crate::bake::geometry::{all_geometry, world_bounds};
 use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
@@ -159,6 +159,17 @@ pub fn camera_view(
     light: usize,
     camera: &CameraSpec,
 ) -> Result<Picture, RenderError> {
+    camera_view_from(scene, config, light, camera, Source::Bake)
+}
+
+/// [`camera_view`] with the verdicts from `source`.
+pub fn camera_view_from(
+    scene: &Scene,
+    config: &BakeConfig,
+    light: usize,
+    camera: &CameraSpec,
+    source: Source,
+) -> Result<Picture, RenderError> {
     check_size(camera.width, camera.height)?;
     if !(camera.fov_degrees > 0.0 && camera.fov_degrees < 180.0) {
         return Err(RenderError::BadCamera(format!(
@@ -174,7 +185,7 @@ pub fn camera_view(
         }
     }
     let world = BakeWorld::new(scene);
-    let (verdicts, _) = verdicts(&world, config, light)?;
+    let (verdicts, _) = verdicts(&world, config, light, source)?;
     let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
     let (position, target) = camera.resolve(bounds);
     let forward = (target - position).normalize_or_zero();

@@ -12,12 +12,67 @@
 //! (no blending, so every pixel is one class and the counts stay counts of
 //! texels); only those texels are traced.
 
-use super::{check_size, shaded, verdicts, Class, Picture, RenderError};
+use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
 use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
 use crate::light::{TexelGrid, CUBE_FACE_NAMES};
 use crate::scene::Scene;
 use rayon::prelude::*;
+
+/// Faces narrower than this (pixels) get no label: it would hide them.
+const FACE_LABEL_MIN_WIDTH: u32 = 12;
+
+/// 3×5 glyphs, rows top to bottom, bit 2 = left column.
+fn glyph(c: char) -> [u8; 5] {
+    match c {
+        '+' => [0b000, 0b010, 0b111, 0b010, 0b000],
+        '-' => [0b000, 0b000, 0b111, 0b000, 0b000],
+        'X' => [0b101, 0b101, 0b010, 0b101, 0b101],
+        'Y' => [0b101, 0b101, 0b010, 0b010, 0b010],
+        _ => [0b111, 0b001, 0b010, 0b100, 0b111], // Z
+    }
+}
+
+/// Writes each cube face's name (`+X` … `-Z`) into its top-left corner:
+/// white glyphs on a black box, scaled with the face.
+fn label_faces(rgb: &mut [u8], width: u32, height: u32) {
+    let face_width = width / 6;
+    if face_width < FACE_LABEL_MIN_WIDTH || height < 9 {
+        return;
+    }
+    let scale = (face_width / 48).clamp(1, 8);
+    let mut put = |x: u32, y: u32, colour: [u8; 3]| {
+        if x < width && y < height {
+            let i = ((y * width + x) * 3) as usize;
+            rgb[i..i + 3].copy_from_slice(&colour);
+        }
+    };
+    for (face, name) in CUBE_FACE_NAMES.iter().enumerate() {
+        let x0 = (face as u64 * width as u64).div_ceil(6) as u32;
+        // Box: 1 px margin, two glyphs of 3 with a 1 px gap.
+        for y in 0..(7 * scale) {
+            for x in 0..(9 * scale) {
+                put(x0 + x, y, [0, 0, 0]);
+            }
+        }
+        for (n, c) in name.chars().enumerate() {
+            for (row, bits) in glyph(c).iter().enumerate() {
+                for column in 0..3u32 {
+                    if bits & (0b100 >> column) == 0 {
+                        continue;
+                    }
+                    for dy in 0..scale {
+                        for dx in 0..scale {
+                            let x = x0 + (1 + n as u32 * 4 + column) * scale + dx;
+                            let y = (1 + row as u32) * scale + dy;
+                            put(x, y, [255, 255, 255]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
 
 /// Largest light view drawn when the caller gives no size.
 pub const DEFAULT_MAX_LIGHT_SIZE: (u32, u32) = (2048, 2048);
@@ -35,10 +90,21 @@ pub fn light_view(
     light: usize,
     max_size: Option<(u32, u32)>,
 ) -> Result<Picture, RenderError> {
+    light_view_from(scene, config, light, max_size, Source::Bake)
+}
+
+/// [`light_view`] with the verdicts from `source`.
+pub fn light_view_from(
+    scene: &Scene,
+    config: &BakeConfig,
+    light: usize,
+    max_size: Option<(u32, u32)>,
+    source: Source,
+) -> Result<Picture, RenderError> {
     let (max_w, max_h) = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
     check_size(max_w, max_h)?;
     let world = BakeWorld::new(scene);
-    let (verdicts, setup) = verdicts(&world, config, light)?;
+    let (verdicts, setup) = verdicts(&world, config, light, source)?;
     let Some(setup) = setup else {
         // The light reaches nothing: say why, as the grid does.
         let bounds = world.bounds.ok_or(RenderError::EmptyWorld)?;
@@ -97,6 +163,9 @@ pub fn light_view(
         rgb.extend(shaded(*class, shade));
     }
 
+    if grid.faces() == 6 {
+        label_faces(&mut rgb, width, height);
+    }
     let mut notes = vec![format!(
         "light view: shadow map {} × {} texels{}, shown at {} × {} ({})",
         grid.width(),
@@ -117,6 +186,13 @@ pub fn light_view(
             "each pixel is the texel under its centre".to_string()
         }
     )];
+    if grid.faces() == 6 && width / 6 >= FACE_LABEL_MIN_WIDTH {
+        notes.push(
+            "each face is labelled in its top-left corner, white on black (those pixels \
+             still count as their texels' colours above)"
+                .to_string(),
+        );
+    }
     notes.push(
         "each pixel: the texel's front surface after the bake's hit filter (face culling, \
          double-sided, mirrored, below ground; All pass), brighter = nearer the light"

@@ -19,8 +19,8 @@
 mod camera;
 mod light_view;
 
-pub use camera::{camera_view, CameraSpec};
-pub use light_view::{light_view, DEFAULT_MAX_LIGHT_SIZE};
+pub use camera::{camera_view, camera_view_from, CameraSpec};
+pub use light_view::{light_view, light_view_from, DEFAULT_MAX_LIGHT_SIZE};
 
 use crate::bake::casters::Caster;
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
@@ -28,6 +28,11 @@ use crate::bake::trace_light::CasterSet;
 use crate::bake::{self, BakeConfig, BakeError, Silent};
 use crate::formats::bake_settings::LightSettings;
 use crate::light::GridError;
+
+/// The colours' origin, named in every legend.
+pub const PALETTE: &str =
+    "Okabe-Ito (Okabe & Ito 2008): blue / orange and bluish green / reddish purple stay \
+distinct with red-green colour blindness (protanopia, deuteranopia)";
 
 /// Largest picture side either view draws: a 16384² RGB buffer is 800 MB.
 pub const MAX_SIDE: u32 = 16384;
@@ -63,10 +68,10 @@ impl Class {
     /// green or red model stands out against the ground.
     pub fn colour(self) -> [u8; 3] {
         match self {
-            Class::Useful => [40, 210, 60],
-            Class::Culled => [225, 40, 35],
-            Class::TerrainUseful => [235, 205, 50],
-            Class::TerrainCulled => [150, 105, 60],
+            Class::Useful => [0, 114, 178],
+            Class::Culled => [230, 159, 0],
+            Class::TerrainUseful => [0, 158, 115],
+            Class::TerrainCulled => [204, 121, 167],
             Class::ReceiverOnly => [165, 165, 165],
             Class::Nothing => [0, 0, 0],
         }
@@ -74,10 +79,10 @@ impl Class {
 
     pub fn label(self) -> &'static str {
         match self {
-            Class::Useful => "useful caster (green)",
-            Class::Culled => "culled caster (red)",
-            Class::TerrainUseful => "useful terrain (yellow)",
-            Class::TerrainCulled => "culled terrain (brown)",
+            Class::Useful => "useful caster (blue)",
+            Class::Culled => "culled caster (orange)",
+            Class::TerrainUseful => "useful terrain (bluish green)",
+            Class::TerrainCulled => "culled terrain (reddish purple)",
             Class::ReceiverOnly => "receiver-only (grey)",
             Class::Nothing => "nothing (black; camera: dark blue sky)",
         }
@@ -118,6 +123,21 @@ pub struct LightSummary {
     pub useful_casters: usize,
     pub culled_casters: usize,
     pub receiver_only_groups: usize,
+    /// Every culled caster: `chunk model INDEX RESOURCE group G` or
+    /// `chunk terrain`, in caster id order.
+    pub culled: Vec<String>,
+    /// Where the verdicts came from, for the legend.
+    pub source: String,
+}
+
+/// Where a picture's verdicts come from.
+#[derive(Debug, Clone, Copy)]
+pub enum Source<'a> {
+    /// A bake of the light alone (nothing written).
+    Bake,
+    /// Masks already in the chunk files (`output::masks_from_chunks`),
+    /// per caster id, read at the light's bit.
+    ChunkMasks { masks: &'a [u32], bit: u32 },
 }
 
 /// A rendered picture: `rgb` is `width × height × 3` bytes, rows top to
@@ -159,6 +179,7 @@ impl Picture {
             self.width,
             self.height
         );
+        out = out.replacen("\n", &format!(" from {}\n", self.light.source), 1);
         for (class, count) in Class::ALL.iter().zip(self.counts()) {
             let [r, g, b] = class.colour();
             out += &format!(
@@ -169,10 +190,17 @@ impl Picture {
                 b
             );
         }
-        out += "\n";
+        out += &format!("palette: {PALETTE}\n\n");
         for note in &self.notes {
             out += note;
             out += "\n";
+        }
+        out += &format!(
+            "\nculled casters (chunk, index, resource): {}\n",
+            self.light.culled.len()
+        );
+        for culled in &self.light.culled {
+            out += &format!("  {culled}\n");
         }
         out += &format!("\ncommand: {command}\n");
         out
@@ -203,6 +231,7 @@ fn verdicts(
     world: &BakeWorld,
     config: &BakeConfig,
     light: usize,
+    source: Source,
 ) -> Result<(Verdicts, Option<LightSetup>), RenderError> {
     let settings = config
         .lights
@@ -213,19 +242,42 @@ fn verdicts(
         })?;
     let casters = &world.casters;
     let (useful, setup) = match LightSetup::new(world, config, light) {
-        Ok(setup) => {
-            let (useful, _) = bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
-            (useful, Some(setup))
-        }
+        Ok(setup) => match source {
+            Source::Bake => {
+                let (useful, _) = bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
+                (useful, Some(setup))
+            }
+            Source::ChunkMasks { .. } => (CasterSet::new(casters.len()), Some(setup)),
+        },
         Err(nothing) if nothing.is_nothing_to_trace() => (CasterSet::new(casters.len()), None),
         Err(NoSetup::Grid(err)) => return Err(err.into()),
         Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
-    let classes = casters
+    let useful = match source {
+        Source::Bake => useful,
+        Source::ChunkMasks { masks, bit } => {
+            let mut set = CasterSet::new(casters.len());
+            for (id, caster) in casters.casters.iter().enumerate() {
+                let mask = masks.get(id).copied().unwrap_or(0);
+                if !caster.receiver_only && mask & 1u32.wrapping_shl(bit) != 0 {
+                    set.insert(id as u32);
+                }
+            }
+            set
+        }
+    };
+    let classes: Vec<Class> = casters
         .casters
         .iter()
         .enumerate()
         .map(|(id, caster)| Class::of(caster, useful.contains(id as u32)))
+        .collect();
+    let culled = casters
+        .casters
+        .iter()
+        .zip(&classes)
+        .filter(|(_, class)| matches!(class, Class::Culled | Class::TerrainCulled))
+        .map(|(caster, _)| describe(world, caster))
         .collect();
     let useful_casters = useful.len();
     let receiver_only_groups = casters.casters.iter().filter(|c| c.receiver_only).count();
@@ -236,10 +288,46 @@ fn verdicts(
             useful_casters,
             culled_casters: casters.real_casters() - useful_casters,
             receiver_only_groups,
+            culled,
+            source: match source {
+                Source::Bake => "a bake of this light alone (nothing written)".into(),
+                Source::ChunkMasks { bit, .. } => {
+                    format!("the masks in the chunk files (bit {bit}; not baked)")
+                }
+            },
         },
         classes,
     };
     Ok((verdicts, setup))
+}
+
+/// A caster for people: chunk, instance index and resource, group.
+fn describe(world: &BakeWorld, caster: &Caster) -> String {
+    let scene = world.scene;
+    match caster.owner {
+        crate::bake::casters::Owner::Group {
+            instance,
+            part,
+            group,
+        } => {
+            let placed = &scene.instances[instance];
+            format!(
+                "{} {} {} {} group {group}",
+                scene.chunks[placed.chunk].name,
+                placed.kind.tag(),
+                placed.index,
+                placed.resources.get(part).map(|r| r.trim()).unwrap_or("?")
+            )
+        }
+        crate::bake::casters::Owner::Terrain { block } => {
+            let chunk = scene
+                .chunks
+                .iter()
+                .find(|c| c.terrain == Some(block))
+                .map_or("?", |c| c.name.as_str());
+            format!("{chunk} terrain")
+        }
+    }
 }
 
 /// `colour × shade`, rounded, for `shade` in [0, 1].
@@ -282,7 +370,7 @@ mod tests {
                 assert!(!parallel, "{a:?} and {b:?} differ only in brightness");
             }
         }
-        assert_eq!(shaded(Class::Useful, 0.5), [20, 105, 30]);
+        assert_eq!(shaded(Class::Useful, 0.5), [0, 57, 89]);
         assert_eq!(shaded(Class::Culled, f64::NAN), Class::Culled.colour());
     }
 

@@ -10,6 +10,7 @@ use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::space_settings;
 use crate::formats::{self, binsection, model, primitives, terrain as terrain_format, visual};
+use crate::progress::{Counter, Phase, Progress};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -28,6 +29,12 @@ pub struct LoadConfig {
 const SINGULAR_DETERMINANT: f64 = 1e-12;
 
 pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
+    load_scene_with(config, &crate::progress::Silent)
+}
+
+/// [`load_scene`], telling `progress` how many chunks, models and terrain
+/// blocks are done.
+pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
     let space = resources::normalise(&config.space);
     let settings_name = format!("{space}/space.settings");
     let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
@@ -49,8 +56,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_default();
-    let settings = read_section(&settings_path)
-        .and_then(|root| space_settings::parse(&root).map_err(|e| e.in_file(&settings_path)))?;
+    let settings = read_parsed(&settings_path, space_settings::parse)?;
 
     // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
     // space.settings says <singleDir>.
@@ -75,14 +81,16 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
             },
         ));
     }
+    let counter = Counter::begin(progress, Phase::Chunks, None, chunk_files.len() as u64);
     let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
         .par_iter()
         .map(|path| {
-            let chunk = read_section(path)
-                .and_then(|root| chunk::parse(&root).map_err(|e| e.in_file(path)));
+            let chunk = read_parsed(path, chunk::parse);
+            counter.add(1);
             (path.clone(), chunk)
         })
         .collect();
+    counter.finish();
 
     // Chunks sorted by name; a name seen twice (sep sub-folders and the
     // space folder both holding it) keeps the first path in sorted order.
@@ -142,15 +150,18 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
             }
         }
     }
+    let counter = Counter::begin(progress, Phase::Models, None, first_reference.len() as u64);
     let loaded: Vec<(String, Result<Model>)> = first_reference
         .into_iter()
         .collect::<Vec<_>>()
         .into_par_iter()
         .map(|(name, referenced_by)| {
             let model = load_model(&config.res_paths, &name, &referenced_by);
+            counter.add(1);
             (name, model)
         })
         .collect();
+    counter.finish();
     let mut models = Vec::new();
     for (name, model) in loaded {
         match model {
@@ -283,6 +294,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         jobs
     };
 
+    let counter = Counter::begin(progress, Phase::Terrain, None, terrain_jobs.len() as u64);
     let blocks: Vec<(usize, Result<TerrainBlock>)> = terrain_jobs
         .into_par_iter()
         .map(|(chunk, chunk_path, resource, transform)| {
@@ -293,9 +305,11 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
                 transform.w_axis.truncate(),
                 settings.chunk_size,
             );
+            counter.add(1);
             (chunk, block)
         })
         .collect();
+    counter.finish();
     for (chunk, block) in blocks {
         match block {
             Ok(block) if !region.contains(block.bounds().0, block.bounds().1) => {
@@ -336,8 +350,19 @@ fn chunk_name(path: &Path) -> String {
 }
 
 pub(crate) fn read_section(path: &Path) -> Result<formats::Section> {
+    read_parsed(path, |root| Ok(root.clone()))
+}
+
+/// Reads a data section and reads `parse` out of it; errors carry the
+/// file and, for text XML, the line and column.
+fn read_parsed<T>(
+    path: &Path,
+    parse: impl FnOnce(&formats::Section) -> Result<T, crate::error::FormatError>,
+) -> Result<T> {
     let bytes = resources::read_file(path)?;
-    formats::parse_data_section(&bytes).map_err(|e| e.in_file(path))
+    formats::parse_data_section(&bytes)
+        .and_then(|root| parse(&root))
+        .map_err(|e| e.in_source(path, &bytes))
 }
 
 /// The box around a model-space box placed by `m`.
@@ -402,8 +427,9 @@ fn load_terrain(
 /// places it, for the error when the model itself is missing.
 fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<Model> {
     let (model_path, bytes) = res_paths.read(name, referenced_by)?;
-    let model_root = formats::parse_data_section(&bytes).map_err(|e| e.in_file(&model_path))?;
-    let model_file = model::parse_model(&model_root).map_err(|e| e.in_file(&model_path))?;
+    let model_file = formats::parse_data_section(&bytes)
+        .and_then(|root| model::parse_model(&root))
+        .map_err(|e| e.in_source(&model_path, &bytes))?;
     let candidates = model::visual_candidates(&model_file);
     let Some((visual_resource, visual_path)) = candidates
         .iter()
@@ -415,8 +441,7 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
             searched: res_paths.roots.clone(),
         });
     };
-    let mut visual = read_section(&visual_path)
-        .and_then(|root| visual::parse_visual(&root).map_err(|e| e.in_file(&visual_path)))?;
+    let mut visual = read_parsed(&visual_path, visual::parse_visual)?;
     visual
         .resolve_materials(&mut |mfm| {
             let path = res_paths.resolve(mfm)?;

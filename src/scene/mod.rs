@@ -11,7 +11,7 @@ use glam::{DMat4, DVec3, Vec3};
 use std::ops::Range;
 use std::path::PathBuf;
 
-pub use load::{load_scene, LoadConfig};
+pub use load::{load_scene, load_scene_with, LoadConfig};
 pub use terrain::TerrainBlock;
 
 #[derive(Debug, Clone)]

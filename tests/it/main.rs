@@ -10,6 +10,7 @@ mod hardening;
 mod memory;
 mod micro;
 mod packed_real;
+mod pipeline;
 mod primitives_real;
 #[cfg(feature = "raster")]
 mod raster;

@@ -2,7 +2,7 @@
 //! bench-density world baked by the binary, its peak resident set read from
 //! the kernel (wait4), checked loosely against the model's prediction. The
 //! flat engine this replaced held ~350 bytes per *placed* triangle and
-//! fails this by a factor of ten. `SHADOWCULL_STRESS=1` (set by CI) bakes a
+//! fails this by a factor of ten. `SHADOWCULL_SLOW=1` (set by CI) bakes a
 //! 16×16-chunk world instead of 6×6.
 
 use shadowcull::bake::memory::{peak_resident, WorldSize};
@@ -33,7 +33,7 @@ fn run_measured(args: &[&str]) -> (i32, u64) {
 #[cfg(target_os = "linux")]
 #[test]
 fn peak_memory_follows_the_memory_model_not_placed_triangles() {
-    let chunks = if std::env::var_os("SHADOWCULL_STRESS").is_some() {
+    let chunks = if std::env::var_os("SHADOWCULL_SLOW").is_some() {
         16
     } else {
         6

@@ -26,10 +26,23 @@ pub fn realdata(test: &str) -> Option<PathBuf> {
                 std::env::var_os("SHADOWCULL_REQUIRE_REALDATA").is_none(),
                 "{test}: SHADOWCULL_REQUIRE_REALDATA is set but {REALDATA_VAR} is not"
             );
-            eprintln!(
-                "NOT RUN: {test} needs real BigWorld data; set {REALDATA_VAR}=../shared/realdata"
-            );
+            say_not_run(&format!(
+                "{test} needs real BigWorld data; set {REALDATA_VAR}=../shared/realdata"
+            ));
             None
         }
     }
+}
+
+/// Says that `test` did not run where a user sees it: the test harness
+/// captures `eprintln!` of passing tests, but not writes to the standard
+/// error handle itself, so plain `cargo test` shows these lines.
+pub fn say_not_run(message: &str) {
+    use std::io::Write as _;
+    static COUNT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = COUNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+    let _ = writeln!(
+        std::io::stderr(),
+        "NOT RUN ({n}): {message} (the test passes without checking this)"
+    );
 }

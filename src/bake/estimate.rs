@@ -1,0 +1,257 @@
+//! What a bake will cost before it runs (`shadowcull plan`, and the first
+//! lines of `bake`): per light its grid, rays and what lies in its reach,
+//! and the time and peak memory to expect, so a build engineer can size a
+//! machine or refuse a job (`--max-memory`) before hours are spent.
+//!
+//! Time comes from a calibration on this machine and this world: each
+//! light's top level is built and a spread sample of its texel tiles is
+//! traced; the light's rays divided by the sample's ray rate is its
+//! tracing time. Memory is what the process holds once the world is
+//! loaded (the caller measures it) plus, for the largest light, its top
+//! level and the tracing threads' working sets, plus the masks and every
+//! chunk file's old and new bytes held for the write.
+
+use super::setup::{BakeWorld, LightSetup};
+use super::trace_light::CasterSet;
+use super::{BakeConfig, BakeError};
+use crate::progress::{Counter, Phase, Progress};
+use std::time::Instant;
+
+/// Tiles (32×32 texels) of each light traced to measure the ray rate.
+pub const SAMPLE_TILES: u64 = 48;
+
+/// Assumed write rate for the chunk files (bytes per second), with their
+/// temporaries and syncs; small next to tracing on every world measured.
+const WRITE_BYTES_PER_SECOND: f64 = 50e6;
+
+/// What the caller measured before planning.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Baseline {
+    /// Resident bytes now (the scene and the bottom levels are loaded).
+    pub resident_bytes: u64,
+    /// The process's peak resident bytes so far (loading may have peaked).
+    pub peak_resident_bytes: u64,
+    /// Seconds spent so far (loading, bottom levels).
+    pub elapsed_seconds: f64,
+    /// Bytes of every chunk file of the space (read, rewritten in memory).
+    pub chunk_file_bytes: u64,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct LightPlan {
+    pub index: usize,
+    pub name: String,
+    pub kind: &'static str,
+    pub bit: u32,
+    pub faces: usize,
+    pub width: u32,
+    pub height: u32,
+    /// Texel rays (texels × supersample²) plus refinement rays.
+    pub rays: u64,
+    pub instances: usize,
+    pub terrain_blocks: usize,
+    pub triangles: u64,
+    pub top_level_bytes: usize,
+    /// The calibration: rays traced and their wall time.
+    pub sample_rays: u64,
+    pub sample_seconds: f64,
+    pub rays_per_second: f64,
+    pub estimated_seconds: f64,
+    /// Memory this light needs on top of the loaded world while it is baked.
+    pub estimated_bytes: u64,
+    /// Why the light traces nothing, when it does not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nothing_to_trace: Option<String>,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Plan {
+    pub lights: Vec<LightPlan>,
+    pub casters: usize,
+    pub bottom_level_bytes: usize,
+    /// Seconds the calibration itself took (part of a bake's time).
+    pub calibration_seconds: f64,
+    pub estimated_seconds: f64,
+    pub estimated_peak_bytes: u64,
+}
+
+/// Plans `config`'s lights over a built world. Traces only samples.
+pub fn plan(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    baseline: Baseline,
+    progress: &dyn Progress,
+) -> Result<Plan, BakeError> {
+    let started = Instant::now();
+    let mut lights = Vec::new();
+    for index in 0..config.lights.len() {
+        lights.push(plan_light(
+            world,
+            config,
+            index,
+            baseline.threads,
+            progress,
+        )?);
+    }
+    let calibration_seconds = started.elapsed().as_secs_f64();
+    let casters = world.casters.len();
+    let masks = casters as u64 * 4;
+    let output = baseline.chunk_file_bytes * 3;
+    let light_peak = lights.iter().map(|l| l.estimated_bytes).max().unwrap_or(0);
+    let estimated_peak_bytes = baseline
+        .peak_resident_bytes
+        .max(baseline.resident_bytes + masks + light_peak.max(output));
+    let estimated_seconds = baseline.elapsed_seconds
+        + calibration_seconds
+        + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
+        + output as f64 / WRITE_BYTES_PER_SECOND;
+    Ok(Plan {
+        lights,
+        casters,
+        bottom_level_bytes: world.bottom.heap_bytes(),
+        calibration_seconds,
+        estimated_seconds,
+        estimated_peak_bytes,
+    })
+}
+
+fn plan_light(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    index: usize,
+    threads: usize,
+    progress: &dyn Progress,
+) -> Result<LightPlan, BakeError> {
+    let light = &config.lights[index];
+    let mut plan = LightPlan {
+        index,
+        name: light.name.clone(),
+        kind: light.kind.type_name(),
+        bit: config.bit(index),
+        faces: 0,
+        width: 0,
+        height: 0,
+        rays: 0,
+        instances: 0,
+        terrain_blocks: 0,
+        triangles: 0,
+        top_level_bytes: 0,
+        sample_rays: 0,
+        sample_seconds: 0.0,
+        rays_per_second: 0.0,
+        estimated_seconds: 0.0,
+        estimated_bytes: 0,
+        nothing_to_trace: None,
+    };
+    let counter = Counter::begin(progress, Phase::TopLevel, Some(&light.name), 1);
+    let setup = match LightSetup::new(world, config, index) {
+        Ok(setup) => setup,
+        Err(nothing) if nothing.is_nothing_to_trace() => {
+            counter.finish();
+            plan.nothing_to_trace = Some(nothing.to_string());
+            return Ok(plan);
+        }
+        Err(super::setup::NoSetup::Grid(err)) => return Err(err.into()),
+        Err(super::setup::NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
+    };
+    counter.add(1);
+    counter.finish();
+    let supersample = config.supersample.max(1) as u64;
+    plan.faces = setup.grid.faces();
+    plan.width = setup.grid.width();
+    plan.height = setup.grid.height();
+    plan.instances = setup.reach.parts.len();
+    plan.terrain_blocks = setup.reach.blocks.len();
+    plan.triangles = setup.reach.triangles;
+    plan.top_level_bytes = setup.top.heap_bytes();
+    let grid_rays = setup.grid.texel_count() * supersample * supersample;
+    let refine_rays = config.refine_samples as u64 * world.casters.len() as u64;
+    plan.rays = grid_rays + refine_rays;
+    // A caster set per tracing job (rayon splits a few times per thread).
+    let working = threads.max(1) as u64 * 8 * CasterSet::new(world.casters.len()).heap_bytes();
+    plan.estimated_bytes = plan.top_level_bytes as u64 * 2 + working;
+    if setup.top.is_empty() {
+        plan.nothing_to_trace = Some("its frustum holds no geometry".into());
+        plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
+        return Ok(plan);
+    }
+    let rays = setup.rays(world, config);
+    let tiles = rays.tile_count();
+    let every = sample_stride(tiles, setup.grid.width().div_ceil(super::trace_light::TILE));
+    let sampled_tiles = tiles.div_ceil(every);
+    let counter = Counter::begin(
+        progress,
+        Phase::Calibrating,
+        Some(&light.name),
+        grid_rays * sampled_tiles / tiles.max(1),
+    );
+    let started = Instant::now();
+    rays.trace_tiles(config.supersample, every, &counter);
+    plan.sample_seconds = started.elapsed().as_secs_f64();
+    plan.sample_rays = counter.done();
+    counter.finish();
+    plan.rays_per_second = plan.sample_rays as f64 / plan.sample_seconds.max(1e-6);
+    plan.estimated_seconds =
+        setup.reach_seconds + setup.top_seconds + plan.rays as f64 / plan.rays_per_second;
+    Ok(plan)
+}
+
+/// Every how many tiles the calibration traces one: about
+/// [`SAMPLE_TILES`] spread over the grid, the stride coprime with the tile
+/// rows so the sample walks across columns instead of down one.
+fn sample_stride(tiles: u64, tiles_per_row: u32) -> u64 {
+    let mut every = (tiles / SAMPLE_TILES).max(1);
+    while every > 1 && gcd(every, tiles_per_row as u64) != 1 {
+        every += 1;
+    }
+    every
+}
+
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 {
+        a
+    } else {
+        gcd(b, a % b)
+    }
+}
+
+/// Byte sizes for people: `512 B`, `3.4 MB`, `1.20 GB` (decimal units).
+pub fn human_bytes(bytes: u64) -> String {
+    let b = bytes as f64;
+    if b >= 1e9 {
+        format!("{:.2} GB", b / 1e9)
+    } else if b >= 1e6 {
+        format!("{:.1} MB", b / 1e6)
+    } else if b >= 1e3 {
+        format!("{:.1} kB", b / 1e3)
+    } else {
+        format!("{bytes} B")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sample_stride_spreads_over_columns() {
+        assert_eq!(sample_stride(10, 4), 1);
+        // 48 rows of 48 tiles: 48 would walk down one column; 49 does not.
+        let every = sample_stride(48 * 48, 48);
+        assert_eq!(every, 49);
+        let columns: std::collections::BTreeSet<u64> = (0..48 * 48)
+            .step_by(every as usize)
+            .map(|t| t % 48)
+            .collect();
+        assert!(columns.len() > 40, "{columns:?}");
+    }
+
+    #[test]
+    fn human_bytes_reads_well() {
+        assert_eq!(human_bytes(512), "512 B");
+        assert_eq!(human_bytes(3_400_000), "3.4 MB");
+        assert_eq!(human_bytes(1_200_000_000), "1.20 GB");
+    }
+}

@@ -1,0 +1,138 @@
+//! The bake's pipeline flags (issue 14): fail on broken input unless
+//! `--keep-going`, a subset of lights, a memory ceiling, CI checks. Kept
+//! apart from the bake's own settings so each stays small.
+
+use anyhow::{bail, Result};
+use shadowcull::bake::BakeConfig;
+use shadowcull::formats::bake_settings::BakeSettings;
+use shadowcull::scene::Scene;
+use std::path::Path;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct PipelineArgs {
+    /// Bake what loaded even when some input is broken (missing or
+    /// damaged files, bad or stray transforms): those parts are left out
+    /// and listed in the report. Without it any problem fails the bake
+    /// (exit 1) and nothing is written.
+    #[arg(long)]
+    pub keep_going: bool,
+    /// Bake only this light (repeatable); every other bit of the existing
+    /// masks is kept.
+    #[arg(long = "light", value_name = "NAME")]
+    pub lights: Vec<String>,
+    /// Refuse (exit 1, before tracing) when the plan's peak memory estimate
+    /// is above SIZE (e.g. 512M, 8G, 1.5GiB, or bytes).
+    #[arg(long, value_name = "SIZE", value_parser = parse_size)]
+    pub max_memory: Option<u64>,
+    /// Bake and list the chunk files that would change, but write none.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Like --dry-run, and exit 1 when any chunk file would change (a
+    /// staleness check for CI).
+    #[arg(long, conflicts_with = "dry_run")]
+    pub check: bool,
+}
+
+impl PipelineArgs {
+    /// No chunk file is written.
+    pub fn writes_nothing(&self) -> bool {
+        self.dry_run || self.check
+    }
+}
+
+/// "1 problem", "2 problems".
+pub fn count(n: usize, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
+/// Warns about elements of the settings file that nothing reads.
+pub fn warn_unknown(settings: &BakeSettings, file: &Path) {
+    for unknown in &settings.unknown {
+        eprintln!("warning: {}:{unknown}", file.display());
+    }
+}
+
+/// Applies `--light`: the named lights only, each keeping its bit.
+pub fn select_lights(config: BakeConfig, names: &[String], file: &Path) -> Result<BakeConfig> {
+    if names.is_empty() {
+        return Ok(config);
+    }
+    config
+        .select_lights(names)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))
+}
+
+/// Broken input fails the bake before any work unless `--keep-going`:
+/// every problem is listed.
+pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
+    if keep_going {
+        for problem in &scene.problems {
+            eprintln!("warning: left out: {}: {}", problem.what, problem.why);
+        }
+        return Ok(());
+    }
+    if scene.problems.is_empty() {
+        return Ok(());
+    }
+    for problem in &scene.problems {
+        eprintln!("  {}: {}", problem.what, problem.why);
+    }
+    bail!(
+        "{} in the input (listed above); nothing was written. Fix them, or bake what loaded with --keep-going",
+        count(scene.problems.len(), "problem", "problems")
+    )
+}
+
+/// `512M`, `8G`, `1.5GiB`, `100kB`, `1048576`: decimal (k, M, G, T) and
+/// binary (Ki, Mi, Gi, Ti) units, an optional `B`.
+pub fn parse_size(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (number, unit) = t.split_at(split);
+    let value: f64 = number
+        .parse()
+        .map_err(|_| format!("`{text}` is not a size (e.g. 512M, 8G, 1.5GiB)"))?;
+    let unit = unit.trim();
+    let unit = unit.strip_suffix(['B', 'b']).unwrap_or(unit);
+    let factor: f64 = match unit {
+        "" => 1.0,
+        "k" | "K" => 1e3,
+        "M" | "m" => 1e6,
+        "G" | "g" => 1e9,
+        "T" | "t" => 1e12,
+        "Ki" | "KI" | "ki" => 1024.0,
+        "Mi" | "MI" | "mi" => 1024.0 * 1024.0,
+        "Gi" | "GI" | "gi" => 1024.0 * 1024.0 * 1024.0,
+        "Ti" | "TI" | "ti" => 1024.0f64.powi(4),
+        _ => {
+            return Err(format!(
+                "unknown unit in `{text}`; use k, M, G, T or Ki, Mi, Gi, Ti"
+            ))
+        }
+    };
+    let bytes = value * factor;
+    if bytes.is_finite() && bytes >= 1.0 {
+        Ok(bytes as u64)
+    } else {
+        Err(format!("`{text}` is not a positive size"))
+    }
+}
+
+/// The process's resident and peak resident bytes (Linux `/proc`), or
+/// zeros where unknown.
+pub fn resident_bytes() -> (u64, u64) {
+    let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
+        return (0, 0);
+    };
+    let field = |name: &str| {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|rest| rest.trim().strip_suffix("kB"))
+            .and_then(|kb| kb.trim().parse::<u64>().ok())
+            .map_or(0, |kb| kb * 1024)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}

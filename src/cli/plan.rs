@@ -1,0 +1,150 @@
+//! `shadowcull plan SETTINGS`: what a bake will cost, printed before any
+//! light is traced (also the first lines of `bake`), and `--max-memory`.
+
+use super::pipeline;
+use super::progress::{ProgressArgs, Reporter};
+use super::{load_config, load_settings, SettingsArgs};
+use anyhow::{Context, Result};
+use shadowcull::bake::estimate::{self, human_bytes, Baseline, Plan};
+use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::{self, BakeConfig};
+use shadowcull::formats::resources;
+use shadowcull::scene::{self, Scene};
+use std::time::Instant;
+
+#[derive(Debug, clap::Args)]
+pub struct PlanArgs {
+    #[command(flatten)]
+    settings: SettingsArgs,
+    /// Plan only this light (repeatable).
+    #[arg(long = "light", value_name = "NAME")]
+    lights: Vec<String>,
+    /// Exit 1 when the peak memory estimate is above SIZE (e.g. 8G).
+    #[arg(long, value_name = "SIZE", value_parser = pipeline::parse_size)]
+    max_memory: Option<u64>,
+    /// Rays per texel side, as for bake.
+    #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    supersample: u32,
+    /// Worker threads (default: one per core).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    threads: Option<u16>,
+    /// Print the plan as one JSON object instead of lines.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    progress: ProgressArgs,
+}
+
+pub fn run(args: PlanArgs) -> Result<()> {
+    let file = args.settings.settings.clone();
+    let settings = load_settings(&args.settings)?;
+    pipeline::warn_unknown(&settings, &file);
+    let config = BakeConfig {
+        supersample: args.supersample,
+        ..BakeConfig::from_settings(&settings)
+    };
+    let config = pipeline::select_lights(config, &args.lights, &file)?;
+    let pool = super::thread_pool(args.threads)?;
+    pool.install(|| {
+        let started = Instant::now();
+        let reporter = Reporter::new(&args.progress);
+        let scene = scene::load_scene_with(&load_config(&settings), &reporter)?;
+        for problem in &scene.problems {
+            eprintln!("  {}: {}", problem.what, problem.why);
+        }
+        bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
+        let world = BakeWorld::build(&scene, &reporter);
+        let plan = make_plan(&scene, &world, &config, started, &reporter)?;
+        if args.json {
+            println!("{}", serde_json::to_string_pretty(&plan)?);
+        } else {
+            for line in plan_lines(&plan) {
+                println!("{line}");
+            }
+        }
+        check_memory(&plan, args.max_memory)?;
+        anyhow::ensure!(
+            scene.problems.is_empty(),
+            "{} in the input (listed above): a bake fails unless --keep-going",
+            pipeline::count(scene.problems.len(), "problem", "problems")
+        );
+        Ok(())
+    })
+}
+
+/// Plans `config` over a built world, measuring this process first.
+pub fn make_plan(
+    scene: &Scene,
+    world: &BakeWorld,
+    config: &BakeConfig,
+    started: Instant,
+    progress: &dyn shadowcull::progress::Progress,
+) -> Result<Plan> {
+    let (resident, peak) = pipeline::resident_bytes();
+    let baseline = Baseline {
+        resident_bytes: resident,
+        peak_resident_bytes: peak,
+        elapsed_seconds: started.elapsed().as_secs_f64(),
+        chunk_file_bytes: resources::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
+        threads: rayon::current_num_threads(),
+    };
+    Ok(estimate::plan(world, config, baseline, progress)?)
+}
+
+/// `--max-memory`: refuse cleanly, before tracing, above the estimate.
+pub fn check_memory(plan: &Plan, max_memory: Option<u64>) -> Result<()> {
+    if let Some(limit) = max_memory {
+        anyhow::ensure!(
+            plan.estimated_peak_bytes <= limit,
+            "the plan's peak memory estimate {} is above --max-memory {}; nothing was traced or written. \
+             Bake fewer lights at a time (--light), coarsen <texelSize>/<resolution>, or allow more memory",
+            human_bytes(plan.estimated_peak_bytes),
+            human_bytes(limit)
+        );
+    }
+    Ok(())
+}
+
+/// One line per light and a total.
+pub fn plan_lines(plan: &Plan) -> Vec<String> {
+    let mut lines = Vec::new();
+    for light in &plan.lights {
+        let mut line = format!(
+            "plan: light {} `{}` ({}, bit {}): ",
+            light.index, light.name, light.kind, light.bit
+        );
+        match &light.nothing_to_trace {
+            Some(why) => line += &format!("nothing to trace ({why})"),
+            None => {
+                line += &format!(
+                    "{} × {} × {} texels, {} rays; in reach {} instances, {} terrain blocks, {} triangles; \
+                     est. {:.1} s at {:.2} Mrays/s, {} for its top level and tracing",
+                    light.faces,
+                    light.width,
+                    light.height,
+                    light.rays,
+                    light.instances,
+                    light.terrain_blocks,
+                    light.triangles,
+                    light.estimated_seconds,
+                    light.rays_per_second / 1e6,
+                    human_bytes(light.estimated_bytes)
+                );
+            }
+        }
+        lines.push(line);
+    }
+    lines.push(format!(
+        "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
+         Time is a calibration: {} tiles of 32×32 texels per light traced on this machine in {:.2} s; \
+         memory is what this process holds now plus the largest light's top level and tracing, the masks \
+         and the chunk files",
+        plan.estimated_seconds,
+        human_bytes(plan.estimated_peak_bytes),
+        plan.casters,
+        human_bytes(plan.bottom_level_bytes as u64),
+        estimate::SAMPLE_TILES,
+        plan.calibration_seconds
+    ));
+    lines
+}

@@ -1,0 +1,710 @@
+//! The bake in a studio pipeline (issue 14): broken input fails, every
+//! light is checked before any is traced, `--light` and `<bit>` keep other
+//! bits, `plan` and `--max-memory`, progress for machines, `--check`,
+//! `--dry-run`, the report's files and versions, and small things. Each
+//! test fails on the code before that issue.
+
+use crate::cli::shadowcull;
+use serde_json::Value;
+use shadowcull::formats::resources::write_tree;
+use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+use tempfile::TempDir;
+
+const CHUNK: &str = "spaces/small/00000000o.chunk";
+
+fn world(preset: Preset) -> TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &generate(preset, 1).files).unwrap();
+    dir
+}
+
+/// The small world with coarse lights (these tests are about the pipeline,
+/// not rays).
+fn small() -> TempDir {
+    let dir = world(Preset::Small);
+    edit(dir.path(), SETTINGS_FILE, "0.195312", "1.000000");
+    edit(dir.path(), SETTINGS_FILE, "\t512\t", "\t64\t");
+    edit(dir.path(), SETTINGS_FILE, "\t256\t", "\t32\t");
+    dir
+}
+
+fn edit(dir: &Path, file: &str, from: &str, to: &str) {
+    let path = dir.join(file);
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains(from), "{file} holds no `{from}`");
+    std::fs::write(path, text.replacen(from, to, 1)).unwrap();
+}
+
+fn settings(dir: &TempDir) -> String {
+    dir.path().join(SETTINGS_FILE).display().to_string()
+}
+
+fn run(args: &[&str]) -> Output {
+    shadowcull(args)
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut pending = vec![dir.to_path_buf()];
+    while let Some(dir) = pending.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                pending.push(path);
+            } else {
+                out.insert(path.clone(), std::fs::read(&path).unwrap());
+            }
+        }
+    }
+    out
+}
+
+fn report_of(path: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+/// (chunk, kind, index) → mask, from a report.
+fn masks(report: &Value) -> BTreeMap<(String, String, i64), (u64, Vec<u64>)> {
+    report["casters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            (
+                (
+                    c["chunk"].as_str().unwrap().to_string(),
+                    c["kind"].as_str().unwrap().to_string(),
+                    c["index"].as_i64().unwrap_or(-1),
+                ),
+                (
+                    c["mask"].as_u64().unwrap(),
+                    c["groups"]
+                        .as_array()
+                        .map(|g| g.iter().map(|m| m.as_u64().unwrap()).collect())
+                        .unwrap_or_default(),
+                ),
+            )
+        })
+        .collect()
+}
+
+// ---------------------------------------------------------------------------
+// 1. Broken input fails the bake.
+
+#[test]
+fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
+    let dir = small();
+    // A truncated chunk and a missing .model: the issue's two.
+    let chunk = dir.path().join("spaces/small/0000ffffo.chunk");
+    let bytes = std::fs::read(&chunk).unwrap();
+    std::fs::write(&chunk, &bytes[..bytes.len() / 2]).unwrap();
+    let model = files(dir.path())
+        .into_keys()
+        .find(|p| p.extension().is_some_and(|e| e == "model"))
+        .unwrap();
+    std::fs::remove_file(&model).unwrap();
+    let before = files(dir.path());
+    let report = dir.path().join("report.json");
+    let failed = run(&[
+        "bake",
+        &settings(&dir),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    let stderr = text(&failed.stderr);
+    assert_eq!(failed.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("0000ffffo.chunk"), "{stderr}");
+    let model_name = model.file_name().unwrap().to_str().unwrap();
+    assert!(stderr.contains(model_name), "{stderr}");
+    assert!(
+        stderr.contains("2 problems in the input") && stderr.contains("--keep-going"),
+        "{stderr}"
+    );
+    assert_eq!(files(dir.path()), before, "nothing may be written");
+
+    let kept = run(&[
+        "bake",
+        &settings(&dir),
+        "--keep-going",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(kept.status.success(), "{}", text(&kept.stderr));
+    assert_ne!(files(dir.path()), before, "--keep-going bakes what loaded");
+    let skipped = report_of(&report)["skipped"].as_array().unwrap().clone();
+    let severity = |what: &str| -> Vec<String> {
+        skipped
+            .iter()
+            .filter(|s| {
+                s["what"].as_str().unwrap().contains(what)
+                    || s["why"].as_str().unwrap().contains(what)
+            })
+            .map(|s| s["severity"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert!(severity("0000ffffo.chunk").iter().all(|s| s == "error"));
+    assert!(!severity("0000ffffo.chunk").is_empty());
+    assert!(severity(model_name).iter().all(|s| s == "error"));
+    let passes = severity("one pass");
+    assert!(
+        passes.iter().all(|s| s == "info"),
+        "one pass instead of two is info: {skipped:#?}"
+    );
+    assert!(
+        skipped
+            .iter()
+            .all(|s| matches!(s["severity"].as_str(), Some("info" | "error"))),
+        "{skipped:#?}"
+    );
+}
+
+#[test]
+fn a_stray_placement_fails_the_bake_unless_keep_going() {
+    // Issue 16 item 3: geometry far outside the space is a problem naming
+    // the chunk and element, and fails the bake like other broken input.
+    let dir = small();
+    edit(
+        dir.path(),
+        CHUNK,
+        "0.000000 -0.941000 0.000000",
+        "0 -0.941 -2147483649",
+    );
+    let before = files(dir.path());
+    let failed = run(&["bake", &settings(&dir)]);
+    let stderr = text(&failed.stderr);
+    assert_eq!(failed.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("00000000o.chunk <model[0]/transform>")
+            && stderr.contains("far outside the space")
+            && stderr.contains("1 problem in the input"),
+        "{stderr}"
+    );
+    assert_eq!(files(dir.path()), before);
+    let inspect = run(&["inspect", &settings(&dir)]);
+    assert_eq!(
+        inspect.status.code(),
+        Some(1),
+        "inspect lists it and exits 1"
+    );
+    assert!(text(&inspect.stdout).contains("far outside the space"));
+    let kept = run(&["bake", &settings(&dir), "--keep-going", "--quiet"]);
+    assert!(kept.status.success(), "{}", text(&kept.stderr));
+}
+
+#[test]
+fn inspect_exits_1_only_when_it_lists_problems() {
+    let dir = small();
+    let clean = run(&["inspect", &settings(&dir)]);
+    assert_eq!(clean.status.code(), Some(0), "{}", text(&clean.stderr));
+    std::fs::write(dir.path().join(CHUNK), b"<root><model>").unwrap();
+    let broken = run(&["inspect", &settings(&dir), "--json"]);
+    assert_eq!(broken.status.code(), Some(1));
+    let json: Value = serde_json::from_slice(&broken.stdout).unwrap();
+    assert_eq!(json["problems"].as_array().unwrap().len(), 1);
+    assert!(
+        text(&broken.stderr).contains("1 problem listed"),
+        "{}",
+        text(&broken.stderr)
+    );
+}
+
+#[test]
+fn unknown_settings_elements_are_warned_with_line_and_column() {
+    let dir = small();
+    let path = dir.path().join(SETTINGS_FILE);
+    let original = std::fs::read_to_string(&path).unwrap();
+    let at = original.find("<lights>").unwrap();
+    let typo = "<heightBais> 0.5 </heightBais>\n\t";
+    std::fs::write(
+        &path,
+        format!("{}{typo}{}", &original[..at], &original[at..]),
+    )
+    .unwrap();
+    let line = original[..at].matches('\n').count() + 1;
+    let column = at - original[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
+    let out = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
+    let stderr = text(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "warning: {}:{line}:{column}: unknown element <heightBais>",
+            path.display()
+        )),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn errors_give_line_and_column() {
+    let dir = small();
+    let chunk = dir.path().join(CHUNK);
+    let original = std::fs::read_to_string(&chunk).unwrap();
+    // A mismatched end tag on the line of the first <transform>.
+    let at = original.find("</transform>").unwrap();
+    std::fs::write(
+        &chunk,
+        format!("{}</transfrom>{}", &original[..at], &original[at + 12..]),
+    )
+    .unwrap();
+    let line = original[..at].matches('\n').count() + 1;
+    let out = run(&["inspect", &settings(&dir)]);
+    let stdout = text(&out.stdout);
+    assert!(
+        stdout.contains(&format!("{}:{line}:", chunk.display())),
+        "{stdout}"
+    );
+}
+
+// ---------------------------------------------------------------------------
+// 2. Every light is checked before any is traced.
+
+#[test]
+fn every_light_is_validated_before_any_is_traced() {
+    // The issue: a spot of 8192² (67 M rays) then a point of 65536² (6 ×
+    // 4 G texels, over the limit) traced the spot, then failed.
+    let dir = small();
+    edit(dir.path(), SETTINGS_FILE, "\t64\t", "\t8192\t");
+    edit(dir.path(), SETTINGS_FILE, "\t32\t", "\t65536\t");
+    let started = std::time::Instant::now();
+    let out = run(&["bake", &settings(&dir), "--progress", "json"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("light `point`"), "{stderr}");
+    assert!(
+        !stderr.contains("\"tracing\"") && !stderr.contains("\"calibrating\""),
+        "no ray may be traced: {stderr}"
+    );
+    assert!(started.elapsed().as_secs() < 30, "{:?}", started.elapsed());
+}
+
+// ---------------------------------------------------------------------------
+// 3. A subset of lights keeps every other bit.
+
+#[test]
+fn baking_one_light_keeps_every_other_bit() {
+    let dir = small();
+    let full = dir.path().join("full.json");
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--quiet",
+        "--report",
+        full.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let full = masks(&report_of(&full));
+    assert!(full.values().any(|(m, _)| m & 0b101 != 0 && m & 0b010 != 0));
+    let baked = files(dir.path());
+
+    // Re-baking the spot alone changes nothing: the sun's and the point's
+    // bits stay (before: every mask became the spot's bit alone).
+    let one = dir.path().join("one.json");
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--light",
+        "spot",
+        "--quiet",
+        "--report",
+        one.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stdout).contains("wrote 0 of 4"),
+        "{}",
+        text(&out.stdout)
+    );
+    let mut after = files(dir.path());
+    after.retain(|p, _| !p.ends_with("one.json"));
+    assert_eq!(after, baked);
+    assert_eq!(masks(&report_of(&one)), full);
+    assert_eq!(report_of(&one)["lights"].as_array().unwrap().len(), 1);
+
+    // The sun again, from a settings file of its own at bit 7: bits 0–2
+    // stay as they were, bit 7 is the sun's verdict (= bit 0).
+    edit(
+        dir.path(),
+        SETTINGS_FILE,
+        "<type>",
+        "<bit>\t7\t</bit>\n\t\t\t<type>",
+    );
+    let seven = dir.path().join("seven.json");
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--light",
+        "sun",
+        "--quiet",
+        "--report",
+        seven.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let seven = masks(&report_of(&seven));
+    assert_eq!(seven.len(), full.len());
+    for (key, (mask, groups)) in &full {
+        let (new_mask, new_groups) = &seven[key];
+        assert_eq!(new_mask & 0b111, *mask, "{key:?}");
+        assert_eq!((new_mask >> 7) & 1, mask & 1, "{key:?}");
+        for (old, new) in groups.iter().zip(new_groups) {
+            assert_eq!(*new, old | ((old & 1) << 7), "{key:?}");
+        }
+    }
+}
+
+#[test]
+fn light_selection_and_bit_errors_name_the_lights() {
+    let dir = small();
+    let out = run(&["bake", &settings(&dir), "--light", "moon"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stderr.contains("no light named `moon`") && stderr.contains("`sun`, `spot`, `point`"),
+        "{stderr}"
+    );
+    // The point light given bit 0, which the sun holds by position.
+    let path = dir.path().join(SETTINGS_FILE);
+    let text_before = std::fs::read_to_string(&path).unwrap();
+    let at = text_before.rfind("<type>").unwrap();
+    std::fs::write(
+        &path,
+        format!("{}<bit> 0 </bit>{}", &text_before[..at], &text_before[at..]),
+    )
+    .unwrap();
+    let out = run(&["bake", &settings(&dir)]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stderr.contains("light `point` and light `sun` both use bit 0"),
+        "{stderr}"
+    );
+}
+
+// ---------------------------------------------------------------------------
+// 6. CI checks, the report.
+
+#[test]
+fn check_and_dry_run_list_what_would_change_and_write_nothing() {
+    let dir = small();
+    let before = files(dir.path());
+    let check = run(&["bake", &settings(&dir), "--check", "--quiet"]);
+    assert_eq!(check.status.code(), Some(1), "{}", text(&check.stderr));
+    let stdout = text(&check.stdout);
+    assert_eq!(stdout.matches("would change ").count(), 5, "{stdout}");
+    assert!(stdout.contains("00000000o.chunk"), "{stdout}");
+    assert!(text(&check.stderr).contains("--check: 4 chunk files would change"));
+    assert_eq!(files(dir.path()), before);
+    let dry = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
+    assert!(dry.status.success());
+    assert!(text(&dry.stdout).contains("would change 4 of 4"));
+    assert_eq!(files(dir.path()), before);
+
+    assert!(run(&["bake", &settings(&dir), "--quiet"]).status.success());
+    let check = run(&["bake", &settings(&dir), "--check", "--quiet"]);
+    assert_eq!(check.status.code(), Some(0), "{}", text(&check.stderr));
+    assert!(text(&check.stdout).contains("would change 0 of 4"));
+}
+
+#[test]
+fn the_report_lists_files_and_versions_and_can_go_to_stdout() {
+    let dir = small();
+    let out = run(&["bake", &settings(&dir), "--report", "-", "--quiet"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let report: Value = serde_json::from_slice(&out.stdout).expect("stdout is the report alone");
+    assert_eq!(report["report_version"], 2);
+    assert_eq!(report["tool_version"], env!("CARGO_PKG_VERSION"));
+    let written: Vec<&str> = report["files_written"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert_eq!(written.len(), 4);
+    assert!(written
+        .iter()
+        .all(|f| f.ends_with(".chunk") && Path::new(f).is_file()));
+    assert!(
+        text(&out.stderr).contains("wrote 4 of 4"),
+        "the table goes to stderr"
+    );
+    let again = run(&["bake", &settings(&dir), "--report", "-", "--quiet"]);
+    let report: Value = serde_json::from_slice(&again.stdout).unwrap();
+    assert_eq!(report["files_written"].as_array().unwrap().len(), 0);
+}
+
+// ---------------------------------------------------------------------------
+// 4. Plan and --max-memory.
+
+#[test]
+fn plan_lists_every_light_and_max_memory_refuses_before_tracing() {
+    let dir = small();
+    let out = run(&["plan", &settings(&dir), "--json", "--quiet"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let lights = plan["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), 3);
+    for light in lights {
+        assert!(light["rays"].as_u64().unwrap() > 0, "{light}");
+        assert!(light["rays_per_second"].as_f64().unwrap() > 0.0, "{light}");
+        assert!(light["instances"].as_u64().unwrap() > 0, "{light}");
+    }
+    let text_plan = run(&["plan", &settings(&dir), "--quiet"]);
+    let lines = text(&text_plan.stdout);
+    assert!(
+        lines.contains("calibration") && lines.contains("peak memory"),
+        "{lines}"
+    );
+    // The bake prints the same lines first.
+    let bake = run(&["bake", &settings(&dir), "--dry-run"]);
+    assert!(text(&bake.stderr).contains("plan: light 0 `sun`"));
+
+    let before = files(dir.path());
+    let refused = run(&[
+        "bake",
+        &settings(&dir),
+        "--max-memory",
+        "1k",
+        "--progress",
+        "json",
+    ]);
+    let stderr = text(&refused.stderr);
+    assert_eq!(refused.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("above --max-memory 1.0 kB"), "{stderr}");
+    assert!(!stderr.contains("\"tracing\""), "{stderr}");
+    assert_eq!(files(dir.path()), before);
+    assert_eq!(
+        run(&["bake", &settings(&dir), "--max-memory", "lots"])
+            .status
+            .code(),
+        Some(2)
+    );
+}
+
+/// `plan`'s estimates against `/usr/bin/time` of the same bake.
+fn plan_within_a_factor_two(dir: &TempDir) {
+    let out = run(&["plan", &settings(dir), "--json", "--quiet"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let seconds = plan["estimated_seconds"].as_f64().unwrap();
+    let bytes = plan["estimated_peak_bytes"].as_f64().unwrap();
+    let target = dir.path().join("out");
+    let timed = std::process::Command::new("/usr/bin/time")
+        .args(["-f", "%e %M", env!("CARGO_BIN_EXE_shadowcull"), "bake"])
+        .args([&settings(dir), "--quiet", "--out", target.to_str().unwrap()])
+        .output()
+        .expect("/usr/bin/time");
+    let stderr = text(&timed.stderr);
+    assert!(timed.status.success(), "{stderr}");
+    let last = stderr.lines().last().unwrap();
+    let mut fields = last.split_whitespace();
+    let measured_seconds: f64 = fields.next().unwrap().parse().unwrap();
+    let measured_bytes = fields.next().unwrap().parse::<f64>().unwrap() * 1024.0;
+    let time_ratio = seconds / measured_seconds.max(0.01);
+    let memory_ratio = bytes / measured_bytes;
+    eprintln!(
+        "plan {seconds:.2} s / measured {measured_seconds:.2} s; plan {bytes} B / measured {measured_bytes} B"
+    );
+    assert!(
+        (0.5..=2.0).contains(&time_ratio),
+        "time: plan {seconds} s, measured {measured_seconds} s"
+    );
+    assert!(
+        (0.5..=2.0).contains(&memory_ratio),
+        "memory: plan {bytes} B, measured {measured_bytes} B"
+    );
+}
+
+#[test]
+fn plan_estimates_are_within_a_factor_two_on_the_fixtures() {
+    if !Path::new("/usr/bin/time").exists() {
+        crate::support::say_not_run(
+            "plan_estimates_are_within_a_factor_two_on_the_fixtures needs /usr/bin/time",
+        );
+        return;
+    }
+    plan_within_a_factor_two(&world(Preset::Small));
+    plan_within_a_factor_two(&world(Preset::Village));
+}
+
+#[test]
+fn plan_estimates_are_within_a_factor_two_on_bench() {
+    if std::env::var_os("SHADOWCULL_SLOW").is_none() || !Path::new("/usr/bin/time").exists() {
+        crate::support::say_not_run(
+            "plan_estimates_are_within_a_factor_two_on_bench is slow: set SHADOWCULL_SLOW=1 (.ci/run does)",
+        );
+        return;
+    }
+    plan_within_a_factor_two(&world(Preset::Bench));
+}
+
+// ---------------------------------------------------------------------------
+// 5. Progress for machines and people.
+
+#[test]
+fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
+    let dir = small();
+    let out = run(&["bake", &settings(&dir), "--dry-run", "--progress", "json"]);
+    assert!(out.status.success());
+    let stderr = text(&out.stderr);
+    let objects: Vec<Value> = stderr
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    for object in &objects {
+        for field in ["phase", "light", "done", "total", "eta_s"] {
+            assert!(object.get(field).is_some(), "{object}");
+        }
+    }
+    for light in ["sun", "spot", "point"] {
+        let done = objects
+            .iter()
+            .find(|o| o["phase"] == "tracing" && o["light"] == light && o["done"] == o["total"]);
+        assert!(done.is_some(), "{light}: {stderr}");
+    }
+    assert!(objects.iter().any(|o| o["phase"] == "chunks"));
+
+    let lines = run(&[
+        "bake",
+        &settings(&dir),
+        "--dry-run",
+        "--progress",
+        "lines",
+        "--progress-interval",
+        "0",
+    ]);
+    let stderr = text(&lines.stderr);
+    let tracing: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("tracing light"))
+        .collect();
+    assert!(tracing.len() >= 3, "{stderr}");
+    for line in tracing {
+        assert!(
+            line.starts_with('[') && line.contains(" s] ") && line.contains("eta"),
+            "{line}"
+        );
+    }
+    let quiet = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
+    assert!(quiet.status.success());
+    assert_eq!(text(&quiet.stderr), "", "--quiet prints nothing on stderr");
+}
+
+// ---------------------------------------------------------------------------
+// 8. Small things.
+
+#[test]
+fn small_things() {
+    // A missing file's OS error once.
+    let missing = run(&["inspect", "/nonexistent/bake.xml"]);
+    let stderr = text(&missing.stderr);
+    assert_eq!(stderr.matches("No such file").count(), 1, "{stderr}");
+    // A negative number is a value, not an unknown flag.
+    let dir = small();
+    let out = run(&["bake", &settings(&dir), "--height-bias", "-1"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("--height-bias must be a number ≥ 0, got -1"),
+        "{stderr}"
+    );
+    // "1 problem", not "1 problems".
+    std::fs::write(dir.path().join(CHUNK), b"<root><model>").unwrap();
+    let out = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
+    let stderr = text(&out.stderr);
+    assert!(stderr.contains("; 1 problem (see"), "{stderr}");
+    assert!(!stderr.contains("1 problems"), "{stderr}");
+}
+
+#[test]
+fn the_readme_stands_on_its_own() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    assert!(
+        !readme.contains("../shared/SPEC.md"),
+        "README links outside the repository"
+    );
+    assert!(readme.contains("docs/contract.md"));
+    assert!(root.join("docs/contract.md").is_file());
+    for line in readme.lines().filter(|l| l.contains("cargo run")) {
+        assert!(
+            line.contains("--release"),
+            "one build for every example: {line}"
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------
+// 7. Pictures that find problems.
+
+#[test]
+fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
+    let dir = small();
+    let picture = dir.path().join("point.png");
+    let legend_path = dir.path().join("point.txt");
+    let settings_path = settings(&dir);
+    let render = |extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            settings_path.as_str(),
+            "--light",
+            "point",
+            "-o",
+            picture.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let out = run(&args);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        std::fs::read_to_string(&legend_path).unwrap()
+    };
+    // Nothing baked yet: the chunks hold no masks, so every caster is culled.
+    let unbaked = render(&["--from-chunks"]);
+    assert!(
+        unbaked.contains("from the masks in the chunk files (bit 2"),
+        "{unbaked}"
+    );
+    assert!(unbaked.contains("0 useful casters"), "{unbaked}");
+    let report = dir.path().join("r.json");
+    let bake = run(&[
+        "bake",
+        &settings(&dir),
+        "--quiet",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(bake.status.success());
+    let report = report_of(&report);
+    let point = &report["lights"][2];
+    let culled = point["culled_casters"].as_u64().unwrap();
+    let useful = point["useful_casters"].as_u64().unwrap();
+    let baked = render(&["--from-chunks"]);
+    assert!(
+        baked.contains(&format!("{useful} useful casters, {culled} culled casters")),
+        "{baked}"
+    );
+    let listed = baked
+        .split("culled casters (chunk, index, resource): ")
+        .nth(1)
+        .unwrap();
+    let count: u64 = listed.split_whitespace().next().unwrap().parse().unwrap();
+    assert_eq!(count, culled);
+    // Each model entry names chunk, element, index and resource.
+    assert!(
+        listed.lines().skip(1).take(count as usize).all(|l| {
+            let l = l.trim();
+            l.ends_with(" terrain") || (l.contains(" model ") && l.contains(".model group "))
+        }),
+        "{listed}"
+    );
+    assert!(baked.contains("Okabe-Ito") && baked.contains("colour blindness"));
+    assert!(baked.contains("each face is labelled"), "{baked}");
+    // The bake's own verdicts agree with the masks it wrote.
+    let fresh = render(&[]);
+    assert!(fresh.contains(&format!("{useful} useful casters, {culled} culled casters")));
+}
