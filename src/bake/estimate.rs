@@ -171,7 +171,10 @@ fn plan_light(
     plan.rays = grid_rays + refine_rays;
     // A caster set per tracing job (rayon splits a few times per thread).
     let working = threads.max(1) as u64 * 8 * CasterSet::new(world.casters.len()).heap_bytes();
-    plan.estimated_bytes = plan.top_level_bytes as u64 * 2 + working;
+    // The top level peaks while it is built (the memory model's bytes per
+    // part in reach), above what the finished tree holds.
+    let building = setup.top.len() as u64 * super::memory::PER_PART_IN_REACH;
+    plan.estimated_bytes = building.max(plan.top_level_bytes as u64) + working;
     if setup.top.is_empty() {
         plan.nothing_to_trace = Some("its frustum holds no geometry".into());
         plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
