@@ -7,8 +7,7 @@
 //! face even for mirrored instances.
 
 use super::casters::{CasterTable, Owner};
-use super::setup::BakeWorld;
-use crate::light::TexelGrid;
+use super::setup::{BakeWorld, Reach};
 use crate::scene::Scene;
 use crate::trace::{transform_box, TraceTriangle, MAX_COORDINATE};
 use glam::{DVec3, Vec3};
@@ -149,12 +148,55 @@ pub fn caster_triangles(world: &BakeWorld, id: u32, reference: DVec3) -> Vec<Tra
     out.triangles
 }
 
-/// The triangles of every part and block whose box the grid reaches, in
-/// caster id order (the raster reference draws them).
-pub fn light_geometry(scene: &Scene, casters: &CasterTable, grid: &TexelGrid) -> FlatGeometry {
-    flat_geometry(scene, casters, grid.reference_point(), |min, max| {
-        grid.reaches(min, max)
-    })
+/// The triangles of every part and block in a light's reach (the bake's
+/// own [`Reach`], so the raster draws what the rays can hit), in caster id
+/// order, relative to `reference`.
+pub fn reach_geometry(world: &BakeWorld, reach: &Reach, reference: DVec3) -> FlatGeometry {
+    let scene = world.scene;
+    // In parallel, collected in id order so the list is the same whatever
+    // the thread count.
+    let per_part: Vec<FlatGeometry> = reach
+        .parts
+        .par_iter()
+        .map(|&p| {
+            let part = &world.parts[p as usize];
+            let mut out = FlatGeometry::default();
+            for group in 0..scene.models[part.model].groups.len() {
+                let caster = part.first_caster + group as u32;
+                push_group(
+                    scene,
+                    part.instance,
+                    part.model,
+                    group,
+                    caster,
+                    reference,
+                    &mut out,
+                );
+            }
+            out
+        })
+        .collect();
+    let per_block: Vec<FlatGeometry> = reach
+        .blocks
+        .par_iter()
+        .map(|&block| {
+            let mut out = FlatGeometry::default();
+            let caster = world.casters.of_block[block as usize];
+            push_block(scene, block as usize, caster, reference, &mut out);
+            out
+        })
+        .collect();
+    merge(per_part.into_iter().chain(per_block))
+}
+
+fn merge(parts: impl Iterator<Item = FlatGeometry>) -> FlatGeometry {
+    let mut all = FlatGeometry::default();
+    for part in parts {
+        all.triangles.extend(part.triangles);
+        all.degenerate_triangles += part.degenerate_triangles;
+        all.reaches_alpha_tested |= part.reaches_alpha_tested;
+    }
+    all
 }
 
 /// Every caster's triangles, with nothing left out for reach (a camera that
@@ -210,11 +252,5 @@ fn flat_geometry(
             out
         })
         .collect();
-    let mut all = FlatGeometry::default();
-    for part in per_part.into_iter().chain(per_block) {
-        all.triangles.extend(part.triangles);
-        all.degenerate_triangles += part.degenerate_triangles;
-        all.reaches_alpha_tested |= part.reaches_alpha_tested;
-    }
-    all
+    merge(per_part.into_iter().chain(per_block))
 }

@@ -1,7 +1,9 @@
-//! An OpenGL 3.3 core context with no window: EGL's surfaceless platform
+//! An OpenGL 4.3 core context with no window: EGL's surfaceless platform
 //! (Mesa's llvmpipe on a machine without a GPU), libEGL loaded at run time so
 //! the binary starts without it. Rendering goes to our own framebuffer
-//! object, so the context needs no surface at all.
+//! object, so the context needs no surface at all. 4.3 for the storage
+//! buffers and early fragment tests of the atomic sample counters (Mesa's
+//! llvmpipe gives 4.5).
 
 use khronos_egl as egl;
 
@@ -20,7 +22,7 @@ pub struct GlContext {
 
 impl GlContext {
     /// Makes the context current on this thread. The error says what is
-    /// missing (libEGL, the surfaceless platform, a GL 3.3 core config).
+    /// missing (libEGL, the surfaceless platform, a GL 4.3 core config).
     pub fn new() -> Result<GlContext, String> {
         // SAFETY: loading libEGL runs its initialisers; it is the system's
         // EGL library, loaded once per context.
@@ -63,7 +65,7 @@ impl GlContext {
                 None,
                 &[
                     egl::CONTEXT_MAJOR_VERSION,
-                    3,
+                    4,
                     egl::CONTEXT_MINOR_VERSION,
                     3,
                     egl::CONTEXT_OPENGL_PROFILE_MASK,
@@ -71,7 +73,7 @@ impl GlContext {
                     egl::NONE,
                 ],
             )
-            .map_err(|e| format!("cannot create an OpenGL 3.3 core context: {e}"))?;
+            .map_err(|e| format!("cannot create an OpenGL 4.3 core context (storage buffers and atomics for the sample counters): {e}"))?;
         egl.make_current(display, None, None, Some(context))
             .map_err(|e| format!("eglMakeCurrent failed: {e}"))?;
         // SAFETY: the context is current on this thread; the loader returns

@@ -1,7 +1,8 @@
 //! The rasterized reference: the occlusion-query method the ray-cast bake
 //! replaces, run through OpenGL (Mesa's llvmpipe where there is no GPU) on
-//! the same light frusta and texel grids (pixel centres = texel centres), so
-//! users can cross-check the bake against it (`shadowcull xcheck`).
+//! the same lights as the bake: every light is prepared by
+//! [`LightSetup::new`], so the raster sees the bake's grid (pixel centres =
+//! texel centres), reach and passes.
 //!
 //! Per light, face and tile of the shadow map, and per alpha variant (all
 //! groups; alpha-tested groups left out), OR-ed:
@@ -11,10 +12,29 @@
 //!   instances, which are not drawn into the shadow map: no depth writes, and
 //!   they count only where they are not in front of the nearest caster
 //!   (depth GEQUAL), as SPEC §4's "receiver-only hits that are not in front
-//!   of the front set"; they are never queried;
-//! - pass 2: per caster (primitive group, terrain block), an occlusion query
-//!   with depth LEQUAL against pass 1 where stencil > 1, no writes; a caster
+//!   of the front set"; they are never counted;
+//! - pass 2: per caster (primitive group, terrain block), the samples that
+//!   pass depth LEQUAL against pass 1 where stencil > 1, no writes; a caster
 //!   is useful if any sample passes.
+//!
+//! Pass 2's samples are counted by a [`Counter`]: per-caster atomic counters
+//! written by the fragments that passed early depth and stencil tests (the
+//! default), or occlusion queries, or both compared caster by caster. Every
+//! tile checks that its counts add up to the samples pass 2 drew (counted
+//! by additive blending into the colour buffer): a driver that miscounts
+//! fails the run instead of skewing the comparison.
+//!
+//! Why not queries alone: Mesa's llvmpipe (seen on 22.3) bins a query's
+//! begin and end into every 64×64 bin of the framebuffer; when its scene
+//! memory runs out part-way through those bins it flushes the scene with the
+//! query already marked active, and the bins that missed the command count
+//! the samples of earlier queries (or count twice) at the end of the bin.
+//! More bins (2048² tiles: 1024) and more triangles per scene make that
+//! likelier: `bench` with the sun at 0.25 m overcounted by 5193 samples in
+//! one tile, deterministically. A flush before every begin and end keeps
+//! both in an empty scene and makes the queries exact (the `Queries`
+//! counter does that), at three times the cost; atomic counters need no
+//! flush at all.
 //!
 //! The fragment shader applies what a depth-clipped rasterizer would not:
 //! spot and point lights keep fragments whose *distance* from the light is in
@@ -22,11 +42,6 @@
 //! discard does the rest), and non-terrain fragments below the terrain −
 //! heightBias are discarded, with every terrain block in an atlas
 //! (`ground_atlas.rs`) and the engine's per-cell diagonal.
-//!
-//! Occlusion queries are read back in batches ([`QUERY_BATCH`]), and every
-//! tile checks that its queries add up to the samples pass 2 drew (counted
-//! by additive blending into the colour buffer): a driver whose queries
-//! miscount fails the run instead of skewing the comparison.
 //!
 //! Known differences from the ray cast (and why `xcheck` explains them
 //! rather than hides them): rasterization rules at triangle edges vs the
@@ -40,10 +55,11 @@ pub mod xcheck;
 
 use crate::bake::casters::CasterTable;
 use crate::bake::geometry;
+use crate::bake::setup::{BakeWorld, LightSetup};
 use crate::bake::BakeConfig;
+use crate::classify::Passes;
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::TexelGrid;
-use crate::scene::Scene;
 use context::GlContext;
 use glam::{DMat4, DVec3, DVec4};
 use glow::HasContext;
@@ -52,33 +68,88 @@ use ground_atlas::GroundAtlas;
 /// Largest tile side (pixels); smaller values force tiling (tests).
 pub const DEFAULT_MAX_TILE: u32 = 2048;
 
-/// Occlusion queries issued before their results are read. Mesa 22.3's
-/// llvmpipe returns wrong samples-passed counts (thousands of samples for a
-/// group that drew none, varying from run to run) when a few hundred
-/// queries are outstanding: on the `bench` sun, batches of 4096 miscounted
-/// 20 groups, 256 one, and 16 to 160 none. 64 keeps a margin; the per-tile
-/// self-check in [`raster`] catches a driver that still miscounts.
+/// Occlusion queries issued before their results are read (each read waits
+/// for the rasterizer). With the flush before every begin and end
+/// ([`Counter::Queries`]) the batch size no longer changes the counts.
 const QUERY_BATCH: usize = 64;
+
+/// How pass 2's passing samples are counted per caster.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Counter {
+    /// A storage buffer of per-caster counters, incremented atomically by
+    /// every fragment that passed the early depth and stencil tests.
+    #[default]
+    Atomics,
+    /// `GL_SAMPLES_PASSED` queries, with a flush before every begin and
+    /// end (the llvmpipe workaround in this module's notes).
+    Queries,
+    /// Queries without those flushes: llvmpipe miscounts at large tiles.
+    /// Kept to show the driver bug (tests); not for cross-checking.
+    QueriesUnflushed,
+    /// Atomics and flushed queries, one after the other on the same depth
+    /// and stencil; every caster's two counts must be equal.
+    Both,
+}
+
+/// A deliberate fault, so tests can show the per-tile self-check fails.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Fault {
+    #[default]
+    None,
+    /// One sample added to the first caster counted in every tile.
+    ExtraSample,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub struct RasterOptions {
+    /// Largest tile side (pixels), capped by the driver's limit.
+    pub max_tile: u32,
+    pub counter: Counter,
+    pub fault: Fault,
+}
+
+impl Default for RasterOptions {
+    fn default() -> Self {
+        RasterOptions {
+            max_tile: DEFAULT_MAX_TILE,
+            counter: Counter::default(),
+            fault: Fault::None,
+        }
+    }
+}
+
+impl RasterOptions {
+    /// The defaults with tiles of at most `max_tile` pixels.
+    pub fn with_tile(max_tile: u32) -> Self {
+        RasterOptions {
+            max_tile,
+            ..Default::default()
+        }
+    }
+}
 
 #[derive(Debug, Clone)]
 pub struct RasterResult {
     pub casters: CasterTable,
     /// Per caster id: bit i set = useful for light i (receiver-only: 0).
     pub masks: Vec<u32>,
-    /// Per light, per caster: samples (one per texel) that passed its
-    /// query in the All variant.
+    /// Per light, per caster: samples (one per texel) that passed pass 2
+    /// in the All variant.
     pub texels: Vec<Vec<u64>>,
     /// The same in the Opaque variant (alpha-tested groups left out); all
     /// zero for a light that reaches no alpha-tested group.
     pub texels_opaque: Vec<Vec<u64>>,
     /// Per light: wall time in seconds.
     pub seconds: Vec<f64>,
+    /// Per light: tiles drawn (faces × tiles × variants).
+    pub tiles: Vec<u64>,
     /// Why the below-ground test could not be applied, if so.
     pub ground_note: Option<String>,
     pub renderer: String,
+    pub counter: Counter,
 }
 
-const VERTEX: &str = r#"#version 330 core
+const VERTEX: &str = r#"
 layout(location = 0) in vec3 pos;
 uniform mat4 clip_from_rel;
 out vec3 rel;
@@ -89,8 +160,18 @@ void main() {
 }
 "#;
 
-const FRAGMENT: &str = r#"#version 330 core
+/// GLSL 4.30: storage buffers, atomics and early fragment tests.
+const GLSL_VERSION: &str = "#version 430 core\n";
+const FRAGMENT: &str = r#"
 in vec3 rel;
+#ifdef COUNT
+// Depth and stencil decide before the shader runs, so only fragments that
+// pass them reach the counter; a discard below still keeps a fragment out
+// of it, as it keeps it out of an occlusion query.
+layout(early_fragment_tests) in;
+layout(std430, binding = 0) buffer Counts { uint counts[]; };
+uniform uint slot;
+#endif
 uniform int by_distance;
 uniform vec3 apex;
 uniform float near_d;
@@ -154,17 +235,12 @@ void main() {
         float h;
         if (ground_height(rel.xz, h) && rel.y < h - height_bias) discard;
     }
+#ifdef COUNT
+    atomicAdd(counts[slot], 1u);
+#endif
     colour = vec4(1.0);
 }
 "#;
-
-/// A contiguous run of one caster's triangles in the vertex buffer.
-#[derive(Debug, Clone, Copy)]
-struct Run {
-    caster: u32,
-    first: i32,
-    count: i32,
-}
 
 /// How one face of a light maps light-relative points to the shadow map.
 struct FaceView {
@@ -256,14 +332,57 @@ fn tile_matrix(w: f64, h: f64, x0: f64, y0: f64, tw: f64, th: f64) -> DMat4 {
     )
 }
 
-unsafe fn compile(gl: &glow::Context) -> Result<glow::Program, String> {
+/// A contiguous run of one caster's triangles in the vertex buffer.
+#[derive(Debug, Clone, Copy)]
+struct Run {
+    caster: u32,
+    first: i32,
+    count: i32,
+}
+
+/// The two programs: `draw` (pass 1, and pass 2 under queries) and `count`
+/// (pass 2 under atomics: the same vertex shader, so `invariant
+/// gl_Position` gives both passes the same depths).
+struct Programs {
+    draw: glow::Program,
+    count: glow::Program,
+}
+
+impl Programs {
+    unsafe fn new(gl: &glow::Context) -> Result<Programs, String> {
+        Ok(Programs {
+            draw: compile(gl, "")?,
+            count: compile(gl, "#define COUNT 1\n")?,
+        })
+    }
+
+    /// Sets a uniform in both programs, leaving `draw` in use.
+    unsafe fn set(
+        &self,
+        gl: &glow::Context,
+        name: &str,
+        value: impl Fn(Option<&glow::UniformLocation>),
+    ) {
+        for program in [self.count, self.draw] {
+            gl.use_program(Some(program));
+            value(gl.get_uniform_location(program, name).as_ref());
+        }
+    }
+
+    unsafe fn delete(self, gl: &glow::Context) {
+        gl.delete_program(self.draw);
+        gl.delete_program(self.count);
+    }
+}
+
+unsafe fn compile(gl: &glow::Context, defines: &str) -> Result<glow::Program, String> {
     let program = gl.create_program()?;
     for (kind, source) in [
         (glow::VERTEX_SHADER, VERTEX),
         (glow::FRAGMENT_SHADER, FRAGMENT),
     ] {
         let shader = gl.create_shader(kind)?;
-        gl.shader_source(shader, source);
+        gl.shader_source(shader, &format!("{GLSL_VERSION}{defines}{source}"));
         gl.compile_shader(shader);
         if !gl.get_shader_compile_status(shader) {
             return Err(format!("shader: {}", gl.get_shader_info_log(shader)));
@@ -278,30 +397,120 @@ unsafe fn compile(gl: &glow::Context) -> Result<glow::Program, String> {
 }
 
 /// Runs the rasterized method for every light of `config` (its face
-/// culling and height bias; supersampling and refinement do not apply).
-pub fn raster(scene: &Scene, config: &BakeConfig, max_tile: u32) -> Result<RasterResult, String> {
+/// culling and height bias; supersampling and refinement do not apply) over
+/// `world`, each light prepared by [`LightSetup::new`].
+pub fn raster(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    options: &RasterOptions,
+) -> Result<RasterResult, String> {
     let ctx = GlContext::new()?;
     // SAFETY: every GL call below runs on the thread where `ctx` is current,
     // with objects created in it and buffers sized from Rust slices.
-    unsafe { raster_in(&ctx, scene, config, max_tile.max(1)) }
+    unsafe { raster_in(&ctx, world, config, options) }
+}
+
+/// The GL objects every light reuses.
+struct Target {
+    fbo: glow::Framebuffer,
+    colour: glow::Renderbuffer,
+    depth: glow::Renderbuffer,
+    vao: glow::VertexArray,
+    vbo: glow::Buffer,
+    counts: glow::Buffer,
+    ground: [glow::Texture; 4],
+    tile: u32,
+}
+
+impl Target {
+    unsafe fn new(gl: &glow::Context, max_tile: u32) -> Result<Target, String> {
+        let limit = gl.get_parameter_i32(glow::MAX_RENDERBUFFER_SIZE).max(1) as u32;
+        let tile = max_tile.max(1).min(limit);
+        let fbo = gl.create_framebuffer()?;
+        gl.bind_framebuffer(glow::FRAMEBUFFER, Some(fbo));
+        // Pass 2 also adds 1 per passing sample to the colour (float
+        // blending is exact to 2^24 per texel), so the counts can be checked
+        // against what was drawn.
+        let colour = attach(gl, glow::R32F, glow::COLOR_ATTACHMENT0, tile)?;
+        let depth = attach(
+            gl,
+            glow::DEPTH32F_STENCIL8,
+            glow::DEPTH_STENCIL_ATTACHMENT,
+            tile,
+        )?;
+        if gl.check_framebuffer_status(glow::FRAMEBUFFER) != glow::FRAMEBUFFER_COMPLETE {
+            return Err("the depth32f/stencil8 framebuffer is not complete".into());
+        }
+        let vao = gl.create_vertex_array()?;
+        gl.bind_vertex_array(Some(vao));
+        let vbo = gl.create_buffer()?;
+        gl.bind_buffer(glow::ARRAY_BUFFER, Some(vbo));
+        gl.enable_vertex_attrib_array(0);
+        gl.vertex_attrib_pointer_f32(0, 3, glow::FLOAT, false, 12, 0);
+        let counts = gl.create_buffer()?;
+        gl.bind_buffer(glow::SHADER_STORAGE_BUFFER, Some(counts));
+        gl.bind_buffer_base(glow::SHADER_STORAGE_BUFFER, 0, Some(counts));
+        let ground = [
+            gl.create_texture()?,
+            gl.create_texture()?,
+            gl.create_texture()?,
+            gl.create_texture()?,
+        ];
+        Ok(Target {
+            fbo,
+            colour,
+            depth,
+            vao,
+            vbo,
+            counts,
+            ground,
+            tile,
+        })
+    }
+
+    unsafe fn delete(self, gl: &glow::Context) {
+        for texture in self.ground {
+            gl.delete_texture(texture);
+        }
+        gl.delete_buffer(self.counts);
+        gl.delete_buffer(self.vbo);
+        gl.delete_vertex_array(self.vao);
+        gl.delete_renderbuffer(self.colour);
+        gl.delete_renderbuffer(self.depth);
+        gl.delete_framebuffer(self.fbo);
+    }
+}
+
+unsafe fn attach(
+    gl: &glow::Context,
+    format: u32,
+    attachment: u32,
+    tile: u32,
+) -> Result<glow::Renderbuffer, String> {
+    let rb = gl.create_renderbuffer()?;
+    gl.bind_renderbuffer(glow::RENDERBUFFER, Some(rb));
+    gl.renderbuffer_storage(glow::RENDERBUFFER, format, tile as i32, tile as i32);
+    gl.framebuffer_renderbuffer(glow::FRAMEBUFFER, attachment, glow::RENDERBUFFER, Some(rb));
+    Ok(rb)
+}
+
+/// One light's counts.
+struct LightCounts {
+    all: Vec<u64>,
+    opaque: Vec<u64>,
+    tiles: u64,
 }
 
 unsafe fn raster_in(
     ctx: &GlContext,
-    scene: &Scene,
+    world: &BakeWorld,
     config: &BakeConfig,
-    max_tile: u32,
+    options: &RasterOptions,
 ) -> Result<RasterResult, String> {
     let gl = &ctx.gl;
-    let casters = CasterTable::new(scene);
-    let mut masks = vec![0u32; casters.len()];
-    let mut texels = Vec::new();
-    let mut texels_opaque = Vec::new();
-    let mut seconds = Vec::new();
-    let program = compile(gl)?;
-    gl.use_program(Some(program));
-    let u = |name: &str| gl.get_uniform_location(program, name);
-
+    let scene = world.scene;
+    let casters = &world.casters;
+    let programs = Programs::new(gl)?;
     let max_texture = gl.get_parameter_i32(glow::MAX_TEXTURE_SIZE).max(1) as usize;
     let (atlas, ground_note) = match GroundAtlas::new(scene, max_texture) {
         Ok(a) => (a, None),
@@ -310,46 +519,12 @@ unsafe fn raster_in(
             Some(format!("below-ground test off in the raster: {why}")),
         ),
     };
-
-    let limit = gl.get_parameter_i32(glow::MAX_RENDERBUFFER_SIZE).max(1) as u32;
-    let tile = max_tile.min(limit);
-    let fbo = gl.create_framebuffer()?;
-    gl.bind_framebuffer(glow::FRAMEBUFFER, Some(fbo));
-    let colour_rb = gl.create_renderbuffer()?;
-    gl.bind_renderbuffer(glow::RENDERBUFFER, Some(colour_rb));
-    // Pass 2 also adds 1 per passing sample here (float blending is exact
-    // to 2^24 per texel), so the queries can be checked against what was
-    // drawn.
-    gl.renderbuffer_storage(glow::RENDERBUFFER, glow::R32F, tile as i32, tile as i32);
-    gl.framebuffer_renderbuffer(
-        glow::FRAMEBUFFER,
-        glow::COLOR_ATTACHMENT0,
-        glow::RENDERBUFFER,
-        Some(colour_rb),
-    );
-    let depth_rb = gl.create_renderbuffer()?;
-    gl.bind_renderbuffer(glow::RENDERBUFFER, Some(depth_rb));
-    gl.renderbuffer_storage(
-        glow::RENDERBUFFER,
-        glow::DEPTH32F_STENCIL8,
-        tile as i32,
-        tile as i32,
-    );
-    gl.framebuffer_renderbuffer(
-        glow::FRAMEBUFFER,
-        glow::DEPTH_STENCIL_ATTACHMENT,
-        glow::RENDERBUFFER,
-        Some(depth_rb),
-    );
-    if gl.check_framebuffer_status(glow::FRAMEBUFFER) != glow::FRAMEBUFFER_COMPLETE {
-        return Err("the depth32f/stencil8 framebuffer is not complete".into());
-    }
+    let target = Target::new(gl, options.max_tile)?;
     gl.enable(glow::DEPTH_TEST);
     gl.enable(glow::STENCIL_TEST);
     gl.disable(glow::MULTISAMPLE);
     gl.blend_func(glow::ONE, glow::ONE);
     gl.pixel_store_i32(glow::PACK_ALIGNMENT, 4);
-    let mut drawn = Vec::new();
     // CCW in the light's window (x along u, y along v, depth along u × v)
     // is a normal along the ray: a back face.
     gl.front_face(glow::CW);
@@ -357,218 +532,172 @@ unsafe fn raster_in(
         FaceCulling::Front => glow::FRONT,
         _ => glow::BACK,
     });
-    let culling = config.face_culling != FaceCulling::None;
-
-    let vao = gl.create_vertex_array()?;
-    gl.bind_vertex_array(Some(vao));
-    let vbo = gl.create_buffer()?;
-    gl.bind_buffer(glow::ARRAY_BUFFER, Some(vbo));
-    gl.enable_vertex_attrib_array(0);
-    gl.vertex_attrib_pointer_f32(0, 3, glow::FLOAT, false, 12, 0);
-
-    let ground_textures = [
-        gl.create_texture()?,
-        gl.create_texture()?,
-        gl.create_texture()?,
-        gl.create_texture()?,
-    ];
-    let bounds = geometry::world_bounds(scene);
-    for (index, light) in config.lights.iter().enumerate() {
+    // Zeroed counters for every tile, sized once.
+    let zeros = vec![0u8; casters.len().max(1) * 4];
+    gl.buffer_data_u8_slice(glow::SHADER_STORAGE_BUFFER, &zeros, glow::DYNAMIC_READ);
+    let mut out = RasterResult {
+        casters: casters.clone(),
+        masks: vec![0u32; casters.len()],
+        texels: Vec::new(),
+        texels_opaque: Vec::new(),
+        seconds: Vec::new(),
+        tiles: Vec::new(),
+        ground_note,
+        renderer: ctx.renderer.clone(),
+        counter: options.counter,
+    };
+    for index in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let mut counts = vec![0u64; casters.len()];
-        let mut counts_opaque = vec![0u64; casters.len()];
-        let Some(bounds) = bounds else {
-            texels_opaque.push(counts.clone());
-            texels.push(counts);
-            seconds.push(0.0);
-            continue;
-        };
-        let grid = match TexelGrid::new(light, bounds) {
-            Ok(g) => g,
-            Err(crate::light::GridError::EmptyWorld { .. }) => {
-                texels_opaque.push(counts.clone());
-                texels.push(counts);
-                seconds.push(0.0);
-                continue;
-            }
+        let setup = match LightSetup::new(world, config, index) {
+            Ok(setup) => Some(setup),
+            Err(e) if e.is_nothing_to_trace() => None,
             Err(e) => return Err(e.to_string()),
         };
-        let reference = grid.reference_point();
-        let geo = geometry::light_geometry(scene, &casters, &grid);
-        let mut vertices: Vec<f32> = Vec::with_capacity(geo.triangles.len() * 9);
-        let mut runs: Vec<Run> = Vec::new();
-        for (i, t) in geo.triangles.iter().enumerate() {
-            for v in &t.vertices {
-                vertices.extend_from_slice(&[v.x, v.y, v.z]);
+        let counts = match &setup {
+            Some(setup) => {
+                let light = LightPass {
+                    gl,
+                    programs: &programs,
+                    target: &target,
+                    world,
+                    config,
+                    options,
+                    setup,
+                    atlas: atlas.as_ref(),
+                    zeros: &zeros,
+                };
+                light.run()?
             }
-            match runs.last_mut() {
-                Some(r) if r.caster == t.caster => r.count += 3,
-                _ => runs.push(Run {
-                    caster: t.caster,
-                    first: (i * 3) as i32,
-                    count: 3,
-                }),
+            None => LightCounts {
+                all: vec![0; casters.len()],
+                opaque: vec![0; casters.len()],
+                tiles: 0,
+            },
+        };
+        for (id, (a, o)) in counts.all.iter().zip(&counts.opaque).enumerate() {
+            if a + o > 0 && !casters.casters[id].receiver_only {
+                out.masks[id] |= 1 << index;
             }
         }
+        if gl.get_error() != glow::NO_ERROR {
+            return Err(format!("OpenGL error while rasterizing light {index}"));
+        }
+        out.texels.push(counts.all);
+        out.texels_opaque.push(counts.opaque);
+        out.tiles.push(counts.tiles);
+        out.seconds.push(started.elapsed().as_secs_f64());
+    }
+    target.delete(gl);
+    programs.delete(gl);
+    Ok(out)
+}
+
+/// One light ready to draw.
+struct LightPass<'a> {
+    gl: &'a glow::Context,
+    programs: &'a Programs,
+    target: &'a Target,
+    world: &'a BakeWorld<'a>,
+    config: &'a BakeConfig,
+    options: &'a RasterOptions,
+    setup: &'a LightSetup,
+    atlas: Option<&'a GroundAtlas>,
+    zeros: &'a [u8],
+}
+
+/// Where a tile lies in its face.
+#[derive(Debug, Clone, Copy)]
+struct TileAt {
+    face: usize,
+    x0: u32,
+    y0: u32,
+    w: u32,
+    h: u32,
+}
+
+impl LightPass<'_> {
+    unsafe fn run(&self) -> Result<LightCounts, String> {
+        let gl = self.gl;
+        let grid = &self.setup.grid;
+        let reference = grid.reference_point();
+        let geo = geometry::reach_geometry(self.world, &self.setup.reach, reference);
+        let (vertices, runs) = vertex_runs(&geo.triangles);
+        gl.bind_buffer(glow::ARRAY_BUFFER, Some(self.target.vbo));
         gl.buffer_data_u8_slice(glow::ARRAY_BUFFER, bytes_of(&vertices), glow::STATIC_DRAW);
-
-        let ground_on = if let Some(atlas) = &atlas {
-            upload_ground(gl, atlas, reference, ground_textures, &u);
-            gl.uniform_1_f32(u("height_bias").as_ref(), config.height_bias as f32);
-            true
-        } else {
-            false
+        let ground_on = match self.atlas {
+            Some(atlas) => {
+                upload_ground(gl, atlas, reference, self.programs, self.target.ground);
+                let bias = self.config.height_bias as f32;
+                self.programs
+                    .set(gl, "height_bias", |u| gl.uniform_1_f32(u, bias));
+                true
+            }
+            None => false,
         };
-
-        // Depth range of a directional light: what the geometry spans along
-        // the ray from the origin plane.
-        let o0 = grid.ray_through(0, 0.0, 0.0);
-        let d = o0.direction;
-        let origin_rel = o0.origin - reference;
-        let far = geo
-            .triangles
-            .iter()
-            .flat_map(|t| t.vertices.iter())
-            .map(|v| (v.as_dvec3() - origin_rel).dot(d))
-            .fold(1.0f64, f64::max)
-            * 1.01
-            + 1.0;
-        let variants: &[bool] = if geo.reaches_alpha_tested {
-            &[false, true]
-        } else {
-            &[false]
+        let n = self.world.casters.len();
+        let mut counts = LightCounts {
+            all: vec![0; n],
+            opaque: vec![0; n],
+            tiles: 0,
+        };
+        let far = directional_far(grid, &geo.triangles, reference);
+        let variants: &[bool] = match self.setup.passes {
+            Passes::AllAndOpaque => &[false, true],
+            Passes::AllOnly => &[false],
         };
         let mut queries = Vec::new();
-        for _ in 0..runs.len() {
-            queries.push(gl.create_query()?);
-        }
-        let mut useful = vec![false; casters.len()];
-        for face in 0..grid.faces() {
-            let view = face_view(&grid, face, (-1.0, far));
-            match view.perspective {
-                Some((apex, near, far)) => {
-                    gl.uniform_1_i32(u("by_distance").as_ref(), 1);
-                    gl.uniform_3_f32(
-                        u("apex").as_ref(),
-                        apex.x as f32,
-                        apex.y as f32,
-                        apex.z as f32,
-                    );
-                    gl.uniform_1_f32(u("near_d").as_ref(), near as f32);
-                    gl.uniform_1_f32(
-                        u("far_d").as_ref(),
-                        if far.is_finite() {
-                            far as f32
-                        } else {
-                            f32::MAX
-                        },
-                    );
-                }
-                None => gl.uniform_1_i32(u("by_distance").as_ref(), 0),
+        if self.options.counter != Counter::Atomics {
+            for _ in 0..runs.len() {
+                queries.push(gl.create_query()?);
             }
+        }
+        let draw = Draw {
+            gl,
+            programs: self.programs,
+            casters: &self.world.casters,
+            culling: self.config.face_culling != FaceCulling::None,
+            ground_on,
+            runs: &runs,
+            queries: &queries,
+        };
+        let tile = self.target.tile;
+        for face in 0..grid.faces() {
+            let view = face_view(grid, face, (-1.0, far));
+            self.set_face_uniforms(&view);
             let (w, h) = (grid.width(), grid.height());
             for y0 in (0..h).step_by(tile as usize) {
                 for x0 in (0..w).step_by(tile as usize) {
-                    let tw = tile.min(w - x0);
-                    let th = tile.min(h - y0);
+                    let at = TileAt {
+                        face,
+                        x0,
+                        y0,
+                        w: tile.min(w - x0),
+                        h: tile.min(h - y0),
+                    };
                     let m = tile_matrix(
-                        w as f64, h as f64, x0 as f64, y0 as f64, tw as f64, th as f64,
+                        w as f64,
+                        h as f64,
+                        x0 as f64,
+                        y0 as f64,
+                        at.w as f64,
+                        at.h as f64,
                     ) * view.clip_from_rel;
-                    gl.uniform_matrix_4_f32_slice(
-                        u("clip_from_rel").as_ref(),
-                        false,
-                        &m.as_mat4().to_cols_array(),
-                    );
-                    gl.viewport(0, 0, tw as i32, th as i32);
+                    let m = m.as_mat4().to_cols_array();
+                    self.programs.set(gl, "clip_from_rel", |u| {
+                        gl.uniform_matrix_4_f32_slice(u, false, &m)
+                    });
+                    gl.viewport(0, 0, at.w as i32, at.h as i32);
                     for &opaque_only in variants {
-                        let included = |r: &Run| {
-                            !(opaque_only && casters.casters[r.caster as usize].alpha_tested)
-                        };
-                        gl.depth_mask(true);
-                        gl.stencil_mask(0xff);
-                        gl.color_mask(true, false, false, false);
-                        gl.clear_depth_f64(1.0);
-                        gl.clear_stencil(0);
-                        gl.clear_color(0.0, 0.0, 0.0, 0.0);
-                        gl.clear(
-                            glow::DEPTH_BUFFER_BIT
-                                | glow::STENCIL_BUFFER_BIT
-                                | glow::COLOR_BUFFER_BIT,
-                        );
-                        gl.color_mask(false, false, false, false);
-                        // Pass 1: casters write the nearest caster depth;
-                        // every fragment counts in the stencil.
-                        gl.depth_func(glow::LESS);
-                        gl.stencil_func(glow::ALWAYS, 0, 0xff);
-                        gl.stencil_op(glow::KEEP, glow::INCR, glow::INCR);
-                        let receiver = |r: &Run| casters.casters[r.caster as usize].receiver_only;
-                        for r in runs.iter().filter(|r| included(r) && !receiver(r)) {
-                            draw_run(gl, &casters, r, culling, ground_on, &u);
-                        }
-                        // Receiver-only instances are not drawn into the
-                        // shadow map (SPEC §2): they write no depth, and
-                        // count only where they are not in front of the
-                        // nearest caster (SPEC §4), i.e. depth GEQUAL.
-                        gl.depth_mask(false);
-                        gl.depth_func(glow::GEQUAL);
-                        gl.stencil_op(glow::KEEP, glow::KEEP, glow::INCR);
-                        for r in runs.iter().filter(|r| included(r) && receiver(r)) {
-                            draw_run(gl, &casters, r, culling, ground_on, &u);
-                        }
-                        // Pass 2.
-                        gl.depth_mask(false);
-                        gl.stencil_mask(0);
-                        gl.depth_func(glow::LEQUAL);
-                        gl.stencil_func(glow::LESS, 1, 0xff);
-                        gl.stencil_op(glow::KEEP, glow::KEEP, glow::KEEP);
-                        gl.color_mask(true, false, false, false);
-                        gl.enable(glow::BLEND);
-                        let mut asked = Vec::new();
-                        let mut counted = 0u64;
+                        let tile_counts = draw.tile(at, opaque_only, self)?;
                         let tally = if opaque_only {
-                            &mut counts_opaque
+                            &mut counts.opaque
                         } else {
-                            &mut counts
+                            &mut counts.all
                         };
-                        for (r, q) in runs.iter().zip(&queries) {
-                            let caster = &casters.casters[r.caster as usize];
-                            if !included(r) || caster.receiver_only {
-                                continue;
-                            }
-                            gl.begin_query(glow::SAMPLES_PASSED, *q);
-                            draw_run(gl, &casters, r, culling, ground_on, &u);
-                            gl.end_query(glow::SAMPLES_PASSED);
-                            asked.push((r.caster, *q));
-                            if asked.len() >= QUERY_BATCH {
-                                counted += read_queries(gl, &mut asked, &mut useful, |c, n| {
-                                    tally[c] += n;
-                                });
-                            }
+                        for (t, c) in tally.iter_mut().zip(tile_counts) {
+                            *t += c;
                         }
-                        counted += read_queries(gl, &mut asked, &mut useful, |c, n| {
-                            tally[c] += n;
-                        });
-                        gl.disable(glow::BLEND);
-                        // The queries must add up to the samples drawn.
-                        drawn.resize(tw as usize * th as usize, 0f32);
-                        gl.read_pixels(
-                            0,
-                            0,
-                            tw as i32,
-                            th as i32,
-                            glow::RED,
-                            glow::FLOAT,
-                            glow::PixelPackData::Slice(Some(bytes_of_mut(&mut drawn))),
-                        );
-                        let samples: u64 = drawn.iter().map(|&n| n as u64).sum();
-                        if samples != counted {
-                            return Err(format!(
-                                "the OpenGL driver's occlusion queries counted {counted} samples \
-                                 where it drew {samples} (light {index}, face {face}, tile at \
-                                 texel {x0}, {y0}); its query results cannot be trusted (a driver bug: \
-                                 try another driver, e.g. a GPU's or Mesa's llvmpipe with LIBGL_ALWAYS_SOFTWARE=1)"
-                            ));
-                        }
+                        counts.tiles += 1;
                     }
                 }
             }
@@ -576,79 +705,326 @@ unsafe fn raster_in(
         for q in queries {
             gl.delete_query(q);
         }
-        if gl.get_error() != glow::NO_ERROR {
-            return Err(format!("OpenGL error while rasterizing light {index}"));
-        }
-        for (id, u) in useful.iter().enumerate() {
-            if *u && !casters.casters[id].receiver_only {
-                masks[id] |= 1 << index;
+        Ok(counts)
+    }
+
+    unsafe fn set_face_uniforms(&self, view: &FaceView) {
+        let (gl, p) = (self.gl, self.programs);
+        match view.perspective {
+            Some((apex, near, far)) => {
+                p.set(gl, "by_distance", |u| gl.uniform_1_i32(u, 1));
+                let apex = apex.as_vec3();
+                p.set(gl, "apex", |u| gl.uniform_3_f32(u, apex.x, apex.y, apex.z));
+                p.set(gl, "near_d", |u| gl.uniform_1_f32(u, near as f32));
+                let far = if far.is_finite() {
+                    far as f32
+                } else {
+                    f32::MAX
+                };
+                p.set(gl, "far_d", |u| gl.uniform_1_f32(u, far));
             }
+            None => p.set(gl, "by_distance", |u| gl.uniform_1_i32(u, 0)),
         }
-        texels.push(counts);
-        texels_opaque.push(counts_opaque);
-        seconds.push(started.elapsed().as_secs_f64());
     }
-    for texture in ground_textures {
-        gl.delete_texture(texture);
-    }
-    gl.delete_buffer(vbo);
-    gl.delete_vertex_array(vao);
-    gl.delete_renderbuffer(colour_rb);
-    gl.delete_renderbuffer(depth_rb);
-    gl.delete_framebuffer(fbo);
-    gl.delete_program(program);
-    Ok(RasterResult {
-        casters,
-        masks,
-        texels,
-        texels_opaque,
-        seconds,
-        ground_note,
-        renderer: ctx.renderer.clone(),
-    })
 }
 
-unsafe fn draw_run(
-    gl: &glow::Context,
-    casters: &CasterTable,
-    r: &Run,
+/// Depth range of a directional light: what the geometry spans along the
+/// ray from the origin plane.
+fn directional_far(
+    grid: &TexelGrid,
+    triangles: &[crate::trace::TraceTriangle],
+    reference: DVec3,
+) -> f64 {
+    let o0 = grid.ray_through(0, 0.0, 0.0);
+    let d = o0.direction;
+    let origin_rel = o0.origin - reference;
+    triangles
+        .iter()
+        .flat_map(|t| t.vertices.iter())
+        .map(|v| (v.as_dvec3() - origin_rel).dot(d))
+        .fold(1.0f64, f64::max)
+        * 1.01
+        + 1.0
+}
+
+/// The vertex buffer's contents and each caster's run in it (triangles
+/// come in caster id order, so one run per caster).
+fn vertex_runs(triangles: &[crate::trace::TraceTriangle]) -> (Vec<f32>, Vec<Run>) {
+    let mut vertices: Vec<f32> = Vec::with_capacity(triangles.len() * 9);
+    let mut runs: Vec<Run> = Vec::new();
+    for (i, t) in triangles.iter().enumerate() {
+        for v in &t.vertices {
+            vertices.extend_from_slice(&[v.x, v.y, v.z]);
+        }
+        match runs.last_mut() {
+            Some(r) if r.caster == t.caster => r.count += 3,
+            _ => runs.push(Run {
+                caster: t.caster,
+                first: (i * 3) as i32,
+                count: 3,
+            }),
+        }
+    }
+    (vertices, runs)
+}
+
+/// What draws one light's runs.
+struct Draw<'a> {
+    gl: &'a glow::Context,
+    programs: &'a Programs,
+    casters: &'a CasterTable,
     culling: bool,
     ground_on: bool,
-    u: &dyn Fn(&str) -> Option<glow::UniformLocation>,
-) {
-    let caster = &casters.casters[r.caster as usize];
-    if culling && !caster.double_sided {
-        gl.enable(glow::CULL_FACE);
-    } else {
-        gl.disable(glow::CULL_FACE);
-    }
-    gl.uniform_1_i32(
-        u("check_ground").as_ref(),
-        i32::from(ground_on && !caster.is_terrain()),
-    );
-    gl.draw_arrays(glow::TRIANGLES, r.first, r.count);
+    runs: &'a [Run],
+    /// One per run (empty under [`Counter::Atomics`]).
+    queries: &'a [glow::Query],
 }
 
-/// Reads (and forgets) the results of `asked`, marking passing casters
-/// useful and handing each count to `count`; returns the samples counted.
+impl Draw<'_> {
+    /// Passes 1 and 2 of one tile and variant; per caster, the samples that
+    /// passed, checked against the samples drawn.
+    unsafe fn tile(
+        &self,
+        at: TileAt,
+        opaque_only: bool,
+        light: &LightPass,
+    ) -> Result<Vec<u64>, String> {
+        let counted = |r: &&Run| {
+            let c = &self.casters.casters[r.caster as usize];
+            !(opaque_only && c.alpha_tested) && !c.receiver_only
+        };
+        self.pass_one(opaque_only);
+        let counter = light.options.counter;
+        let n = self.casters.len();
+        let mut per_caster = match counter {
+            Counter::Atomics | Counter::Both => self.pass_two_atomics(counted, light.zeros, n),
+            Counter::Queries => self.pass_two_queries(counted, Flush::Around, n),
+            Counter::QueriesUnflushed => self.pass_two_queries(counted, Flush::Never, n),
+        };
+        if light.options.fault == Fault::ExtraSample {
+            if let Some(c) = per_caster.iter_mut().find(|c| **c > 0) {
+                *c += 1;
+            }
+        }
+        let name = match counter {
+            Counter::Atomics | Counter::Both => "atomic counters",
+            _ => "occlusion queries",
+        };
+        self.check_drawn(&per_caster, at, light, name)?;
+        if counter == Counter::Both {
+            self.clear(glow::COLOR_BUFFER_BIT);
+            let queried = self.pass_two_queries(counted, Flush::Around, n);
+            self.check_drawn(&queried, at, light, "occlusion queries")?;
+            if let Some(c) = (0..n).find(|&c| queried[c] != per_caster[c]) {
+                return Err(format!(
+                    "caster {c}: the occlusion query counted {} samples, the atomic counter {} \
+                     (light {}, {})",
+                    queried[c],
+                    per_caster[c],
+                    light.setup.index,
+                    describe_tile(at)
+                ));
+            }
+        }
+        Ok(per_caster)
+    }
+
+    unsafe fn clear(&self, bits: u32) {
+        let gl = self.gl;
+        gl.depth_mask(true);
+        gl.stencil_mask(0xff);
+        gl.color_mask(true, false, false, false);
+        gl.clear_depth_f64(1.0);
+        gl.clear_stencil(0);
+        gl.clear_color(0.0, 0.0, 0.0, 0.0);
+        gl.clear(bits);
+    }
+
+    /// Pass 1: casters write the nearest caster depth; every fragment counts
+    /// in the stencil; then receiver-only instances.
+    unsafe fn pass_one(&self, opaque_only: bool) {
+        let gl = self.gl;
+        self.clear(glow::DEPTH_BUFFER_BIT | glow::STENCIL_BUFFER_BIT | glow::COLOR_BUFFER_BIT);
+        gl.use_program(Some(self.programs.draw));
+        gl.color_mask(false, false, false, false);
+        gl.depth_func(glow::LESS);
+        gl.stencil_func(glow::ALWAYS, 0, 0xff);
+        gl.stencil_op(glow::KEEP, glow::INCR, glow::INCR);
+        let included =
+            |r: &&Run| !(opaque_only && self.casters.casters[r.caster as usize].alpha_tested);
+        let receiver = |r: &Run| self.casters.casters[r.caster as usize].receiver_only;
+        for r in self.runs.iter().filter(included).filter(|r| !receiver(r)) {
+            self.draw_run(self.programs.draw, r);
+        }
+        // Receiver-only instances are not drawn into the shadow map (SPEC
+        // §2): they write no depth, and count only where they are not in
+        // front of the nearest caster (SPEC §4), i.e. depth GEQUAL.
+        gl.depth_mask(false);
+        gl.depth_func(glow::GEQUAL);
+        gl.stencil_op(glow::KEEP, glow::KEEP, glow::INCR);
+        for r in self.runs.iter().filter(included).filter(|r| receiver(r)) {
+            self.draw_run(self.programs.draw, r);
+        }
+    }
+
+    /// The state of pass 2: LEQUAL against pass 1 where stencil > 1, no
+    /// writes but the additive colour.
+    unsafe fn pass_two_state(&self, program: glow::Program) {
+        let gl = self.gl;
+        gl.use_program(Some(program));
+        gl.depth_mask(false);
+        gl.stencil_mask(0);
+        gl.depth_func(glow::LEQUAL);
+        gl.stencil_func(glow::LESS, 1, 0xff);
+        gl.stencil_op(glow::KEEP, glow::KEEP, glow::KEEP);
+        gl.color_mask(true, false, false, false);
+        gl.enable(glow::BLEND);
+    }
+
+    unsafe fn pass_two_atomics(
+        &self,
+        counted: impl Fn(&&Run) -> bool,
+        zeros: &[u8],
+        n: usize,
+    ) -> Vec<u64> {
+        let gl = self.gl;
+        gl.buffer_sub_data_u8_slice(glow::SHADER_STORAGE_BUFFER, 0, zeros);
+        self.pass_two_state(self.programs.count);
+        let slot = gl.get_uniform_location(self.programs.count, "slot");
+        for r in self.runs.iter().filter(counted) {
+            gl.uniform_1_u32(slot.as_ref(), r.caster);
+            self.draw_run(self.programs.count, r);
+        }
+        gl.disable(glow::BLEND);
+        gl.memory_barrier(glow::BUFFER_UPDATE_BARRIER_BIT);
+        let mut raw = vec![0u8; n * 4];
+        gl.get_buffer_sub_data(glow::SHADER_STORAGE_BUFFER, 0, &mut raw);
+        raw.chunks_exact(4)
+            .map(|b| u64::from(u32::from_ne_bytes([b[0], b[1], b[2], b[3]])))
+            .collect()
+    }
+
+    unsafe fn pass_two_queries(
+        &self,
+        counted: impl Fn(&&Run) -> bool,
+        flush: Flush,
+        n: usize,
+    ) -> Vec<u64> {
+        let gl = self.gl;
+        self.pass_two_state(self.programs.draw);
+        let mut per_caster = vec![0u64; n];
+        let mut asked = Vec::new();
+        for (r, q) in self.runs.iter().zip(self.queries) {
+            if !counted(&r) {
+                continue;
+            }
+            // Begin and end each in an empty llvmpipe scene: they are
+            // binned into every bin, and a scene that fills up part-way
+            // miscounts (module notes).
+            if flush == Flush::Around {
+                gl.flush();
+            }
+            gl.begin_query(glow::SAMPLES_PASSED, *q);
+            self.draw_run(self.programs.draw, r);
+            if flush == Flush::Around {
+                gl.flush();
+            }
+            gl.end_query(glow::SAMPLES_PASSED);
+            asked.push((r.caster, *q));
+            if asked.len() >= QUERY_BATCH {
+                read_queries(gl, &mut asked, &mut per_caster);
+            }
+        }
+        read_queries(gl, &mut asked, &mut per_caster);
+        gl.disable(glow::BLEND);
+        per_caster
+    }
+
+    /// The per-tile self-check: the counts must add up to the samples pass
+    /// 2 drew into the colour buffer.
+    unsafe fn check_drawn(
+        &self,
+        per_caster: &[u64],
+        at: TileAt,
+        light: &LightPass,
+        counter: &str,
+    ) -> Result<(), String> {
+        let gl = self.gl;
+        let mut drawn = vec![0f32; at.w as usize * at.h as usize];
+        gl.read_pixels(
+            0,
+            0,
+            at.w as i32,
+            at.h as i32,
+            glow::RED,
+            glow::FLOAT,
+            glow::PixelPackData::Slice(Some(bytes_of_mut(&mut drawn))),
+        );
+        let samples: u64 = drawn.iter().map(|&n| n as u64).sum();
+        check_tile(per_caster, samples).map_err(|counted| {
+            format!(
+                "the OpenGL driver's {counter} counted {counted} samples where it drew {samples} \
+                 (light {} \"{}\", {}); its counts cannot be trusted (a driver bug: try another \
+                 driver, e.g. a GPU's or Mesa's llvmpipe with LIBGL_ALWAYS_SOFTWARE=1)",
+                light.setup.index,
+                light.config.lights[light.setup.index].name,
+                describe_tile(at)
+            )
+        })
+    }
+
+    unsafe fn draw_run(&self, program: glow::Program, r: &Run) {
+        let gl = self.gl;
+        let caster = &self.casters.casters[r.caster as usize];
+        if self.culling && !caster.double_sided {
+            gl.enable(glow::CULL_FACE);
+        } else {
+            gl.disable(glow::CULL_FACE);
+        }
+        let check = i32::from(self.ground_on && !caster.is_terrain());
+        gl.uniform_1_i32(
+            gl.get_uniform_location(program, "check_ground").as_ref(),
+            check,
+        );
+        gl.draw_arrays(glow::TRIANGLES, r.first, r.count);
+    }
+}
+
+/// Whether pass 2 under queries flushes before every begin and end.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Flush {
+    Around,
+    Never,
+}
+
+fn describe_tile(at: TileAt) -> String {
+    format!(
+        "face {}, tile of {}×{} at texel {}, {}",
+        at.face, at.w, at.h, at.x0, at.y0
+    )
+}
+
+/// The per-tile self-check: `Err(total counted)` when the per-caster
+/// counts do not add up to the samples drawn.
+fn check_tile(per_caster: &[u64], drawn: u64) -> Result<(), u64> {
+    let counted: u64 = per_caster.iter().sum();
+    if counted == drawn {
+        Ok(())
+    } else {
+        Err(counted)
+    }
+}
+
+/// Reads (and forgets) the results of `asked`, adding each to its caster.
 unsafe fn read_queries(
     gl: &glow::Context,
     asked: &mut Vec<(u32, glow::Query)>,
-    useful: &mut [bool],
-    mut count: impl FnMut(usize, u64),
-) -> u64 {
-    let mut total = 0;
+    per_caster: &mut [u64],
+) {
     for (caster, q) in asked.drain(..) {
-        let n = u64::from(gl.get_query_parameter_u32(q, glow::QUERY_RESULT));
-        if n > 0 {
-            useful[caster as usize] = true;
-        }
-        count(caster as usize, n);
-        total += n;
+        per_caster[caster as usize] += u64::from(gl.get_query_parameter_u32(q, glow::QUERY_RESULT));
     }
-    total
 }
-
 /// Puts the ground atlas into texture units 0–3 (heights, cell flags, block
 /// placement, block frame), relative to `reference`, and sets the
 /// shader's ground uniforms but the bias.
@@ -656,8 +1032,8 @@ unsafe fn upload_ground(
     gl: &glow::Context,
     atlas: &GroundAtlas,
     reference: DVec3,
+    programs: &Programs,
     textures: [glow::Texture; 4],
-    u: &dyn Fn(&str) -> Option<glow::UniformLocation>,
 ) {
     let heights: Vec<f32> = atlas
         .heights
@@ -744,15 +1120,18 @@ unsafe fn upload_ground(
         .iter()
         .enumerate()
     {
-        gl.uniform_1_i32(u(name).as_ref(), unit as i32);
+        programs.set(gl, name, |u| gl.uniform_1_i32(u, unit as i32));
     }
-    gl.uniform_2_f32(
-        u("grid_origin").as_ref(),
+    let origin = (
         (f64::from(atlas.grid_min.0) * atlas.chunk_size - reference.x) as f32,
         (f64::from(atlas.grid_min.1) * atlas.chunk_size - reference.z) as f32,
     );
-    gl.uniform_1_f32(u("chunk_size").as_ref(), atlas.chunk_size as f32);
-    gl.uniform_2_i32(u("grid_count").as_ref(), gw, gh);
+    programs.set(gl, "grid_origin", |u| {
+        gl.uniform_2_f32(u, origin.0, origin.1)
+    });
+    let chunk = atlas.chunk_size as f32;
+    programs.set(gl, "chunk_size", |u| gl.uniform_1_f32(u, chunk));
+    programs.set(gl, "grid_count", |u| gl.uniform_2_i32(u, gw, gh));
 }
 
 unsafe fn set_nearest(gl: &glow::Context) {
@@ -781,6 +1160,14 @@ fn bytes_of_mut(v: &mut [f32]) -> &mut [u8] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tile_check_fails_on_any_count_off_by_one() {
+        assert_eq!(check_tile(&[3, 0, 4], 7), Ok(()));
+        assert_eq!(check_tile(&[3, 1, 4], 7), Err(8));
+        assert_eq!(check_tile(&[3, 0, 3], 7), Err(6));
+        assert_eq!(check_tile(&[], 0), Ok(()));
+    }
 
     #[test]
     fn tile_matrix_maps_tile_edges_to_ndc_edges() {

@@ -43,6 +43,7 @@ pub struct Disagreement {
     pub index: Option<usize>,
     pub group: Option<usize>,
     pub light: usize,
+    pub light_name: String,
     pub ray_cast: bool,
     pub raster: bool,
     /// Texel centres where the ray cast finds it useful (any pass).
@@ -56,6 +57,7 @@ pub struct Disagreement {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct LightTexels {
     pub light: usize,
+    pub name: String,
     /// Σ over casters of texels where the caster is useful (All pass).
     pub ray_cast: u64,
     /// Of `ray_cast`, the useful casters beyond the first at texels whose
@@ -77,6 +79,8 @@ pub struct XcheckReport {
     pub disagreements: Vec<Disagreement>,
     pub lights: Vec<LightTexels>,
     pub renderer: String,
+    /// How the raster counted its samples (`Atomics`, `Queries`, …).
+    pub counter: String,
     pub notes: Vec<String>,
 }
 
@@ -234,21 +238,11 @@ enum TexelCause {
 
 fn texel_cause(rays: &LightRays, hits: &mut Vec<RayHit>, caster: u32, texel: Texel) -> TexelCause {
     let (face, x, y) = texel;
-    let epsilon = rays.rules.tie_epsilon;
-    rays.trace(&rays.grid.ray(face, x, y), hits, |_| {});
-    if let Some(own) = hits.iter().find(|h| h.caster == caster) {
-        // f32 depth of equal surfaces may round either way: a hit level
-        // with this one to a few ulps counts as in front.
-        let level = own.t.abs() * 4.0 * f32::EPSILON;
-        let rival = hits.iter().find(|h| {
-            h.caster != caster && !h.receiver_only && h.t >= own.t - epsilon && h.t <= own.t + level
-        });
-        if let Some(h) = rival {
-            return TexelCause::Tie {
-                other: h.caster,
-                dt: own.t - h.t,
-            };
-        }
+    let ray = rays.grid.ray(face, x, y);
+    let passes = passes_useful(rays, hits, &ray, caster);
+    // `hits` now holds the ray's hits under the light's own passes.
+    if let Some((other, dt)) = tie_rival(hits, caster, rays.rules.tie_epsilon, passes) {
+        return TexelCause::Tie { other, dt };
     }
     let moved = jittered(x, y)
         .iter()
@@ -258,6 +252,71 @@ fn texel_cause(rays: &LightRays, hits: &mut Vec<RayHit>, caster: u32, texel: Tex
     } else {
         TexelCause::Unexplained
     }
+}
+
+/// The passes in which a caster is useful on one ray.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct UsefulIn {
+    all: bool,
+    opaque: bool,
+}
+
+/// In which passes `caster` is useful on `ray`; leaves the ray's hits under
+/// the light's own passes in `hits`.
+fn passes_useful(
+    rays: &LightRays,
+    hits: &mut Vec<RayHit>,
+    ray: &crate::light::TexelRay,
+    caster: u32,
+) -> UsefulIn {
+    let all_only = LightRays {
+        rules: RayRules {
+            passes: Passes::AllOnly,
+            ..rays.rules
+        },
+        ..*rays
+    };
+    let mut all = false;
+    all_only.trace(ray, hits, |c| all |= c == caster);
+    // A caster useful in both passes is reported twice.
+    let mut reports = 0u32;
+    rays.trace(ray, hits, |c| reports += u32::from(c == caster));
+    UsefulIn {
+        all,
+        opaque: rays.rules.passes == Passes::AllAndOpaque && reports > u32::from(all),
+    }
+}
+
+/// A hit of another caster within ε in front of `caster`'s (or level with
+/// it to f32 precision) in *every* pass where `caster` is useful: the
+/// Opaque pass (and the raster's Opaque variant) has no alpha-tested
+/// groups, so an alpha-tested rival cannot explain a miss there. Returns
+/// the rival and how far in front it is.
+fn tie_rival(hits: &[RayHit], caster: u32, epsilon: f32, passes: UsefulIn) -> Option<(u32, f32)> {
+    let own = hits.iter().find(|h| h.caster == caster)?;
+    // f32 depth of equal surfaces may round either way: a hit level with
+    // this one to a few ulps counts as in front.
+    let level = own.t.abs() * 4.0 * f32::EPSILON;
+    let rival = |opaque_pass: bool| {
+        hits.iter().find(|h| {
+            h.caster != caster
+                && !h.receiver_only
+                && !(opaque_pass && h.alpha_tested)
+                && h.t >= own.t - epsilon
+                && h.t <= own.t + level
+        })
+    };
+    if !passes.all && !passes.opaque {
+        return None;
+    }
+    let mut found = None;
+    if passes.opaque {
+        found = Some(rival(true)?);
+    }
+    if passes.all {
+        found = Some(rival(false)?);
+    }
+    found.map(|h| (h.caster, own.t - h.t))
 }
 
 /// Texels where `candidates` are useful on some ray moved [`EDGE_JITTER`]
@@ -304,8 +363,8 @@ fn jitter_pass(rays: &LightRays, candidates: &[bool]) -> Vec<u64> {
 
 /// Traces every texel centre of every light like the bake does, counting
 /// per caster the texels where it is useful.
-pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> RayCounts {
-    let world = BakeWorld::new(scene);
+pub fn ray_counts(world: &BakeWorld, config: &BakeConfig) -> RayCounts {
+    let casters = &world.casters;
     let mut out = RayCounts {
         all: Vec::new(),
         any: Vec::new(),
@@ -315,14 +374,14 @@ pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> 
     let nobody = vec![false; casters.len()];
     for light in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let Ok(setup) = LightSetup::new(&world, config, light) else {
+        let Ok(setup) = LightSetup::new(world, config, light) else {
             out.all.push(vec![0; casters.len()]);
             out.any.push(vec![0; casters.len()]);
             out.tied.push(0);
             out.seconds.push(0.0);
             continue;
         };
-        let rays = setup.rays(&world, config);
+        let rays = setup.rays(world, config);
         let centre = centre_pass(&rays, &nobody);
         out.all.push(centre.all);
         out.any.push(centre.any);
@@ -334,9 +393,9 @@ pub fn ray_counts(scene: &Scene, config: &BakeConfig, casters: &CasterTable) -> 
 
 /// Compares the two methods; `raster` must come from the same scene and
 /// config.
-pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> XcheckReport {
+pub fn compare(world: &BakeWorld, config: &BakeConfig, raster: &RasterResult) -> XcheckReport {
     let casters = &raster.casters;
-    let world = BakeWorld::new(scene);
+    let scene = world.scene;
     let mut report = XcheckReport {
         pairs: 0,
         agreeing: 0,
@@ -344,14 +403,16 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
         disagreements: Vec::new(),
         lights: Vec::new(),
         renderer: raster.renderer.clone(),
+        counter: format!("{:?}", raster.counter),
         notes: raster.ground_note.iter().cloned().collect(),
     };
     for light in 0..config.lights.len() {
         let started = std::time::Instant::now();
-        let setup = LightSetup::new(&world, config, light).ok();
+        let setup = LightSetup::new(world, config, light).ok();
+        let light_name = config.lights[light].name.clone();
         let raster_useful: Vec<bool> = raster.masks.iter().map(|m| m & (1 << light) != 0).collect();
         let not_in_raster: Vec<bool> = raster_useful.iter().map(|u| !u).collect();
-        let rays = setup.as_ref().map(|s| s.rays(&world, config));
+        let rays = setup.as_ref().map(|s| s.rays(world, config));
         let centre = match &rays {
             Some(rays) => centre_pass(rays, &not_in_raster),
             None => CentrePass {
@@ -364,6 +425,7 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
         let ray_seconds = started.elapsed().as_secs_f64();
         report.lights.push(LightTexels {
             light,
+            name: light_name.clone(),
             ray_cast: centre.all.iter().sum(),
             ray_cast_tied: centre.tied,
             raster: raster.texels.get(light).map_or(0, |t| t.iter().sum()),
@@ -427,6 +489,7 @@ pub fn compare(scene: &Scene, config: &BakeConfig, raster: &RasterResult) -> Xch
                 index,
                 group,
                 light,
+                light_name: light_name.clone(),
                 ray_cast: ray,
                 raster: ras,
                 ray_texels: ray_n,
@@ -498,5 +561,52 @@ fn describe(
                 .map_or_else(|| format!("terrain block {block}"), |c| c.name.clone());
             (chunk, "terrain", None, None)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hit(t: f32, caster: u32, alpha_tested: bool) -> RayHit {
+        RayHit {
+            t,
+            caster,
+            receiver_only: false,
+            alpha_tested,
+        }
+    }
+
+    const ALL: UsefulIn = UsefulIn {
+        all: true,
+        opaque: false,
+    };
+    const BOTH: UsefulIn = UsefulIn {
+        all: true,
+        opaque: true,
+    };
+    const OPAQUE: UsefulIn = UsefulIn {
+        all: false,
+        opaque: true,
+    };
+
+    #[test]
+    fn an_alpha_tested_rival_ties_only_in_the_all_pass() {
+        // Caster 2 at 10 m, alpha-tested caster 1 5e-5 m in front.
+        let hits = [hit(10.0 - 5e-5, 1, true), hit(10.0, 2, false)];
+        assert_eq!(tie_rival(&hits, 2, 1e-4, ALL).map(|r| r.0), Some(1));
+        assert_eq!(tie_rival(&hits, 2, 1e-4, OPAQUE), None);
+        assert_eq!(tie_rival(&hits, 2, 1e-4, BOTH), None);
+        // An opaque rival explains both passes.
+        let hits = [hit(10.0 - 5e-5, 3, false), hit(10.0, 2, false)];
+        assert_eq!(tie_rival(&hits, 2, 1e-4, BOTH).map(|r| r.0), Some(3));
+        // Beyond ε, or useful in no pass: no tie.
+        let hits = [hit(10.0 - 2e-4, 3, false), hit(10.0, 2, false)];
+        assert_eq!(tie_rival(&hits, 2, 1e-4, BOTH), None);
+        let none = UsefulIn {
+            all: false,
+            opaque: false,
+        };
+        assert_eq!(tie_rival(&hits, 2, 1.0, none), None);
     }
 }
