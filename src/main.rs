@@ -5,6 +5,9 @@ mod cli;
 
 use std::process::ExitCode;
 
+#[global_allocator]
+static ALLOCATOR: cli::memory::PhaseNamingAllocator = cli::memory::PhaseNamingAllocator;
+
 fn main() -> ExitCode {
     cli::main()
 }

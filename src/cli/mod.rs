@@ -2,6 +2,7 @@
 //! messages here; nothing below this module prints.
 
 mod bake;
+pub mod memory;
 mod pipeline;
 mod plan;
 mod progress;

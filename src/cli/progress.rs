@@ -193,6 +193,7 @@ fn eta_seconds(open: &Open, done: u64) -> Option<f64> {
 
 impl Progress for Reporter {
     fn begin(&self, phase: Phase, light: Option<&str>, total: u64) {
+        super::memory::entering(phase);
         if matches!(self.shared.style, Style::Silent) {
             return;
         }

@@ -86,3 +86,64 @@ fn peak_memory_follows_the_memory_model_not_placed_triangles() {
         "{placed_triangles}"
     );
 }
+
+#[cfg(target_os = "linux")]
+#[test]
+fn running_out_of_memory_names_the_phase_and_exits_1() {
+    // A world that needs far more than the address space it is given: the
+    // allocation fails in some phase of loading or building, and the bake
+    // must say which and exit 1, not abort (134) with Rust's bare
+    // "memory allocation of N bytes failed".
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    generate_each(GenSize::BenchChunks(4), 1, |path, bytes| {
+        write_tree(dir.path(), &[(path.to_string(), bytes)])
+    })
+    .unwrap();
+    let settings = dir.path().join(SETTINGS_FILE);
+    let mut command = Command::new(env!("CARGO_BIN_EXE_shadowcull"));
+    command.args(["bake", settings.to_str().unwrap(), "--threads", "1"]);
+    // SAFETY: setrlimit is async-signal-safe; it only limits the child.
+    unsafe {
+        command.pre_exec(|| {
+            let limit = libc::rlimit {
+                rlim_cur: 48 << 20,
+                rlim_max: 48 << 20,
+            };
+            if libc::setrlimit(libc::RLIMIT_AS, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let out = command.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let phases = [
+        "starting",
+        "chunks",
+        "models",
+        "terrain",
+        "bottom-levels",
+        "top-level",
+        "calibrating",
+        "tracing",
+        "refining",
+        "writing",
+    ];
+    assert!(
+        phases.iter().any(|p| stderr.contains(&format!(
+            "error: out of memory in phase `{p}`: could not allocate"
+        ))),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    // Nothing was written in place.
+    let changed = std::fs::read_dir(dir.path().join("spaces"))
+        .unwrap()
+        .flatten()
+        .flat_map(|space| std::fs::read_dir(space.path()).unwrap().flatten())
+        .filter(|f| f.file_name().to_string_lossy().contains("shadowcull"))
+        .count();
+    assert_eq!(changed, 0, "temporary files left behind");
+}

@@ -1,0 +1,142 @@
+//! The binary's allocator: the system's, with a clear last word when memory
+//! runs out. Rust's default answer to a failed allocation is "memory
+//! allocation of N bytes failed" and an abort (exit 134, a core dump, no
+//! file or phase named), which a build pipeline cannot tell from a crash.
+//! Here the failure names the phase the bake was in (set by the progress
+//! reporter as phases begin) and exits with status 1 like any other failed
+//! bake. Outputs are never half-written: chunk files are replaced by
+//! rename, and a later run removes the temporary files a stop leaves.
+
+use shadowcull::progress::Phase;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU8, Ordering};
+
+pub struct PhaseNamingAllocator;
+
+/// The phase in progress, as an index into [`PHASES`] (0: none yet).
+static CURRENT: AtomicU8 = AtomicU8::new(0);
+
+const PHASES: [Option<Phase>; 10] = [
+    None,
+    Some(Phase::Chunks),
+    Some(Phase::Models),
+    Some(Phase::Terrain),
+    Some(Phase::BottomLevels),
+    Some(Phase::TopLevel),
+    Some(Phase::Calibrating),
+    Some(Phase::Tracing),
+    Some(Phase::Refining),
+    Some(Phase::Writing),
+];
+
+/// Records the phase that has begun, for the out-of-memory message.
+pub fn entering(phase: Phase) {
+    if let Some(i) = PHASES.iter().position(|p| *p == Some(phase)) {
+        CURRENT.store(i as u8, Ordering::Relaxed);
+    }
+}
+
+/// Writes the message and exits without allocating (the heap is what
+/// failed) and without unwinding.
+fn out_of_memory(bytes: usize) -> ! {
+    let phase = PHASES[CURRENT.load(Ordering::Relaxed) as usize % PHASES.len()]
+        .map_or("starting", Phase::name);
+    let mut buffer = [0u8; 320];
+    let mut len = 0;
+    for part in [
+        "error: out of memory in phase `",
+        phase,
+        "`: could not allocate ",
+    ] {
+        len += copy(&mut buffer[len..], part.as_bytes());
+    }
+    len += copy(&mut buffer[len..], decimal(bytes, &mut [0u8; 20]));
+    len += copy(
+        &mut buffer[len..],
+        b" bytes (chunk files are replaced whole or not at all). Run `shadowcull plan` for the \
+estimate, then free memory, bake fewer lights at once (--light) or raise <texelSize>.\n",
+    );
+    // SAFETY: writing a byte buffer we own to stderr, then ending the
+    // process without running anything that could allocate.
+    unsafe {
+        libc::write(2, buffer.as_ptr().cast(), len);
+        libc::_exit(1)
+    }
+}
+
+fn copy(to: &mut [u8], from: &[u8]) -> usize {
+    let n = from.len().min(to.len());
+    to[..n].copy_from_slice(&from[..n]);
+    n
+}
+
+fn decimal(mut n: usize, digits: &mut [u8; 20]) -> &[u8] {
+    let mut start = digits.len();
+    loop {
+        start -= 1;
+        digits[start] = b'0' + (n % 10) as u8;
+        n /= 10;
+        if n == 0 {
+            return &digits[start..];
+        }
+    }
+}
+
+// SAFETY: every call goes to the system allocator with the caller's
+// arguments; only a null answer is turned into an exit.
+unsafe impl GlobalAlloc for PhaseNamingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if p.is_null() {
+            out_of_memory(layout.size());
+        }
+        p
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if p.is_null() {
+            out_of_memory(layout.size());
+        }
+        p
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if p.is_null() {
+            out_of_memory(new_size);
+        }
+        p
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn decimals_print_without_allocating() {
+        let mut digits = [0u8; 20];
+        assert_eq!(decimal(0, &mut digits), b"0");
+        assert_eq!(decimal(4_317_058_280, &mut digits), b"4317058280");
+        assert_eq!(
+            decimal(usize::MAX, &mut digits),
+            usize::MAX.to_string().as_bytes()
+        );
+    }
+
+    #[test]
+    fn every_phase_has_a_slot() {
+        for phase in PHASES.iter().flatten() {
+            entering(*phase);
+            assert_eq!(
+                PHASES[CURRENT.load(Ordering::Relaxed) as usize],
+                Some(*phase)
+            );
+        }
+    }
+}
