@@ -791,7 +791,7 @@ impl Draw<'_> {
     ) -> Result<Vec<u64>, String> {
         let counted = |r: &&Run| {
             let c = &self.casters.casters[r.caster as usize];
-            !(opaque_only && c.alpha_tested) && !c.receiver_only
+            !(c.receiver_only || opaque_only && c.alpha_tested)
         };
         self.pass_one(opaque_only);
         let counter = light.options.counter;
