@@ -9,6 +9,7 @@ pub mod ground;
 pub mod output;
 pub mod refine;
 pub mod setup;
+pub mod shard;
 pub mod trace_light;
 
 use crate::classify::Passes;
@@ -18,7 +19,7 @@ use casters::CasterTable;
 use setup::{BakeWorld, LightSetup, NoSetup};
 use std::sync::atomic::AtomicU64;
 use std::time::Instant;
-use trace_light::CasterSet;
+use trace_light::{CasterSet, LightRays, RayCounter};
 
 /// What to bake (the settings file's values after command-line overrides).
 #[derive(Debug, Clone)]
@@ -87,7 +88,7 @@ pub trait Progress: Sync {
 pub struct Silent;
 impl Progress for Silent {}
 
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct LightReport {
     pub index: usize,
     pub name: String,
@@ -146,18 +147,65 @@ pub enum BakeError {
     Grid(#[from] crate::light::GridError),
 }
 
+/// Where a light's grid answer comes from: traced here ([`TraceGrid`]), or
+/// the OR of a distributed bake's partial results (`shard::Merged`).
+/// Everything else about a light (its notes, refinement, its report) is
+/// the same either way, so a merge writes what one bake writes.
+pub trait GridSource: Sync {
+    /// The casters the grid's rays prove useful for the light of `setup`
+    /// (receiver-only ones included; the caller drops them).
+    fn grid(
+        &self,
+        setup: &LightSetup,
+        rays_of_light: &LightRays<'_>,
+        supersample: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet;
+}
+
+/// Traces every texel of the grid.
+pub struct TraceGrid;
+
+impl GridSource for TraceGrid {
+    fn grid(
+        &self,
+        _setup: &LightSetup,
+        rays_of_light: &LightRays<'_>,
+        supersample: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        rays_of_light.trace_grid(supersample, rays_done)
+    }
+}
+
 pub fn bake(
     scene: &Scene,
     config: &BakeConfig,
     progress: &dyn Progress,
 ) -> Result<BakeResult, BakeError> {
+    check_light_count(config)?;
+    progress.bottom_levels_building(scene.models.len(), scene.terrain.len());
+    bake_from(BakeWorld::new(scene), config, progress, &TraceGrid)
+}
+
+/// At most 32 lights fit the mask.
+pub fn check_light_count(config: &BakeConfig) -> Result<(), BakeError> {
     if config.lights.len() > 32 {
         return Err(BakeError::TooManyLights {
             count: config.lights.len(),
         });
     }
-    progress.bottom_levels_building(scene.models.len(), scene.terrain.len());
-    let world = BakeWorld::new(scene);
+    Ok(())
+}
+
+/// [`bake`] over a built `world`, with the grid answers from `source`.
+pub fn bake_from(
+    world: BakeWorld,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    source: &dyn GridSource,
+) -> Result<BakeResult, BakeError> {
+    check_light_count(config)?;
     let mut masks = vec![0u32; world.casters.len()];
     let mut skipped = world_skipped(&world);
     let mut lights = Vec::new();
@@ -174,7 +222,8 @@ pub fn bake(
             Err(NoSetup::Grid(err)) => return Err(err.into()),
             Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
         };
-        let (useful, report) = bake_light(&world, &setup, config, progress, &mut skipped);
+        let (useful, report) =
+            bake_light_from(&world, &setup, config, progress, &mut skipped, source);
         for (id, mask) in masks.iter_mut().enumerate() {
             if useful.contains(id as u32) {
                 *mask |= 1 << index;
@@ -237,6 +286,18 @@ pub fn bake_light(
     progress: &dyn Progress,
     skipped: &mut Vec<Skipped>,
 ) -> (CasterSet, LightReport) {
+    bake_light_from(world, setup, config, progress, skipped, &TraceGrid)
+}
+
+/// [`bake_light`] with the grid answer from `source`.
+fn bake_light_from(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    skipped: &mut Vec<Skipped>,
+    source: &dyn GridSource,
+) -> (CasterSet, LightReport) {
     let started = Instant::now();
     let index = setup.index;
     let light = &config.lights[index];
@@ -287,7 +348,7 @@ pub fn bake_light(
             index,
             done: &done,
         };
-        let mut useful = rays_of_light.trace_grid(supersample, &reporter);
+        let mut useful = source.grid(setup, &rays_of_light, supersample, &reporter);
         if config.refine_samples > 0 {
             let (refined, traced) =
                 refine::refine(world, setup, &rays_of_light, &useful, config.refine_samples);
@@ -329,10 +390,10 @@ pub fn bake_light(
 }
 
 /// Passes ray counts from the tracing threads to the caller's progress.
-struct ProgressRelay<'a> {
-    progress: &'a dyn Progress,
-    index: usize,
-    done: &'a AtomicU64,
+pub(crate) struct ProgressRelay<'a> {
+    pub progress: &'a dyn Progress,
+    pub index: usize,
+    pub done: &'a AtomicU64,
 }
 
 impl trace_light::RayCounter for ProgressRelay<'_> {

@@ -2,8 +2,10 @@
 //! messages here; nothing below this module prints.
 
 mod bake;
+mod merge;
 mod progress;
 mod render;
+mod shard;
 mod sweep;
 mod xcheck;
 
@@ -40,8 +42,12 @@ pub(crate) struct SettingsArgs {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Bake every light and write the masks into the chunk files.
+    /// Bake every light and write the masks into the chunk files (or one
+    /// shard of a distributed bake: --shard).
     Bake(bake::BakeArgs),
+    /// OR the partial results of a distributed bake's shards and write the
+    /// chunks as `bake` does.
+    Merge(merge::MergeArgs),
     /// Classification error against run time over a ladder of settings.
     Sweep(sweep::SweepArgs),
     /// Print what the world holds, without baking.
@@ -96,6 +102,7 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
+        Command::Merge(args) => merge::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),

@@ -4,7 +4,8 @@
 //! missing resource, not just the first); only a world that cannot be read
 //! at all (no settings, no chunks) is an error.
 
-use super::{Chunk, Group, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
+use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
+use crate::digest::Digest;
 use crate::error::{Error, Result};
 use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
@@ -14,6 +15,7 @@ use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 /// Where the world is.
 #[derive(Debug, Clone)]
@@ -27,7 +29,31 @@ pub struct LoadConfig {
 /// point: it casts nothing and its inverse does not exist.
 const SINGULAR_DETERMINANT: f64 = 1e-12;
 
+/// Every file the load read, with its content hash, so a distributed bake
+/// can prove its shards saw the same inputs (`bake::shard`). Filled from
+/// the loading threads; sorted when the scene is made.
+#[derive(Default)]
+struct ReadLog(Mutex<Vec<InputFile>>);
+
+impl ReadLog {
+    fn record(&self, path: &Path, bytes: &[u8]) {
+        let file = InputFile {
+            path: path.to_path_buf(),
+            digest: Digest::of(bytes),
+        };
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).push(file);
+    }
+
+    fn into_sorted(self) -> Vec<InputFile> {
+        let mut files = self.0.into_inner().unwrap_or_else(|e| e.into_inner());
+        files.sort();
+        files.dedup();
+        files
+    }
+}
+
 pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
+    let log = ReadLog::default();
     let space = resources::normalise(&config.space);
     let settings_name = format!("{space}/space.settings");
     let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
@@ -49,7 +75,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_default();
-    let settings = read_section(&settings_path)
+    let settings = read_logged(&settings_path, &log)
         .and_then(|root| space_settings::parse(&root).map_err(|e| e.in_file(&settings_path)))?;
 
     // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
@@ -78,7 +104,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
     let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
         .par_iter()
         .map(|path| {
-            let chunk = read_section(path)
+            let chunk = read_logged(path, &log)
                 .and_then(|root| chunk::parse(&root).map_err(|e| e.in_file(path)));
             (path.clone(), chunk)
         })
@@ -147,7 +173,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .collect::<Vec<_>>()
         .into_par_iter()
         .map(|(name, referenced_by)| {
-            let model = load_model(&config.res_paths, &name, &referenced_by);
+            let model = load_model(&config.res_paths, &name, &referenced_by, &log);
             (name, model)
         })
         .collect();
@@ -288,6 +314,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         .map(|(chunk, chunk_path, resource, transform)| {
             let block = load_terrain(
                 &config.res_paths,
+                &log,
                 &chunk_path,
                 &resource,
                 transform.w_axis.truncate(),
@@ -324,6 +351,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
         instances,
         terrain,
         problems,
+        inputs: log.into_sorted(),
     })
 }
 
@@ -335,9 +363,23 @@ fn chunk_name(path: &Path) -> String {
         .to_string()
 }
 
-pub(crate) fn read_section(path: &Path) -> Result<formats::Section> {
+/// Reads and parses a data section, noting the file in `log`.
+fn read_logged(path: &Path, log: &ReadLog) -> Result<formats::Section> {
     let bytes = resources::read_file(path)?;
+    log.record(path, &bytes);
     formats::parse_data_section(&bytes).map_err(|e| e.in_file(path))
+}
+
+/// [`ResPaths::read`], noting the file in `log`.
+fn read_resource(
+    res_paths: &ResPaths,
+    name: &str,
+    referenced_by: &Path,
+    log: &ReadLog,
+) -> Result<(PathBuf, Vec<u8>)> {
+    let (path, bytes) = res_paths.read(name, referenced_by)?;
+    log.record(&path, &bytes);
+    Ok((path, bytes))
 }
 
 /// The box around a model-space box placed by `m`.
@@ -360,6 +402,7 @@ fn world_box(m: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
 /// chunk's folder; like every resource it must stay inside the res paths.
 fn load_terrain(
     res_paths: &ResPaths,
+    log: &ReadLog,
     chunk_path: &Path,
     resource: &str,
     origin: DVec3,
@@ -392,6 +435,7 @@ fn load_terrain(
     }
     res_paths.check_inside(&cdata_path)?;
     let bytes = resources::read_file(&cdata_path)?;
+    log.record(&cdata_path, &bytes);
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
     TerrainBlock::new(&data, origin, chunk_size)
         .map_err(|message| Error::invalid(&cdata_path, message))
@@ -400,8 +444,13 @@ fn load_terrain(
 /// Loads one model resource's LOD 0 geometry: `.model` → its own visual
 /// (not the `<parent>` LODs) → `.primitives`. `referenced_by` is a chunk that
 /// places it, for the error when the model itself is missing.
-fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<Model> {
-    let (model_path, bytes) = res_paths.read(name, referenced_by)?;
+fn load_model(
+    res_paths: &ResPaths,
+    name: &str,
+    referenced_by: &Path,
+    log: &ReadLog,
+) -> Result<Model> {
+    let (model_path, bytes) = read_resource(res_paths, name, referenced_by, log)?;
     let model_root = formats::parse_data_section(&bytes).map_err(|e| e.in_file(&model_path))?;
     let model_file = model::parse_model(&model_root).map_err(|e| e.in_file(&model_path))?;
     let candidates = model::visual_candidates(&model_file);
@@ -415,12 +464,12 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
             searched: res_paths.roots.clone(),
         });
     };
-    let mut visual = read_section(&visual_path)
+    let mut visual = read_logged(&visual_path, log)
         .and_then(|root| visual::parse_visual(&root).map_err(|e| e.in_file(&visual_path)))?;
     visual
         .resolve_materials(&mut |mfm| {
             let path = res_paths.resolve(mfm)?;
-            read_section(&path).ok()
+            read_logged(&path, log).ok()
         })
         .map_err(|e| e.in_file(&visual_path))?;
 
@@ -429,7 +478,7 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
     let mut containers: BTreeMap<String, (PathBuf, Vec<u8>)> = BTreeMap::new();
     let mut section = |file: &str, section: &str| -> Result<(PathBuf, Vec<u8>, usize)> {
         if !containers.contains_key(file) {
-            let (path, bytes) = res_paths.read(file, &visual_path)?;
+            let (path, bytes) = read_resource(res_paths, file, &visual_path, log)?;
             containers.insert(file.to_string(), (path, bytes));
         }
         let (path, bytes) = &containers[file];

@@ -1,0 +1,68 @@
+//! `shadowcull merge SETTINGS PARTIAL...`: checks the partial results of a
+//! distributed bake against this machine's inputs, ORs them, refines if
+//! asked, and writes the chunks and report exactly as `bake` does.
+
+use super::bake::{load_scene_told, write_results, BakeOptions, OutputArgs};
+use super::progress::Reporter;
+use super::{load_settings, SettingsArgs};
+use anyhow::Result;
+use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::{self, shard, Progress};
+use shadowcull::formats::partial;
+use shadowcull::formats::resources::ResPaths;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Debug, clap::Args)]
+pub struct MergeArgs {
+    #[command(flatten)]
+    settings: SettingsArgs,
+    /// The partial results of every shard (`bake --shard I/N --partial
+    /// FILE`); a shard given twice must agree with itself.
+    #[arg(required = true, value_name = "PARTIAL")]
+    partials: Vec<PathBuf>,
+    #[command(flatten)]
+    output: OutputArgs,
+    #[command(flatten)]
+    options: BakeOptions,
+}
+
+pub fn run(args: MergeArgs) -> Result<()> {
+    let settings = load_settings(&args.settings)?;
+    let config = args.options.config(&settings, &args.settings.settings)?;
+    args.options.in_pool(|| {
+        let started = Instant::now();
+        let mut partials = Vec::new();
+        let mut damaged = Vec::new();
+        for path in &args.partials {
+            match partial::read(path) {
+                Ok(p) => partials.push((path.clone(), p)),
+                Err(err) => damaged.push(err.to_string()),
+            }
+        }
+        if !damaged.is_empty() {
+            return Err(shard::ShardError::Refused(damaged).into());
+        }
+        let scene = load_scene_told(&settings)?;
+        let reporter = Reporter::new();
+        reporter.bottom_levels_building(scene.models.len(), scene.terrain.len());
+        let world = BakeWorld::new(&scene);
+        let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));
+        let command = format!("shadowcull bake {}", args.settings.settings.display());
+        let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command)?;
+        eprintln!(
+            "merging {} partial(s) of {} shards",
+            partials.len(),
+            plan.shards
+        );
+        let result = bake::bake_from(world, &config, &reporter, &merged)?;
+        write_results(
+            &args.output,
+            &scene,
+            &result,
+            &settings.res_paths,
+            &config,
+            started,
+        )
+    })
+}

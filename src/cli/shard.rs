@@ -1,0 +1,104 @@
+//! `shadowcull bake --shard I/N --partial FILE` (or `--shard auto` inside
+//! a Slurm, Kubernetes or AWS Batch array job): one shard of a distributed
+//! bake, written as a partial result for `merge`.
+
+use super::bake::load_scene_told;
+use super::progress::Reporter;
+use anyhow::{Context, Result};
+use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::shard::{self, Plan, ShardIndex};
+use shadowcull::bake::{BakeConfig, Progress};
+use shadowcull::formats::bake_settings::BakeSettings;
+use shadowcull::formats::partial::{self, Partial};
+use shadowcull::formats::resources::ResPaths;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Debug, clap::Args)]
+pub struct ShardArgs {
+    /// Bake only shard I of N (I from 0) and write a partial result for
+    /// `merge`; `auto`: the index and count from the array job's variables
+    /// (Slurm, Kubernetes Indexed Job with --shards, AWS Batch).
+    #[arg(long, value_name = "I/N|auto", requires = "partial",
+          conflicts_with_all = ["out", "dry_run", "report", "refine"])]
+    shard: Option<String>,
+    /// The number of shards when the scheduler does not say it
+    /// (Kubernetes: the Job's completions).
+    #[arg(long, value_name = "N", requires = "shard",
+          value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    shards: Option<u32>,
+    /// Where --shard writes its partial result; `{index}` and `{count}` in
+    /// the name become the shard's index and the shard count.
+    #[arg(long, value_name = "FILE", requires = "shard")]
+    partial: Option<PathBuf>,
+}
+
+impl ShardArgs {
+    pub fn is_set(&self) -> bool {
+        self.shard.is_some()
+    }
+
+    /// The shard to bake, and where the index came from.
+    fn shard(&self) -> Result<(ShardIndex, String)> {
+        let spec = self.shard.as_deref().unwrap_or_default();
+        if spec == "auto" {
+            return Ok(shard::shard_from_env(
+                &|name| std::env::var(name).ok(),
+                self.shards,
+            )?);
+        }
+        let shard = ShardIndex::parse(spec)?;
+        if let Some(n) = self.shards.filter(|&n| n != shard.count) {
+            anyhow::bail!("--shard {spec} but --shards {n}: drop --shards or make them agree");
+        }
+        Ok((shard, format!("shard {shard} from --shard")))
+    }
+}
+
+/// `FILE` with `{index}` and `{count}` replaced.
+fn partial_path(template: &Path, shard: ShardIndex) -> PathBuf {
+    PathBuf::from(
+        template
+            .to_string_lossy()
+            .replace("{index}", &shard.index.to_string())
+            .replace("{count}", &shard.count.to_string()),
+    )
+}
+
+pub fn run(args: &ShardArgs, settings: &BakeSettings, config: &BakeConfig) -> Result<()> {
+    let (shard, said) = args.shard()?;
+    eprintln!("{said}");
+    let path = partial_path(args.partial.as_deref().unwrap_or(Path::new("")), shard);
+    let started = Instant::now();
+    let scene = load_scene_told(settings)?;
+    let reporter = Reporter::new();
+    reporter.bottom_levels_building(scene.models.len(), scene.terrain.len());
+    let world = BakeWorld::new(&scene);
+    let plan = Plan::new(&world, config, shard.count)?;
+    let mean = plan.costs.iter().sum::<u64>() as f64 / shard.count as f64;
+    let own = plan.units[shard.index as usize].len();
+    eprintln!(
+        "plan of {} shards: this one bakes {own} unit(s), estimated cost {:.2}× the mean (max {:.2}×)",
+        shard.count,
+        plan.costs[shard.index as usize] as f64 / mean.max(1.0),
+        plan.costs.iter().copied().max().unwrap_or(0) as f64 / mean.max(1.0),
+    );
+    let units = shard::bake_shard(&world, config, &plan, shard.index, &reporter)?;
+    let rays: u64 = units.iter().map(|u| u.rays).sum();
+    let trace: f64 = units.iter().map(|u| u.seconds).sum();
+    let partial = Partial {
+        fingerprint: shard::fingerprint(&scene, config, &ResPaths::new(settings.res_paths.clone())),
+        shard: shard.index,
+        shards: shard.count,
+        plan: plan.digest,
+        casters: world.casters.len() as u64,
+        units,
+    };
+    partial::write(&path, &partial).with_context(|| format!("shard {shard}"))?;
+    println!(
+        "shard {shard}: {own} unit(s), {rays} rays traced in {trace:.2} s; wrote {}; {:.2} s in all",
+        path.display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
