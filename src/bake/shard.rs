@@ -609,3 +609,131 @@ fn fingerprint_difference(own: &Fingerprint, theirs: &Fingerprint) -> Option<Str
         if count > 5 { ", …" } else { "" }
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env<'a>(vars: &'a [(&'a str, &'a str)]) -> impl Fn(&str) -> Option<String> + 'a {
+        move |name| {
+            vars.iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, v)| v.to_string())
+        }
+    }
+
+    #[test]
+    fn slurm_ids_need_not_start_at_zero() {
+        // --array=1-7:2 gives ids 1, 3, 5, 7: shards 0..3 of 4.
+        for (id, index) in [("1", 0), ("3", 1), ("5", 2), ("7", 3)] {
+            let vars = [
+                ("SLURM_ARRAY_TASK_ID", id),
+                ("SLURM_ARRAY_TASK_MIN", "1"),
+                ("SLURM_ARRAY_TASK_STEP", "2"),
+                ("SLURM_ARRAY_TASK_COUNT", "4"),
+            ];
+            let (shard, said) = shard_from_env(&env(&vars), None).unwrap();
+            assert_eq!(shard, ShardIndex { index, count: 4 });
+            assert!(said.contains("SLURM_ARRAY_TASK_ID"), "{said}");
+        }
+        let between = [
+            ("SLURM_ARRAY_TASK_ID", "4"),
+            ("SLURM_ARRAY_TASK_MIN", "1"),
+            ("SLURM_ARRAY_TASK_STEP", "2"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ];
+        assert!(shard_from_env(&env(&between), None).is_err());
+        let counted = [
+            ("SLURM_ARRAY_TASK_ID", "0"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ];
+        assert!(
+            shard_from_env(&env(&counted), Some(5)).is_err(),
+            "counts disagree"
+        );
+        assert_eq!(
+            shard_from_env(&env(&counted), Some(4)).unwrap().0,
+            ShardIndex { index: 0, count: 4 }
+        );
+        let past = [
+            ("SLURM_ARRAY_TASK_ID", "4"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ];
+        assert!(shard_from_env(&env(&past), None).is_err());
+        let garbage = [("SLURM_ARRAY_TASK_ID", "x")];
+        assert!(shard_from_env(&env(&garbage), Some(2)).is_err());
+    }
+
+    #[test]
+    fn kubernetes_needs_the_count_and_aws_gives_it() {
+        let k8s = [("JOB_COMPLETION_INDEX", "2")];
+        assert!(shard_from_env(&env(&k8s), None).is_err());
+        assert_eq!(
+            shard_from_env(&env(&k8s), Some(3)).unwrap().0,
+            ShardIndex { index: 2, count: 3 }
+        );
+        let aws = [
+            ("AWS_BATCH_JOB_ARRAY_INDEX", "6"),
+            ("AWS_BATCH_JOB_ARRAY_SIZE", "7"),
+        ];
+        assert_eq!(
+            shard_from_env(&env(&aws), None).unwrap().0,
+            ShardIndex { index: 6, count: 7 }
+        );
+        assert!(shard_from_env(&env(&[]), Some(3)).is_err());
+    }
+
+    #[test]
+    fn shard_index_parse() {
+        assert_eq!(
+            ShardIndex::parse("2/7").unwrap(),
+            ShardIndex { index: 2, count: 7 }
+        );
+        for bad in ["7/7", "-1/3", "1", "a/b", "0/0", ""] {
+            assert!(ShardIndex::parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_cut_partitions_every_light_and_balances_cost() {
+        let rng = |i: u64| crate::rng::mix(i) % 1000;
+        let lights: Vec<Vec<u64>> = vec![
+            (0..500).map(rng).collect(),
+            Vec::new(),
+            (500..530).map(rng).collect(),
+            (600..1400).map(|i| rng(i) * (i % 7)).collect(),
+        ];
+        for shards in [1, 2, 3, 7, 64, 2000] {
+            let plan = Plan::cut(shards, &lights);
+            for (light, costs) in lights.iter().enumerate() {
+                let mut covered: Vec<Range<u64>> = plan
+                    .units
+                    .iter()
+                    .flatten()
+                    .filter(|u| u.light == light as u32)
+                    .map(|u| u.tiles.clone())
+                    .collect();
+                covered.sort_by_key(|r| r.start);
+                let mut next = 0;
+                for range in covered {
+                    assert_eq!(range.start, next, "{shards} shards, light {light}");
+                    assert!(range.end > range.start);
+                    next = range.end;
+                }
+                assert_eq!(next, costs.len() as u64, "{shards} shards, light {light}");
+            }
+            let total: u64 = lights.iter().flatten().sum();
+            assert_eq!(plan.costs.iter().sum::<u64>(), total);
+            let biggest = *lights.iter().flatten().max().unwrap();
+            for cost in &plan.costs {
+                assert!(
+                    (*cost as f64) <= total as f64 / shards as f64 + biggest as f64,
+                    "{shards} shards: {cost} vs mean {}",
+                    total / shards as u64
+                );
+            }
+            assert_eq!(Plan::cut(shards, &lights).digest, plan.digest);
+        }
+        assert_ne!(Plan::cut(3, &lights).digest, Plan::cut(4, &lights).digest);
+    }
+}
