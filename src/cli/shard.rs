@@ -77,11 +77,16 @@ pub fn run(args: &ShardArgs, settings: &BakeSettings, config: &BakeConfig) -> Re
     let plan = Plan::new(&world, config, shard.count)?;
     let mean = plan.costs.iter().sum::<u64>() as f64 / shard.count as f64;
     let own = plan.units[shard.index as usize].len();
+    let mrays = |cost: u64| cost as f64 / shard::COST_SCALE / 1e6;
     eprintln!(
-        "plan of {} shards: this one bakes {own} unit(s), estimated cost {:.2}× the mean (max {:.2}×)",
+        "plan of {} shards: this one bakes {own} unit(s), estimated cost {:.1} M ray-equivalents \
+         ({:.2}× the mean; shards from {:.1} to {:.1}, mean {:.1})",
         shard.count,
+        mrays(plan.costs[shard.index as usize]),
         plan.costs[shard.index as usize] as f64 / mean.max(1.0),
-        plan.costs.iter().copied().max().unwrap_or(0) as f64 / mean.max(1.0),
+        mrays(plan.costs.iter().copied().min().unwrap_or(0)),
+        mrays(plan.costs.iter().copied().max().unwrap_or(0)),
+        mean / shard::COST_SCALE / 1e6,
     );
     let units = shard::bake_shard(&world, config, &plan, shard.index, &reporter)?;
     let rays: u64 = units.iter().map(|u| u.rays).sum();
