@@ -50,8 +50,10 @@ pub fn run(args: MergeArgs) -> Result<()> {
         let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));
         let command = format!("shadowcull bake {}", args.settings.settings.display());
         let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command)?;
+        let units = partials.iter().flat_map(|(_, p)| &p.units);
+        let (rays, seconds) = units.fold((0u64, 0f64), |(r, s), u| (r + u.rays, s + u.seconds));
         eprintln!(
-            "merging {} partial(s) of {} shards",
+            "merging {} partial(s) of {} shards: {rays} rays traced in {seconds:.1} s (summed over the shards)",
             partials.len(),
             plan.shards
         );

@@ -88,7 +88,9 @@ pub fn run(args: &ShardArgs, settings: &BakeSettings, config: &BakeConfig) -> Re
         mrays(plan.costs.iter().copied().max().unwrap_or(0)),
         mean / shard::COST_SCALE / 1e6,
     );
+    let cpu_before = cpu_seconds();
     let units = shard::bake_shard(&world, config, &plan, shard.index, &reporter)?;
+    let cpu = cpu_seconds() - cpu_before;
     let rays: u64 = units.iter().map(|u| u.rays).sum();
     let trace: f64 = units.iter().map(|u| u.seconds).sum();
     let partial = Partial {
@@ -101,9 +103,26 @@ pub fn run(args: &ShardArgs, settings: &BakeSettings, config: &BakeConfig) -> Re
     };
     partial::write(&path, &partial).with_context(|| format!("shard {shard}"))?;
     println!(
-        "shard {shard}: {own} unit(s), {rays} rays traced in {trace:.2} s; wrote {}; {:.2} s in all",
+        "shard {shard}: {own} unit(s), {rays} rays traced in {trace:.2} s ({cpu:.1} CPU s); wrote {}; {:.2} s in all",
         path.display(),
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// User + system CPU seconds of this process so far (0 where unknown): a
+/// shard's work measured apart from what else the machine runs.
+fn cpu_seconds() -> f64 {
+    #[cfg(unix)]
+    {
+        let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+        // SAFETY: getrusage fills the struct it is given; RUSAGE_SELF is valid.
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) } == 0 {
+            // SAFETY: initialised by the successful call above.
+            let usage = unsafe { usage.assume_init() };
+            let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+            return seconds(usage.ru_utime) + seconds(usage.ru_stime);
+        }
+    }
+    0.0
 }
