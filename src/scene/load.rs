@@ -10,7 +10,9 @@ use crate::error::{Error, Result};
 use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::space_settings;
-use crate::formats::{self, binsection, model, primitives, terrain as terrain_format, visual};
+use crate::formats::{
+    self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
+};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -104,8 +106,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
     let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
         .par_iter()
         .map(|path| {
-            let chunk = read_logged(path, &log)
-                .and_then(|root| chunk::parse(&root).map_err(|e| e.in_file(path)));
+            let chunk = read_chunk(path, &log);
             (path.clone(), chunk)
         })
         .collect();
@@ -361,6 +362,20 @@ fn chunk_name(path: &Path) -> String {
         .and_then(|n| n.strip_suffix(".chunk"))
         .unwrap_or_default()
         .to_string()
+}
+
+/// Reads and parses a chunk, noting it in `log` with its masks zeroed: the
+/// bake ignores old `<shadow>` values, so writing masks does not change the
+/// chunk as an input.
+fn read_chunk(path: &Path, log: &ReadLog) -> Result<ChunkFile> {
+    let bytes = resources::read_file(path)?;
+    let root = formats::parse_data_section(&bytes).map_err(|e| e.in_file(path))?;
+    let chunk = chunk::parse(&root).map_err(|e| e.in_file(path))?;
+    match shadow_write::without_masks(&bytes, &chunk) {
+        Ok(canonical) => log.record(path, &canonical),
+        Err(_) => log.record(path, &bytes),
+    }
+    Ok(chunk)
 }
 
 /// Reads and parses a data section, noting the file in `log`.

@@ -458,3 +458,36 @@ fn shard_auto_reads_the_schedulers_variables_and_says_which() {
         refused(out, &["--shard"]);
     }
 }
+
+#[test]
+fn merging_in_place_twice_works_because_written_masks_are_not_inputs() {
+    // The fingerprint hashes chunks with their masks zeroed: a merge (or a
+    // bake) writing `<shadow>` into the chunks does not make the partials
+    // "other inputs", so a retried merge job succeeds.
+    let dir = tempfile::tempdir().unwrap();
+    let settings = world(Preset::Village, &dir.path().join("world"));
+    let parts = three_shards(&settings, dir.path(), "p");
+    let merge_in_place = || {
+        let mut args = vec!["merge", s(&settings)];
+        args.extend(parts.iter().map(|p| s(p)));
+        shadowcull(&args)
+    };
+    let first = ok(merge_in_place(), "first merge");
+    assert!(String::from_utf8_lossy(&first.stdout).contains("wrote 9 of 9"));
+    let second = ok(merge_in_place(), "second merge");
+    assert!(String::from_utf8_lossy(&second.stdout).contains("wrote 0 of 9"));
+    // Another value inside a chunk is still another input.
+    let chunk = shadowcull::formats::resources::find_files(&dir.path().join("world"), ".chunk")
+        .unwrap()
+        .remove(0);
+    let text = std::fs::read_to_string(&chunk).unwrap();
+    let edited = text.replacen("<castsShadow>", "<castsShadow> ", 1);
+    let edited = if edited == text {
+        text.replacen("<resource>", "<resource> ", 1)
+    } else {
+        edited
+    };
+    assert_ne!(edited, text);
+    std::fs::write(&chunk, edited).unwrap();
+    refused(merge_in_place(), &["other inputs", "other content"]);
+}
