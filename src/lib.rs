@@ -3,6 +3,7 @@
 
 pub mod bake;
 pub mod classify;
+pub mod digest;
 pub mod error;
 pub mod formats;
 pub mod gen;

@@ -15,6 +15,7 @@ use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::CasterSet;
 use super::{BakeConfig, BakeError};
 use crate::progress::{Counter, Phase, Progress};
+use rayon::prelude::*;
 use std::time::Instant;
 
 /// Tiles (32×32 texels) of each light traced to measure the ray rate.
@@ -191,7 +192,8 @@ fn plan_light(
         grid_rays * sampled_tiles / tiles.max(1),
     );
     let started = Instant::now();
-    rays.trace_tiles(config.supersample, every, &counter);
+    let sample = (0..sampled_tiles).into_par_iter().map(|n| n * every);
+    rays.trace_tiles(sample, config.supersample, &counter);
     plan.sample_seconds = started.elapsed().as_secs_f64();
     plan.sample_rays = counter.done();
     counter.finish();

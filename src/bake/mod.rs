@@ -11,6 +11,7 @@ pub mod memory;
 pub mod output;
 pub mod refine;
 pub mod setup;
+pub mod shard;
 pub mod trace_light;
 
 use crate::classify::Passes;
@@ -20,7 +21,7 @@ use crate::scene::Scene;
 use casters::CasterTable;
 use setup::{BakeWorld, LightSetup, NoSetup};
 use std::time::Instant;
-use trace_light::CasterSet;
+use trace_light::{CasterSet, LightRays, RayCounter};
 
 /// What to bake (the settings file's values after command-line overrides).
 #[derive(Debug, Clone)]
@@ -124,7 +125,7 @@ impl Default for BakeConfig {
 
 pub use crate::progress::{Progress, Silent};
 
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct LightReport {
     /// Position among the lights baked.
     pub index: usize,
@@ -246,11 +247,7 @@ pub fn try_zeroed<T: Clone + Default>(
 /// is built or traced: a settings mistake in the last light must not cost
 /// the time of the first. Lights with nothing to cover are not errors.
 pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeError> {
-    if config.lights.len() > 32 {
-        return Err(BakeError::TooManyLights {
-            count: config.lights.len(),
-        });
-    }
+    check_light_count(config)?;
     let Some(bounds) = geometry::world_bounds(scene) else {
         return Ok(());
     };
@@ -264,6 +261,37 @@ pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeErr
         Ok(())
     } else {
         Err(BakeError::Grids(errors))
+    }
+}
+
+/// Where a light's grid answer comes from: traced here ([`TraceGrid`]), or
+/// the OR of a distributed bake's partial results (`shard::Merged`).
+/// Everything else about a light (its notes, refinement, its report) is
+/// the same either way, so a merge writes what one bake writes.
+pub trait GridSource: Sync {
+    /// The casters the grid's rays prove useful for the light of `setup`
+    /// (receiver-only ones included; the caller drops them).
+    fn grid(
+        &self,
+        setup: &LightSetup,
+        rays_of_light: &LightRays<'_>,
+        supersample: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet;
+}
+
+/// Traces every texel of the grid.
+pub struct TraceGrid;
+
+impl GridSource for TraceGrid {
+    fn grid(
+        &self,
+        _setup: &LightSetup,
+        rays_of_light: &LightRays<'_>,
+        supersample: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        rays_of_light.trace_grid(supersample, rays_done)
     }
 }
 
@@ -285,6 +313,28 @@ pub fn bake_world(
     config: &BakeConfig,
     progress: &dyn Progress,
 ) -> Result<BakeResult, BakeError> {
+    bake_from(world, config, progress, &TraceGrid)
+}
+
+/// At most 32 lights fit the mask.
+pub fn check_light_count(config: &BakeConfig) -> Result<(), BakeError> {
+    if config.lights.len() > 32 {
+        return Err(BakeError::TooManyLights {
+            count: config.lights.len(),
+        });
+    }
+    Ok(())
+}
+
+/// [`bake_world`] with the grid answers from `source` (traced here, or a
+/// distributed bake's merged partials).
+pub fn bake_from(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    source: &dyn GridSource,
+) -> Result<BakeResult, BakeError> {
+    check_light_count(config)?;
     let mut masks = try_zeroed::<u32>(world.casters.len(), "making the caster masks")?;
     let mut skipped = world_skipped(world);
     let mut lights = Vec::new();
@@ -301,7 +351,8 @@ pub fn bake_world(
             Err(NoSetup::Grid(err)) => return Err(err.into()),
             Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
         };
-        let (useful, report) = bake_light(world, &setup, config, progress, &mut skipped);
+        let (useful, report) =
+            bake_light_from(world, &setup, config, progress, &mut skipped, source);
         let bit = 1u32.wrapping_shl(config.bit(index));
         for (id, mask) in masks.iter_mut().enumerate() {
             if useful.contains(id as u32) {
@@ -367,6 +418,18 @@ pub fn bake_light(
     progress: &dyn Progress,
     skipped: &mut Vec<Skipped>,
 ) -> (CasterSet, LightReport) {
+    bake_light_from(world, setup, config, progress, skipped, &TraceGrid)
+}
+
+/// [`bake_light`] with the grid answer from `source`.
+fn bake_light_from(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    skipped: &mut Vec<Skipped>,
+    source: &dyn GridSource,
+) -> (CasterSet, LightReport) {
     let started = Instant::now();
     let index = setup.index;
     let light = &config.lights[index];
@@ -411,7 +474,7 @@ pub fn bake_light(
     } else {
         let rays_of_light = setup.rays(world, config);
         let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
-        let mut useful = rays_of_light.trace_grid(supersample, &counter);
+        let mut useful = source.grid(setup, &rays_of_light, supersample, &counter);
         counter.finish();
         if config.refine_samples > 0 {
             let (refined, traced) =

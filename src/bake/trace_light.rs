@@ -32,6 +32,31 @@ pub trait RayCounter: Sync {
 /// to balance 2–64 threads and to report progress often.
 pub const TILE: u32 = 32;
 
+/// Tiles of `grid`: faces × rows of tiles × columns of tiles.
+pub fn tile_count(grid: &TexelGrid) -> u64 {
+    let (tiles_x, tiles_y) = tiles_per_face(grid);
+    grid.faces() as u64 * tiles_x * tiles_y
+}
+
+fn tiles_per_face(grid: &TexelGrid) -> (u64, u64) {
+    (
+        grid.width().div_ceil(TILE) as u64,
+        grid.height().div_ceil(TILE) as u64,
+    )
+}
+
+/// Tile `tile`'s face and texel rectangle `x0..x1 × y0..y1`.
+pub fn tile_rect(grid: &TexelGrid, tile: u64) -> (usize, u32, u32, u32, u32) {
+    let (tiles_x, tiles_y) = tiles_per_face(grid);
+    let face = (tile / (tiles_x * tiles_y)) as usize;
+    let within = tile % (tiles_x * tiles_y);
+    let x0 = (within % tiles_x) as u32 * TILE;
+    let y0 = (within / tiles_x) as u32 * TILE;
+    let x1 = (x0 + TILE).min(grid.width());
+    let y1 = (y0 + TILE).min(grid.height());
+    (face, x0, y0, x1, y1)
+}
+
 /// The rules a ray applies to its hits.
 #[derive(Debug, Clone, Copy)]
 pub struct RayRules {
@@ -87,6 +112,20 @@ impl CasterSet {
     pub fn heap_bytes(&self) -> u64 {
         self.0.capacity() as u64 * 8
     }
+
+    /// The bits, 64 caster ids per word (id `i` is bit `i % 64` of word
+    /// `i / 64`): how a partial result stores a set.
+    pub fn words(&self) -> &[u64] {
+        &self.0
+    }
+
+    /// The set of `casters` ids whose bits are `words`, or `None` when the
+    /// word count does not fit or a bit past the last caster is set.
+    pub fn from_words(casters: usize, words: Vec<u64>) -> Option<Self> {
+        let spare = casters % 64;
+        let last_ok = spare == 0 || words.last().is_none_or(|w| w >> spare == 0);
+        (words.len() == casters.div_ceil(64) && last_ok).then_some(CasterSet(words))
+    }
 }
 
 /// Everything one light's rays need: its grid, how to find hits, what the
@@ -108,38 +147,34 @@ impl LightRays<'_> {
     /// texel centre; k: a k×k pattern of sub-texel centres); `rays_done`
     /// hears of every finished tile so a caller can show progress.
     pub fn trace_grid(&self, samples: u32, rays_done: &dyn RayCounter) -> CasterSet {
-        self.trace_tiles(samples, 1, rays_done)
+        self.trace_tiles(0..self.tile_count(), samples, rays_done)
     }
 
-    /// Tiles of the grid (32×32 texels each, faces then rows then columns).
+    /// Tiles of [`TILE`]² texels: faces, then rows of tiles, then columns
+    /// (the order of [`Self::tile_rect`]). A distributed bake hands out
+    /// ranges of these.
     pub fn tile_count(&self) -> u64 {
-        let grid = self.grid;
-        grid.faces() as u64
-            * grid.width().div_ceil(TILE) as u64
-            * grid.height().div_ceil(TILE) as u64
+        tile_count(self.grid)
     }
 
-    /// Traces every `every`-th tile (1: the whole grid), for the ray rate
-    /// of a light without tracing all of it.
-    pub fn trace_tiles(&self, samples: u32, every: u64, rays_done: &dyn RayCounter) -> CasterSet {
+    /// [`Self::trace_grid`] over the tiles `tiles` only (a shard's range, or
+    /// a spread sample for the plan's ray rate): the OR of the answers over
+    /// a partition of `0..tile_count()` is the grid's.
+    pub fn trace_tiles(
+        &self,
+        tiles: impl IntoParallelIterator<Item = u64>,
+        samples: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
         let grid = self.grid;
         let casters = self.casters.len();
         let samples = samples.max(1);
-        let tiles_x = grid.width().div_ceil(TILE);
-        let tiles_y = grid.height().div_ceil(TILE);
-        let every = every.max(1);
-        (0..self.tile_count().div_ceil(every))
+        tiles
             .into_par_iter()
             .fold(
                 || (CasterSet::new(casters), Vec::new()),
-                |(mut useful, mut hits), n| {
-                    let tile = n * every;
-                    let face = (tile / (tiles_x as u64 * tiles_y as u64)) as usize;
-                    let within = tile % (tiles_x as u64 * tiles_y as u64);
-                    let x0 = (within % tiles_x as u64) as u32 * TILE;
-                    let y0 = (within / tiles_x as u64) as u32 * TILE;
-                    let x1 = (x0 + TILE).min(grid.width());
-                    let y1 = (y0 + TILE).min(grid.height());
+                |(mut useful, mut hits), tile| {
+                    let (face, x0, y0, x1, y1) = tile_rect(grid, tile);
                     for y in y0..y1 {
                         for x in x0..x1 {
                             for ray in grid.texel_rays(face, x, y, samples) {

@@ -1,6 +1,8 @@
 //! `shadowcull bake`: load, refuse broken input, plan, bake, write the
-//! chunks and the report, print the per-light table. The pipeline flags
-//! live in `pipeline`, the estimate in `plan`, progress in `progress`.
+//! chunks and the report, print the per-light table; or, with `--shard`,
+//! one shard of a distributed bake (`shard`). The pipeline flags live in
+//! `pipeline`, the estimate in `plan`, progress in `progress`; `merge`
+//! shares the options, the loading and the writing.
 
 use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
@@ -13,21 +15,38 @@ use shadowcull::formats::resources::{self, ResPaths};
 use shadowcull::progress::{Counter, Phase};
 use shadowcull::scene::{self, Scene};
 use std::io::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
 pub struct BakeArgs {
     #[command(flatten)]
     settings: SettingsArgs,
+    #[command(flatten)]
+    output: OutputArgs,
+    #[command(flatten)]
+    options: BakeOptions,
+    #[command(flatten)]
+    shard: super::shard::ShardArgs,
+}
+
+/// Where a bake's (or a merge's) results go.
+#[derive(Debug, clap::Args)]
+pub struct OutputArgs {
     /// Write every chunk of the space under DIR (at its path relative to its
     /// res root) instead of in place.
     #[arg(long, value_name = "DIR")]
-    out: Option<PathBuf>,
+    pub out: Option<PathBuf>,
     /// Write the machine-readable report (JSON) to FILE (`-`: standard
     /// output; the table then goes to standard error).
     #[arg(long, value_name = "FILE")]
-    report: Option<PathBuf>,
+    pub report: Option<PathBuf>,
+}
+
+/// The options that decide a bake's answer and how it runs: `bake`, `bake
+/// --shard` and `merge` take the same ones.
+#[derive(Debug, clap::Args)]
+pub struct BakeOptions {
     /// Worker threads (default: one per core). Results are identical for any N.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
     threads: Option<u16>,
@@ -44,9 +63,10 @@ pub struct BakeArgs {
     #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
     supersample: u32,
     /// After the grid, aim extra rays at the surfaces of casters not yet
-    /// useful (catches casters smaller than a texel).
+    /// useful (catches casters smaller than a texel). A distributed bake
+    /// refines in `merge`.
     #[arg(long)]
-    refine: bool,
+    pub refine: bool,
     /// Rays per caster for --refine.
     #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
     refine_samples: u32,
@@ -55,82 +75,133 @@ pub struct BakeArgs {
     #[arg(long, hide = true)]
     brute_force: bool,
     #[command(flatten)]
-    pipeline: PipelineArgs,
+    pub pipeline: PipelineArgs,
     #[command(flatten)]
-    progress: ProgressArgs,
+    pub progress: ProgressArgs,
+}
+
+impl BakeOptions {
+    /// The settings file's values with these overrides and the `--light`
+    /// selection; warns about unknown settings elements.
+    pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
+        pipeline::warn_unknown(settings, settings_file);
+        let mut config = BakeConfig {
+            brute_force: self.brute_force,
+            supersample: self.supersample,
+            refine_samples: if self.refine { self.refine_samples } else { 0 },
+            ..BakeConfig::from_settings(settings)
+        };
+        if let Some(mode) = &self.face_culling {
+            config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
+        }
+        for (value, name) in [
+            (self.height_bias, "--height-bias"),
+            (self.tie_epsilon, "--tie-epsilon"),
+        ] {
+            if let Some(v) = value {
+                anyhow::ensure!(
+                    v.is_finite() && v >= 0.0,
+                    "{name} must be a number ≥ 0, got {v}"
+                );
+            }
+        }
+        if let Some(bias) = self.height_bias {
+            config.height_bias = bias;
+        }
+        if let Some(epsilon) = self.tie_epsilon {
+            config.tie_epsilon = epsilon;
+        }
+        let config = pipeline::select_lights(config, &self.pipeline.lights, settings_file)?;
+        anyhow::ensure!(
+            !config.lights.is_empty(),
+            "{}: no <light> in <lights>: nothing to bake",
+            settings_file.display()
+        );
+        Ok(config)
+    }
+
+    /// Runs `work` on a pool of `--threads` workers.
+    pub fn in_pool<T: Send>(&self, work: impl FnOnce() -> Result<T> + Send) -> Result<T> {
+        super::thread_pool(self.threads)?.install(work)
+    }
 }
 
 pub fn run(args: BakeArgs) -> Result<()> {
-    let file = args.settings.settings.clone();
     let settings = load_settings(&args.settings)?;
-    pipeline::warn_unknown(&settings, &file);
-    let config = bake_config(&args, &settings)?;
-    let config = pipeline::select_lights(config, &args.pipeline.lights, &file)?;
-    anyhow::ensure!(
-        !config.lights.is_empty(),
-        "{}: no <light> in <lights>: nothing to bake",
-        file.display()
-    );
-    let pool = super::thread_pool(args.threads)?;
-    pool.install(|| bake_with(&args, &config, &settings))
+    let config = args.options.config(&settings, &args.settings.settings)?;
+    if args.shard.is_set() {
+        return args
+            .options
+            .in_pool(|| super::shard::run(&args.shard, &args.options, &settings, &config));
+    }
+    args.options
+        .in_pool(|| bake_with(&args, &config, &settings))
 }
 
-/// The settings file's values with the command line's overrides.
-fn bake_config(args: &BakeArgs, settings: &BakeSettings) -> Result<BakeConfig> {
-    let mut config = BakeConfig {
-        brute_force: args.brute_force,
-        supersample: args.supersample,
-        refine_samples: if args.refine { args.refine_samples } else { 0 },
-        ..BakeConfig::from_settings(settings)
-    };
-    if let Some(mode) = &args.face_culling {
-        config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
-    }
-    for (value, name) in [
-        (args.height_bias, "--height-bias"),
-        (args.tie_epsilon, "--tie-epsilon"),
-    ] {
-        if let Some(v) = value {
-            anyhow::ensure!(
-                v.is_finite() && v >= 0.0,
-                "{name} must be a number ≥ 0, got {v}"
-            );
-        }
-    }
-    if let Some(bias) = args.height_bias {
-        config.height_bias = bias;
-    }
-    if let Some(epsilon) = args.tie_epsilon {
-        config.tie_epsilon = epsilon;
-    }
-    Ok(config)
+/// Loads the scene of `settings` with progress, says what it holds, and
+/// refuses it when it has problems (unless `--keep-going`).
+pub(super) fn load_scene_told(
+    settings: &BakeSettings,
+    options: &BakeOptions,
+    reporter: &Reporter,
+) -> Result<Scene> {
+    let started = Instant::now();
+    let scene = scene::load_scene_with(&load_config(settings), reporter)?;
+    reporter.say(&loaded_line(&scene, started));
+    pipeline::refuse_problems(&scene, options.pipeline.keep_going)?;
+    Ok(scene)
 }
 
 fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> Result<()> {
     let file = &args.settings.settings;
     let started = Instant::now();
-    let reporter = Reporter::new(&args.progress);
-    let scene = scene::load_scene_with(&load_config(settings), &reporter)?;
-    reporter.say(&loaded_line(&scene, started));
-    pipeline::refuse_problems(&scene, args.pipeline.keep_going)?;
+    let reporter = Reporter::new(&args.options.progress);
+    let scene = load_scene_told(settings, &args.options, &reporter)?;
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
     let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;
     for line in super::plan::plan_lines(&plan) {
         reporter.say(&line);
     }
-    super::plan::check_memory(&plan, args.pipeline.max_memory)?;
-
-    let mut result =
+    super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
+    let result =
         bake::bake_world(&world, config, &reporter).with_context(|| file.display().to_string())?;
-    output::keep_other_bits(&scene, &mut result)?;
-    let res_paths = ResPaths::new(settings.res_paths.clone());
-    let outputs = output::chunk_outputs(&scene, &result, &res_paths, args.out.as_deref())?;
+    let results = Results {
+        scene: &scene,
+        res_paths: &settings.res_paths,
+        config,
+        started,
+    };
+    write_results(&args.output, &args.options, &results, result, &reporter)
+}
+
+/// What [`write_results`] writes from.
+pub(super) struct Results<'a> {
+    pub scene: &'a Scene,
+    pub res_paths: &'a [PathBuf],
+    pub config: &'a BakeConfig,
+    pub started: Instant,
+}
+
+/// Keeps the bits of lights not baked, writes the chunks (unless
+/// `--dry-run`/`--check`) and the report as `output_args` says, and prints
+/// the per-light table: the end of `bake` and of `merge`.
+pub(super) fn write_results(
+    output_args: &OutputArgs,
+    options: &BakeOptions,
+    results: &Results,
+    mut result: BakeResult,
+    reporter: &Reporter,
+) -> Result<()> {
+    let scene = results.scene;
+    output::keep_other_bits(scene, &mut result)?;
+    let res_paths = ResPaths::new(results.res_paths.to_vec());
+    let outputs = output::chunk_outputs(scene, &result, &res_paths, output_args.out.as_deref())?;
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
-    let written = if args.pipeline.writes_nothing() {
+    let written = if options.pipeline.writes_nothing() {
         Vec::new()
     } else {
-        let counter = Counter::begin(&reporter, Phase::Writing, None, changed.len() as u64);
+        let counter = Counter::begin(reporter, Phase::Writing, None, changed.len() as u64);
         output::write_outputs(&outputs)?;
         counter.add(changed.len() as u64);
         counter.finish();
@@ -139,9 +210,9 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
             .map(|o| o.target.display().to_string())
             .collect()
     };
-    let to_stdout = args.report.as_deref() == Some(std::path::Path::new("-"));
-    if let Some(path) = &args.report {
-        let mut report = output::report(&scene, &result);
+    let to_stdout = output_args.report.as_deref() == Some(Path::new("-"));
+    if let Some(path) = &output_args.report {
+        let mut report = output::report(scene, &result);
         report.files_changed = changed
             .iter()
             .map(|o| o.target.display().to_string())
@@ -157,20 +228,20 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
         }
     }
     let summary = summary(
-        args,
-        config,
+        output_args,
+        options,
+        results,
         &result,
         &outputs,
         &changed,
         written.len(),
-        started,
     );
     if to_stdout {
         eprint!("{summary}");
     } else {
         print!("{summary}");
     }
-    if args.pipeline.check && !changed.is_empty() {
+    if options.pipeline.check && !changed.is_empty() {
         anyhow::bail!(
             "--check: {} would change (listed above); the baked masks are stale",
             count(changed.len(), "chunk file", "chunk files")
@@ -202,14 +273,15 @@ fn loaded_line(scene: &Scene, started: Instant) -> String {
 /// The per-light table, the files that would change (`--dry-run`,
 /// `--check`) and the closing line.
 fn summary(
-    args: &BakeArgs,
-    config: &BakeConfig,
+    output_args: &OutputArgs,
+    options: &BakeOptions,
+    results: &Results,
     result: &BakeResult,
     outputs: &[output::ChunkOutput],
     changed: &[&output::ChunkOutput],
     written: usize,
-    started: Instant,
 ) -> String {
+    let (config, started) = (results.config, results.started);
     use std::fmt::Write as _;
     let mut out = String::new();
     let _ = writeln!(
@@ -250,7 +322,7 @@ fn summary(
             count(skipped_lights, "light", "lights")
         );
     }
-    let dry = args.pipeline.writes_nothing();
+    let dry = options.pipeline.writes_nothing();
     if dry {
         for o in changed {
             let _ = writeln!(out, "would change {}", o.target.display());
@@ -262,7 +334,7 @@ fn summary(
         if dry { "would change" } else { "wrote" },
         if dry { changed.len() } else { written },
         outputs.len(),
-        match &args.out {
+        match &output_args.out {
             Some(dir) => format!(" under {}", dir.display()),
             None => " in place".to_string(),
         },

@@ -3,10 +3,12 @@
 
 mod bake;
 pub mod memory;
+mod merge;
 mod pipeline;
 mod plan;
 mod progress;
 mod render;
+mod shard;
 mod sweep;
 mod xcheck;
 
@@ -43,10 +45,14 @@ pub(crate) struct SettingsArgs {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Bake every light and write the masks into the chunk files.
+    /// Bake every light and write the masks into the chunk files (or one
+    /// shard of a distributed bake: --shard).
     Bake(bake::BakeArgs),
     /// Estimate a bake's time and peak memory, per light, without baking.
     Plan(plan::PlanArgs),
+    /// OR the partial results of a distributed bake's shards and write the
+    /// chunks as `bake` does.
+    Merge(merge::MergeArgs),
     /// Classification error against run time over a ladder of settings.
     Sweep(sweep::SweepArgs),
     /// Print what the world holds, without baking.
@@ -102,6 +108,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Bake(args) => bake::run(args),
         Command::Plan(args) => plan::run(args),
+        Command::Merge(args) => merge::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),

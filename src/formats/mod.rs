@@ -7,6 +7,7 @@ pub mod binsection;
 pub mod chunk;
 pub mod model;
 pub mod packed_xml;
+pub mod partial;
 pub mod png_write;
 pub mod primitives;
 pub mod resources;

@@ -25,6 +25,8 @@ pub const SIZE_CAPS: &[(&str, u64)] = &[
     (".settings", 64 * MIB),
     (".primitives", GIB),
     (".cdata", GIB),
+    // A distributed bake's partial result: caster bitsets of a huge world.
+    (".part", GIB),
 ];
 
 /// The cap of any other file (the bake settings file, a `--out` target).

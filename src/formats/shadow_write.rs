@@ -129,6 +129,21 @@ pub fn write_shadows(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>,
     }
 }
 
+/// The chunk's bytes with every `<shadow>` the bake writes set to 0: what
+/// a bake's answer depends on (it ignores old masks), so a fingerprint of
+/// these bytes (`bake::shard`) stays the same when a bake or a merge
+/// writes its masks into the chunk.
+pub fn without_masks(
+    original: &[u8],
+    chunk: &super::chunk::ChunkFile,
+) -> Result<Vec<u8>, FormatError> {
+    let shadows = ChunkShadows {
+        instances: vec![Some(InstanceShadow::default()); chunk.instances.len()],
+        terrain: chunk.terrain.as_ref().map(|_| 0),
+    };
+    write_shadows(original, &shadows)
+}
+
 /// Reads back the direct `<shadow>` of an instance element: `None` when it
 /// has none. Only the first direct `<shadow>` counts, as the engine reads it.
 pub fn read_instance_shadow(element: &Section) -> Result<Option<InstanceShadow>, FormatError> {

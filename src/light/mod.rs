@@ -586,6 +586,63 @@ impl TexelGrid {
         }
     }
 
+    /// The rectangle `(x0, y0, x1, y1)`, in texel units of `face` and
+    /// clipped to the grid, that the projection of the box `min..max`
+    /// covers; `None` when it covers none of the face. Conservative (a box
+    /// reaching behind a perspective face's plane covers the whole face):
+    /// it feeds the cost estimate of a distributed bake's plan, never a
+    /// decision about what a ray hits.
+    pub fn footprint(&self, face: usize, min: DVec3, max: DVec3) -> Option<(f64, f64, f64, f64)> {
+        if !(min.is_finite() && max.is_finite() && min.cmple(max).all()) {
+            return None;
+        }
+        let (w, h) = (self.width as f64, self.height as f64);
+        let mut lo = (f64::INFINITY, f64::INFINITY);
+        let mut hi = (f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for corner in corners(min, max) {
+            let (x, y) = match &self.projection {
+                Projection::Orthographic {
+                    u,
+                    v,
+                    u_min,
+                    v_min,
+                    texel_size,
+                    ..
+                } => (
+                    (corner.dot(*u) - u_min) / texel_size,
+                    (corner.dot(*v) - v_min) / texel_size,
+                ),
+                Projection::Perspective {
+                    position,
+                    half_extent,
+                    frame,
+                    cube,
+                    ..
+                } => {
+                    let (forward, u, v) = if *cube {
+                        CUBE_FACES[face % CUBE_FACES.len()]
+                    } else {
+                        *frame
+                    };
+                    let rel = corner - *position;
+                    let depth = rel.dot(forward);
+                    if depth <= 1e-9 * (1.0 + rel.length()) {
+                        return self.reaches(min, max).then_some((0.0, 0.0, w, h));
+                    }
+                    let image = |axis: DVec3, side: f64| {
+                        (rel.dot(axis) / depth / half_extent + 1.0) * 0.5 * side
+                    };
+                    (image(u, w), image(v, h))
+                }
+            };
+            lo = (lo.0.min(x), lo.1.min(y));
+            hi = (hi.0.max(x), hi.1.max(y));
+        }
+        let (x0, y0) = (lo.0.max(0.0), lo.1.max(0.0));
+        let (x1, y1) = (hi.0.min(w), hi.1.min(h));
+        (x0 < x1 && y0 < y1).then_some((x0, y0, x1, y1))
+    }
+
     /// A good origin for light-relative f32 coordinates: the centre of the
     /// world bounds for a directional light, the light position otherwise.
     pub fn reference_point(&self) -> DVec3 {

@@ -259,6 +259,7 @@ mod tests {
             instances: Vec::new(),
             terrain,
             problems: Vec::new(),
+            inputs: Vec::new(),
         }
     }
 

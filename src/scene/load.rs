@@ -4,17 +4,21 @@
 //! missing resource, not just the first); only a world that cannot be read
 //! at all (no settings, no chunks) is an error.
 
-use super::{Chunk, Group, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
+use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
+use crate::digest::Digest;
 use crate::error::{Error, Result};
 use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::space_settings;
-use crate::formats::{self, binsection, model, primitives, terrain as terrain_format, visual};
+use crate::formats::{
+    self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
+};
 use crate::progress::{Counter, Phase, Progress};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 /// Where the world is.
 #[derive(Debug, Clone)]
@@ -28,6 +32,29 @@ pub struct LoadConfig {
 /// point: it casts nothing and its inverse does not exist.
 const SINGULAR_DETERMINANT: f64 = 1e-12;
 
+/// Every file the load read, with its content hash, so a distributed bake
+/// can prove its shards saw the same inputs (`bake::shard`). Filled from
+/// the loading threads; sorted when the scene is made.
+#[derive(Default)]
+struct ReadLog(Mutex<Vec<InputFile>>);
+
+impl ReadLog {
+    fn record(&self, path: &Path, bytes: &[u8]) {
+        let file = InputFile {
+            path: path.to_path_buf(),
+            digest: Digest::of(bytes),
+        };
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).push(file);
+    }
+
+    fn into_sorted(self) -> Vec<InputFile> {
+        let mut files = self.0.into_inner().unwrap_or_else(|e| e.into_inner());
+        files.sort();
+        files.dedup();
+        files
+    }
+}
+
 pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
     load_scene_with(config, &crate::progress::Silent)
 }
@@ -35,6 +62,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 /// [`load_scene`], telling `progress` how many chunks, models and terrain
 /// blocks are done.
 pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
+    let log = ReadLog::default();
     let space = resources::normalise(&config.space);
     let settings_name = format!("{space}/space.settings");
     let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
@@ -56,7 +84,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_default();
-    let settings = read_parsed(&settings_path, space_settings::parse)?;
+    let settings = read_parsed(&settings_path, &log, space_settings::parse)?;
 
     // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
     // space.settings says <singleDir>.
@@ -85,7 +113,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
     let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
         .par_iter()
         .map(|path| {
-            let chunk = read_parsed(path, chunk::parse);
+            let chunk = read_chunk(path, &log);
             counter.add(1);
             (path.clone(), chunk)
         })
@@ -156,7 +184,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         .collect::<Vec<_>>()
         .into_par_iter()
         .map(|(name, referenced_by)| {
-            let model = load_model(&config.res_paths, &name, &referenced_by);
+            let model = load_model(&config.res_paths, &name, &referenced_by, &log);
             counter.add(1);
             (name, model)
         })
@@ -300,6 +328,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         .map(|(chunk, chunk_path, resource, transform)| {
             let block = load_terrain(
                 &config.res_paths,
+                &log,
                 &chunk_path,
                 &resource,
                 transform.w_axis.truncate(),
@@ -338,6 +367,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         instances,
         terrain,
         problems,
+        inputs: log.into_sorted(),
     })
 }
 
@@ -349,20 +379,50 @@ fn chunk_name(path: &Path) -> String {
         .to_string()
 }
 
-pub(crate) fn read_section(path: &Path) -> Result<formats::Section> {
-    read_parsed(path, |root| Ok(root.clone()))
-}
-
-/// Reads a data section and reads `parse` out of it; errors carry the
-/// file and, for text XML, the line and column.
+/// Reads a data section, notes the file in `log` and reads `parse` out of
+/// it; errors carry the file and, for text XML, the line and column.
 fn read_parsed<T>(
     path: &Path,
+    log: &ReadLog,
     parse: impl FnOnce(&formats::Section) -> Result<T, crate::error::FormatError>,
 ) -> Result<T> {
     let bytes = resources::read_file(path)?;
+    log.record(path, &bytes);
     formats::parse_data_section(&bytes)
         .and_then(|root| parse(&root))
         .map_err(|e| e.in_source(path, &bytes))
+}
+
+/// Reads and parses a chunk, noting it in `log` with its masks zeroed: the
+/// bake ignores old `<shadow>` values, so writing masks does not change the
+/// chunk as an input.
+fn read_chunk(path: &Path, log: &ReadLog) -> Result<ChunkFile> {
+    let bytes = resources::read_file(path)?;
+    let chunk = formats::parse_data_section(&bytes)
+        .and_then(|root| chunk::parse(&root))
+        .map_err(|e| e.in_source(path, &bytes))?;
+    match shadow_write::without_masks(&bytes, &chunk) {
+        Ok(canonical) => log.record(path, &canonical),
+        Err(_) => log.record(path, &bytes),
+    }
+    Ok(chunk)
+}
+
+/// Reads and parses a data section, noting the file in `log`.
+fn read_logged(path: &Path, log: &ReadLog) -> Result<formats::Section> {
+    read_parsed(path, log, |root| Ok(root.clone()))
+}
+
+/// [`ResPaths::read`], noting the file in `log`.
+fn read_resource(
+    res_paths: &ResPaths,
+    name: &str,
+    referenced_by: &Path,
+    log: &ReadLog,
+) -> Result<(PathBuf, Vec<u8>)> {
+    let (path, bytes) = res_paths.read(name, referenced_by)?;
+    log.record(&path, &bytes);
+    Ok((path, bytes))
 }
 
 /// The box around a model-space box placed by `m`.
@@ -385,6 +445,7 @@ fn world_box(m: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
 /// chunk's folder; like every resource it must stay inside the res paths.
 fn load_terrain(
     res_paths: &ResPaths,
+    log: &ReadLog,
     chunk_path: &Path,
     resource: &str,
     origin: DVec3,
@@ -417,6 +478,7 @@ fn load_terrain(
     }
     res_paths.check_inside(&cdata_path)?;
     let bytes = resources::read_file(&cdata_path)?;
+    log.record(&cdata_path, &bytes);
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
     TerrainBlock::new(&data, origin, chunk_size)
         .map_err(|message| Error::invalid(&cdata_path, message))
@@ -425,8 +487,13 @@ fn load_terrain(
 /// Loads one model resource's LOD 0 geometry: `.model` → its own visual
 /// (not the `<parent>` LODs) → `.primitives`. `referenced_by` is a chunk that
 /// places it, for the error when the model itself is missing.
-fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<Model> {
-    let (model_path, bytes) = res_paths.read(name, referenced_by)?;
+fn load_model(
+    res_paths: &ResPaths,
+    name: &str,
+    referenced_by: &Path,
+    log: &ReadLog,
+) -> Result<Model> {
+    let (model_path, bytes) = read_resource(res_paths, name, referenced_by, log)?;
     let model_file = formats::parse_data_section(&bytes)
         .and_then(|root| model::parse_model(&root))
         .map_err(|e| e.in_source(&model_path, &bytes))?;
@@ -441,11 +508,11 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
             searched: res_paths.roots.clone(),
         });
     };
-    let mut visual = read_parsed(&visual_path, visual::parse_visual)?;
+    let mut visual = read_parsed(&visual_path, log, visual::parse_visual)?;
     visual
         .resolve_materials(&mut |mfm| {
             let path = res_paths.resolve(mfm)?;
-            read_section(&path).ok()
+            read_logged(&path, log).ok()
         })
         .map_err(|e| e.in_file(&visual_path))?;
 
@@ -454,7 +521,7 @@ fn load_model(res_paths: &ResPaths, name: &str, referenced_by: &Path) -> Result<
     let mut containers: BTreeMap<String, (PathBuf, Vec<u8>)> = BTreeMap::new();
     let mut section = |file: &str, section: &str| -> Result<(PathBuf, Vec<u8>, usize)> {
         if !containers.contains_key(file) {
-            let (path, bytes) = res_paths.read(file, &visual_path)?;
+            let (path, bytes) = read_resource(res_paths, file, &visual_path, log)?;
             containers.insert(file.to_string(), (path, bytes));
         }
         let (path, bytes) = &containers[file];

@@ -28,6 +28,16 @@ pub struct Scene {
     pub terrain: Vec<TerrainBlock>,
     /// What could not be loaded and was left out, in a stable order.
     pub problems: Vec<Problem>,
+    /// Every file the load read, with its content hash, sorted by path
+    /// (empty for a scene built in memory).
+    pub inputs: Vec<InputFile>,
+}
+
+/// A file a load read and the hash of the bytes it read.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct InputFile {
+    pub path: PathBuf,
+    pub digest: crate::digest::Digest,
 }
 
 /// How far, in chunks, geometry may reach beyond the space's chunk grid

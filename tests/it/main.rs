@@ -18,6 +18,7 @@ mod real_scene;
 mod render;
 mod robustness;
 mod shadow_write_real;
+mod shards;
 mod support;
 mod sweep;
 mod terrain_real;

@@ -140,6 +140,7 @@ impl World {
                 instances: Vec::new(),
                 terrain: Vec::new(),
                 problems: Vec::new(),
+                inputs: Vec::new(),
             },
             origin,
         }

@@ -1,0 +1,69 @@
+//! `shadowcull merge SETTINGS PARTIAL...`: checks the partial results of a
+//! distributed bake against this machine's inputs, ORs them, refines if
+//! asked, and writes the chunks and report exactly as `bake` does.
+
+use super::bake::{load_scene_told, write_results, BakeOptions, OutputArgs, Results};
+use super::progress::Reporter;
+use super::{load_settings, SettingsArgs};
+use anyhow::Result;
+use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::{self, shard};
+use shadowcull::formats::partial;
+use shadowcull::formats::resources::ResPaths;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Debug, clap::Args)]
+pub struct MergeArgs {
+    #[command(flatten)]
+    settings: SettingsArgs,
+    /// The partial results of every shard (`bake --shard I/N --partial
+    /// FILE`); a shard given twice must agree with itself.
+    #[arg(required = true, value_name = "PARTIAL")]
+    partials: Vec<PathBuf>,
+    #[command(flatten)]
+    output: OutputArgs,
+    #[command(flatten)]
+    options: BakeOptions,
+}
+
+pub fn run(args: MergeArgs) -> Result<()> {
+    let settings = load_settings(&args.settings)?;
+    let config = args.options.config(&settings, &args.settings.settings)?;
+    args.options.in_pool(|| {
+        let started = Instant::now();
+        let mut partials = Vec::new();
+        let mut damaged = Vec::new();
+        for path in &args.partials {
+            match partial::read(path) {
+                Ok(p) => partials.push((path.clone(), p)),
+                Err(err) => damaged.push(err.to_string()),
+            }
+        }
+        if !damaged.is_empty() {
+            return Err(shard::ShardError::Refused(damaged).into());
+        }
+        let reporter = Reporter::new(&args.options.progress);
+        let scene = load_scene_told(&settings, &args.options, &reporter)?;
+        bake::validate_lights(&scene, &config)?;
+        let world = BakeWorld::build(&scene, &reporter);
+        let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));
+        let command = format!("shadowcull bake {}", args.settings.settings.display());
+        let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command)?;
+        let units = partials.iter().flat_map(|(_, p)| &p.units);
+        let (rays, seconds) = units.fold((0u64, 0f64), |(r, s), u| (r + u.rays, s + u.seconds));
+        eprintln!(
+            "merging {} partial(s) of {} shards: {rays} rays traced in {seconds:.1} s (summed over the shards)",
+            partials.len(),
+            plan.shards
+        );
+        let result = bake::bake_from(&world, &config, &reporter, &merged)?;
+        let results = Results {
+            scene: &scene,
+            res_paths: &settings.res_paths,
+            config: &config,
+            started,
+        };
+        write_results(&args.output, &args.options, &results, result, &reporter)
+    })
+}
