@@ -316,11 +316,16 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
             }
         }
     }
-    (0..tiles)
-        .map(|t| {
-            let (_, x0, y0, x1, y1) = tile_rect(grid, t);
+    // Consuming `covered` lets the costs reuse its allocation (same size
+    // and alignment), so a grid at `light::MAX_TEXELS` (67 M tiles) needs
+    // one 537 MB buffer here, not two.
+    covered
+        .into_iter()
+        .enumerate()
+        .map(|(t, area)| {
+            let (_, x0, y0, x1, y1) = tile_rect(grid, t as u64);
             let texels = ((x1 - x0) * (y1 - y0)) as f64;
-            let full = (covered[t as usize] / texels).min(1.0);
+            let full = (area / texels).min(1.0);
             let per_ray = EMPTY_RAY_COST + (1.0 - EMPTY_RAY_COST) * full;
             (texels * samples * per_ray * COST_SCALE).round() as u64
         })

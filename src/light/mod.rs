@@ -45,10 +45,16 @@ pub use basis::orthonormal_basis;
 use crate::formats::bake_settings::{LightKind, LightSettings};
 use glam::DVec3;
 
-/// Largest shadow map side, in texels.
-pub const MAX_SIDE: u64 = 65536;
-/// Largest number of texels of one light (all faces together).
-pub const MAX_TEXELS: u64 = 1 << 32;
+/// Largest shadow map side, in texels: a 0.1 m sun over a 10 km world
+/// (96×96 chunks, 116 870 × 111 968 texels) fits with room to spare.
+/// Texel coordinates are `u32` and linear indices `u64`, so both limits are
+/// far from any overflow.
+pub const MAX_SIDE: u64 = 1 << 18;
+/// Largest number of texels of one light (all faces together): 68.7 G rays,
+/// a distributed bake's size. What a grid allocates grows with its 32×32
+/// tiles, not its texels (a shard's plan keeps 8 bytes per tile: 537 MB at
+/// this limit).
+pub const MAX_TEXELS: u64 = 1 << 36;
 
 /// Cube faces of a point light, as `(axis, u, v)`; see the module docs.
 /// `u` and `v` are what `orthonormal_basis(axis)` returns (a test checks it),

@@ -287,18 +287,34 @@ fn empty_or_non_finite_worlds_are_errors() {
 #[test]
 fn oversized_grids_are_errors_that_say_what_to_change() {
     let light = directional(DVec3::NEG_Y, 1.0);
-    // 65536 texels on a side is the limit, and 65536² = 2^32 in total.
-    let grid = TexelGrid::new(&light, (DVec3::ZERO, DVec3::new(65536.0, 1.0, 65536.0))).unwrap();
-    assert_eq!((grid.width(), grid.height()), (65536, 65536));
+    // 2^18 = 262 144 texels on a side is the limit, and 2^18 squared = 2^36
+    // in total. Building a grid traces nothing, so the limit is cheap to hit.
+    assert_eq!((MAX_SIDE, MAX_TEXELS), (262_144, 68_719_476_736));
+    let far = DVec3::new(262144.0, 1.0, 262144.0);
+    let grid = TexelGrid::new(&light, (DVec3::ZERO, far)).unwrap();
+    assert_eq!((grid.width(), grid.height()), (262144, 262144));
     assert_eq!(grid.texel_count(), MAX_TEXELS);
-    assert_eq!(grid.texel_at(MAX_TEXELS - 1), Some((0, 65535, 65535)));
+    assert_eq!(grid.texel_at(MAX_TEXELS - 1), Some((0, 262143, 262143)));
+    assert_eq!(grid.texel_at(MAX_TEXELS), None);
+    // The far corner's ray lies where the convention puts it: u64 indices
+    // and u32 coordinates do not wrap at this size.
+    let ray = grid.ray(0, 262143, 262143);
+    let (u, v) = orthonormal_basis(DVec3::NEG_Y);
+    let lowest = |axis: DVec3| {
+        corners(DVec3::ZERO, far)
+            .map(|c| c.dot(axis))
+            .into_iter()
+            .fold(f64::INFINITY, f64::min)
+    };
+    assert!((ray.origin.dot(u) - (lowest(u) + 262143.5)).abs() < 1e-6);
+    assert!((ray.origin.dot(v) - (lowest(v) + 262143.5)).abs() < 1e-6);
 
-    let err = TexelGrid::new(&light, (DVec3::ZERO, DVec3::new(65536.5, 1.0, 10.0))).unwrap_err();
+    let err = TexelGrid::new(&light, (DVec3::ZERO, DVec3::new(262144.5, 1.0, 10.0))).unwrap_err();
     assert!(
         matches!(
             err,
             GridError::TooLarge {
-                width: 65537,
+                width: 262145,
                 height: 10,
                 faces: 1,
                 ..
@@ -313,23 +329,23 @@ fn oversized_grids_are_errors_that_say_what_to_change() {
     assert!(matches!(err, GridError::TooLarge { .. }), "{err:?}");
 
     let s = |res| spot(DVec3::ZERO, DVec3::NEG_Y, 60.0, 0.1, 10.0, res);
-    assert!(TexelGrid::new(&s(65536), NO_WORLD).is_ok());
-    let err = TexelGrid::new(&s(65537), NO_WORLD).unwrap_err();
+    assert!(TexelGrid::new(&s(262144), NO_WORLD).is_ok());
+    let err = TexelGrid::new(&s(262145), NO_WORLD).unwrap_err();
     assert!(err.to_string().contains("lower <resolution>"), "{err}");
 
-    // Six faces: 6·26754² = 4 294 659 096 ≤ 2^32 < 6·26755² = 4 294 980 150.
+    // Six faces: 6·107019² = 68 718 398 166 ≤ 2^36 < 6·107020² = 68 719 682 400.
     let p = |res| point(DVec3::ZERO, 0.1, 10.0, res);
     assert_eq!(
-        TexelGrid::new(&p(26754), NO_WORLD).unwrap().texel_count(),
-        4_294_659_096
+        TexelGrid::new(&p(107019), NO_WORLD).unwrap().texel_count(),
+        68_718_398_166
     );
-    let err = TexelGrid::new(&p(26755), NO_WORLD).unwrap_err();
+    let err = TexelGrid::new(&p(107020), NO_WORLD).unwrap_err();
     assert!(
         matches!(
             err,
             GridError::TooLarge {
                 faces: 6,
-                width: 26755,
+                width: 107020,
                 ..
             }
         ),

@@ -115,7 +115,7 @@ pub fn light_view_from(
     // front_hit does not classify: the passes play no part.
     let rays_of_light = setup.rays(&world, config);
 
-    // At most 6 × 65536 columns: fits u64 arithmetic with room to spare.
+    // At most 6 × 2^18 columns (`light::MAX_SIDE`): u64 arithmetic has room to spare.
     let native_w = grid.faces() as u64 * grid.width() as u64;
     let native_h = grid.height() as u64;
     let (width, height) = fit((native_w, native_h), (max_w, max_h));

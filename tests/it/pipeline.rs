@@ -267,16 +267,26 @@ fn errors_give_line_and_column() {
 
 #[test]
 fn every_light_is_validated_before_any_is_traced() {
-    // The issue: a spot of 8192² (67 M rays) then a point of 65536² (6 ×
-    // 4 G texels, over the limit) traced the spot, then failed.
+    // The issue: a spot of 8192² (67 M rays) then a light over the grid
+    // limits traced the spot, then failed. The last light here is a sun of
+    // 0.1 mm texels: millions per side, over `light::MAX_SIDE`.
     let dir = small();
     edit(dir.path(), SETTINGS_FILE, "\t64\t", "\t8192\t");
-    edit(dir.path(), SETTINGS_FILE, "\t32\t", "\t65536\t");
+    edit(
+        dir.path(),
+        SETTINGS_FILE,
+        "</lights>",
+        "<light><name>fine</name><type>directional</type>\
+         <direction>0 -1 0</direction><texelSize>0.0001</texelSize></light></lights>",
+    );
     let started = std::time::Instant::now();
     let out = run(&["bake", &settings(&dir), "--progress", "json"]);
     let stderr = text(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("light `point`"), "{stderr}");
+    assert!(
+        stderr.contains("light `fine`") && stderr.contains("raise <texelSize>"),
+        "{stderr}"
+    );
     assert!(
         !stderr.contains("\"tracing\"") && !stderr.contains("\"calibrating\""),
         "no ray may be traced: {stderr}"
