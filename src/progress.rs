@@ -30,6 +30,19 @@ pub enum Phase {
 }
 
 impl Phase {
+    /// Every phase, in the order a bake meets them.
+    pub const ALL: [Phase; 9] = [
+        Phase::Chunks,
+        Phase::Models,
+        Phase::Terrain,
+        Phase::BottomLevels,
+        Phase::TopLevel,
+        Phase::Calibrating,
+        Phase::Tracing,
+        Phase::Refining,
+        Phase::Writing,
+    ];
+
     /// The name in progress lines and JSON.
     pub fn name(self) -> &'static str {
         match self {

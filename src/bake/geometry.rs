@@ -6,7 +6,7 @@
 //! origin loses nothing), wound so the geometric normal points to the front
 //! face even for mirrored instances.
 
-use super::casters::{CasterTable, Owner};
+use super::casters::{CasterTable, Owner, PartCasters};
 use super::setup::{BakeWorld, Reach};
 use crate::scene::Scene;
 use crate::trace::{transform_box, TraceTriangle, MAX_COORDINATE};
@@ -75,6 +75,22 @@ fn degenerate(tri: &TraceTriangle) -> bool {
 }
 
 /// Group `group` of model part `part` of an instance, light-relative.
+/// Every group of one placed part, each under its caster id.
+fn push_part(scene: &Scene, part: &PartCasters, reference: DVec3, out: &mut FlatGeometry) {
+    for group in 0..scene.models[part.model].groups.len() {
+        let caster = part.first_caster + group as u32;
+        push_group(
+            scene,
+            part.instance,
+            part.model,
+            group,
+            caster,
+            reference,
+            out,
+        );
+    }
+}
+
 fn push_group(
     scene: &Scene,
     instance: usize,
@@ -159,20 +175,8 @@ pub fn reach_geometry(world: &BakeWorld, reach: &Reach, reference: DVec3) -> Fla
         .parts
         .par_iter()
         .map(|&p| {
-            let part = &world.parts[p as usize];
             let mut out = FlatGeometry::default();
-            for group in 0..scene.models[part.model].groups.len() {
-                let caster = part.first_caster + group as u32;
-                push_group(
-                    scene,
-                    part.instance,
-                    part.model,
-                    group,
-                    caster,
-                    reference,
-                    &mut out,
-                );
-            }
+            push_part(scene, &world.parts[p as usize], reference, &mut out);
             out
         })
         .collect();
@@ -225,18 +229,7 @@ fn flat_geometry(
                 reaches(min, max)
             });
             if in_reach {
-                for group in 0..model.groups.len() {
-                    let caster = part.first_caster + group as u32;
-                    push_group(
-                        scene,
-                        part.instance,
-                        part.model,
-                        group,
-                        caster,
-                        reference,
-                        &mut out,
-                    );
-                }
+                push_part(scene, part, reference, &mut out);
             }
             out
         })

@@ -13,34 +13,26 @@ use std::sync::atomic::{AtomicU8, Ordering};
 
 pub struct PhaseNamingAllocator;
 
-/// The phase in progress, as an index into [`PHASES`] (0: none yet).
+/// The phase in progress: 1 + its position in [`Phase::ALL`] (0: none
+/// yet).
 static CURRENT: AtomicU8 = AtomicU8::new(0);
-
-const PHASES: [Option<Phase>; 10] = [
-    None,
-    Some(Phase::Chunks),
-    Some(Phase::Models),
-    Some(Phase::Terrain),
-    Some(Phase::BottomLevels),
-    Some(Phase::TopLevel),
-    Some(Phase::Calibrating),
-    Some(Phase::Tracing),
-    Some(Phase::Refining),
-    Some(Phase::Writing),
-];
 
 /// Records the phase that has begun, for the out-of-memory message.
 pub fn entering(phase: Phase) {
-    if let Some(i) = PHASES.iter().position(|p| *p == Some(phase)) {
-        CURRENT.store(i as u8, Ordering::Relaxed);
+    if let Some(i) = Phase::ALL.iter().position(|p| *p == phase) {
+        CURRENT.store(i as u8 + 1, Ordering::Relaxed);
     }
+}
+
+fn current() -> Option<Phase> {
+    let slot = CURRENT.load(Ordering::Relaxed) as usize;
+    slot.checked_sub(1).and_then(|i| Phase::ALL.get(i)).copied()
 }
 
 /// Writes the message and exits without allocating (the heap is what
 /// failed) and without unwinding.
 fn out_of_memory(bytes: usize) -> ! {
-    let phase = PHASES[CURRENT.load(Ordering::Relaxed) as usize % PHASES.len()]
-        .map_or("starting", Phase::name);
+    let phase = current().map_or("starting", Phase::name);
     let mut buffer = [0u8; 320];
     let mut len = 0;
     for part in [
@@ -131,12 +123,9 @@ mod tests {
 
     #[test]
     fn every_phase_has_a_slot() {
-        for phase in PHASES.iter().flatten() {
-            entering(*phase);
-            assert_eq!(
-                PHASES[CURRENT.load(Ordering::Relaxed) as usize],
-                Some(*phase)
-            );
+        for phase in Phase::ALL {
+            entering(phase);
+            assert_eq!(current(), Some(phase));
         }
     }
 }
