@@ -496,14 +496,45 @@ fn plan_lists_every_light_and_max_memory_refuses_before_tracing() {
     );
 }
 
-/// `plan`'s estimates against `/usr/bin/time` of the same bake.
+/// `plan`'s estimates against `/usr/bin/time` of the same bake. Tests run
+/// in parallel on a shared machine, and the first run of a fresh binary
+/// pays for cold caches, so one plan against one bake measures the noise
+/// as much as the estimate: plan and bake alternate three times and the
+/// medians are compared, as the README's figures are.
 fn plan_within_a_factor_two(dir: &TempDir) {
+    let rounds: Vec<[f64; 4]> = (0..3).map(|_| plan_and_bake(dir)).collect();
+    let median = |field: usize| {
+        let mut values: Vec<f64> = rounds.iter().map(|r| r[field]).collect();
+        values.sort_by(f64::total_cmp);
+        values[values.len() / 2]
+    };
+    let (seconds, bytes) = (median(0), median(1));
+    let (measured_seconds, measured_bytes) = (median(2), median(3));
+    let time_ratio = seconds / measured_seconds.max(0.01);
+    let memory_ratio = bytes / measured_bytes;
+    eprintln!(
+        "medians of 3: plan {seconds:.2} s / measured {measured_seconds:.2} s; plan {bytes} B / measured {measured_bytes} B ({rounds:?})"
+    );
+    assert!(
+        (0.5..=2.0).contains(&time_ratio),
+        "time: plan {seconds} s, measured {measured_seconds} s (medians of {rounds:?})"
+    );
+    assert!(
+        (0.5..=2.0).contains(&memory_ratio),
+        "memory: plan {bytes} B, measured {measured_bytes} B (medians of {rounds:?})"
+    );
+}
+
+/// One plan and one timed bake: [estimated s, estimated B, measured s, measured B].
+fn plan_and_bake(dir: &TempDir) -> [f64; 4] {
     let out = run(&["plan", &settings(dir), "--json", "--quiet"]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
     let seconds = plan["estimated_seconds"].as_f64().unwrap();
     let bytes = plan["estimated_peak_bytes"].as_f64().unwrap();
     let target = dir.path().join("out");
+    // Every round writes every file, as the first did.
+    let _ = std::fs::remove_dir_all(&target);
     let timed = std::process::Command::new("/usr/bin/time")
         .args(["-f", "%e %M", env!("CARGO_BIN_EXE_shadowcull"), "bake"])
         .args([&settings(dir), "--quiet", "--out", target.to_str().unwrap()])
@@ -515,19 +546,7 @@ fn plan_within_a_factor_two(dir: &TempDir) {
     let mut fields = last.split_whitespace();
     let measured_seconds: f64 = fields.next().unwrap().parse().unwrap();
     let measured_bytes = fields.next().unwrap().parse::<f64>().unwrap() * 1024.0;
-    let time_ratio = seconds / measured_seconds.max(0.01);
-    let memory_ratio = bytes / measured_bytes;
-    eprintln!(
-        "plan {seconds:.2} s / measured {measured_seconds:.2} s; plan {bytes} B / measured {measured_bytes} B"
-    );
-    assert!(
-        (0.5..=2.0).contains(&time_ratio),
-        "time: plan {seconds} s, measured {measured_seconds} s"
-    );
-    assert!(
-        (0.5..=2.0).contains(&memory_ratio),
-        "memory: plan {bytes} B, measured {measured_bytes} B"
-    );
+    [seconds, bytes, measured_seconds, measured_bytes]
 }
 
 #[test]
