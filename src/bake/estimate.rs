@@ -6,14 +6,17 @@
 //! Time comes from a calibration on this machine and this world: each
 //! light's top level is built and a spread sample of its texel tiles is
 //! traced; the light's rays divided by the sample's ray rate is its
-//! tracing time. Memory is what the process holds once the world is
+//! tracing time. A bake that follows its plan ([`Plan`] is a
+//! [`GridSource`]) keeps what the sample proved and traces only the other
+//! tiles, so calibrating costs a bake nothing but the top levels' second
+//! build. Memory is what the process holds once the world is
 //! loaded (the caller measures it) plus, for the largest light, its top
 //! level and the tracing threads' working sets, plus the masks and every
 //! chunk file's old and new bytes held for the write.
 
 use super::setup::{BakeWorld, LightSetup};
-use super::trace_light::CasterSet;
-use super::{BakeConfig, BakeError};
+use super::trace_light::{CasterSet, LightRays, RayCounter};
+use super::{BakeConfig, BakeError, GridSource};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -65,6 +68,64 @@ pub struct LightPlan {
     /// Why the light traces nothing, when it does not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub nothing_to_trace: Option<String>,
+    /// The calibration's tiles and what they proved, for the bake.
+    #[serde(skip)]
+    pub sample: Option<TracedSample>,
+}
+
+/// The tiles a light's calibration traced — every `every`-th of
+/// `tile_count`, at `supersample` — and the casters they proved useful.
+#[derive(Debug, Clone)]
+pub struct TracedSample {
+    pub every: u64,
+    pub tile_count: u64,
+    pub supersample: u32,
+    pub rays: u64,
+    pub useful: CasterSet,
+}
+
+impl TracedSample {
+    fn holds(&self, tile: u64) -> bool {
+        tile.is_multiple_of(self.every)
+    }
+}
+
+/// A bake after its plan: each light's grid is the calibration's answer OR
+/// the other tiles' (the answer over a partition of the tiles is the
+/// grid's, [`LightRays::trace_tiles`]). A light whose grid differs from
+/// the sample's is traced whole.
+impl GridSource for Plan {
+    fn grid(
+        &self,
+        setup: &LightSetup,
+        rays_of_light: &LightRays<'_>,
+        supersample: u32,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        let tile_count = rays_of_light.tile_count();
+        let sample = self
+            .lights
+            .get(setup.index)
+            .and_then(|light| light.sample.as_ref())
+            .filter(|s| s.tile_count == tile_count && s.supersample == supersample);
+        let Some(sample) = sample else {
+            return rays_of_light.trace_grid(supersample, rays_done);
+        };
+        rays_done.add(sample.rays);
+        let rest = (0..tile_count)
+            .into_par_iter()
+            .filter(|&t| !sample.holds(t));
+        rays_of_light
+            .trace_tiles(rest, supersample, rays_done)
+            .union(&sample.useful)
+    }
+
+    fn seconds_before(&self, index: usize) -> f64 {
+        self.lights
+            .get(index)
+            .filter(|light| light.sample.is_some())
+            .map_or(0.0, |light| light.sample_seconds)
+    }
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -145,6 +206,7 @@ fn plan_light(
         estimated_seconds: 0.0,
         estimated_bytes: 0,
         nothing_to_trace: None,
+        sample: None,
     };
     let counter = Counter::begin(progress, Phase::TopLevel, Some(&light.name), 1);
     let setup = match LightSetup::new(world, config, index) {
@@ -193,13 +255,22 @@ fn plan_light(
     );
     let started = Instant::now();
     let sample = (0..sampled_tiles).into_par_iter().map(|n| n * every);
-    rays.trace_tiles(sample, config.supersample, &counter);
+    let useful = rays.trace_tiles(sample, config.supersample, &counter);
     plan.sample_seconds = started.elapsed().as_secs_f64();
     plan.sample_rays = counter.done();
     counter.finish();
+    plan.sample = Some(TracedSample {
+        every,
+        tile_count: tiles,
+        supersample: config.supersample.max(1),
+        rays: plan.sample_rays,
+        useful,
+    });
     plan.rays_per_second = plan.sample_rays as f64 / plan.sample_seconds.max(1e-6);
+    // The bake keeps the sample's answer and traces the rest.
+    let left = plan.rays.saturating_sub(plan.sample_rays);
     plan.estimated_seconds =
-        setup.reach_seconds + setup.top_seconds + plan.rays as f64 / plan.rays_per_second;
+        setup.reach_seconds + setup.top_seconds + left as f64 / plan.rays_per_second;
     Ok(plan)
 }
 
@@ -239,6 +310,51 @@ pub fn human_bytes(bytes: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::formats::resources::ResPaths;
+    use crate::progress::Silent;
+    use crate::scene::{load_scene, LoadConfig};
+
+    /// The plan's calibration tiles are not traced again by the bake that
+    /// follows it ([`GridSource`] for [`Plan`]): its masks must be those of
+    /// a bake that traces every tile, on every fixture, light kind and
+    /// supersampling.
+    #[test]
+    fn a_bake_after_its_plan_equals_a_bake_of_every_tile() {
+        for name in ["small", "village"] {
+            let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("fixtures/worlds")
+                .join(name);
+            let settings = crate::formats::read_bake_settings(&root.join("bake.xml")).unwrap();
+            let scene = load_scene(&LoadConfig {
+                res_paths: ResPaths::new(settings.res_paths.clone()),
+                space: settings.space.clone(),
+            })
+            .unwrap();
+            let world = BakeWorld::build(&scene, &Silent);
+            for supersample in [1, 2] {
+                let config = BakeConfig {
+                    supersample,
+                    ..BakeConfig::from_settings(&settings)
+                };
+                let plan = plan(&world, &config, Baseline::default(), &Silent).unwrap();
+                let sampled = plan.lights.iter().filter(|l| l.sample.is_some()).count();
+                assert_eq!(sampled, config.lights.len(), "{name}: every light sampled");
+                assert!(
+                    plan.lights.iter().all(|l| l.sample_rays < l.rays),
+                    "{name}: a sample, not the grid"
+                );
+                let after_plan = super::super::bake_from(&world, &config, &Silent, &plan).unwrap();
+                let whole = super::super::bake_world(&world, &config, &Silent).unwrap();
+                assert_eq!(
+                    after_plan.masks, whole.masks,
+                    "{name} at supersample {supersample}"
+                );
+                for (a, b) in after_plan.lights.iter().zip(&whole.lights) {
+                    assert_eq!(a.rays, b.rays);
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_sample_stride_spreads_over_columns() {

@@ -278,6 +278,13 @@ pub trait GridSource: Sync {
         supersample: u32,
         rays_done: &dyn RayCounter,
     ) -> CasterSet;
+
+    /// Seconds already spent tracing part of light `index`'s grid before
+    /// the bake (the plan's calibration tiles), counted in its report so
+    /// its ray rate stays honest.
+    fn seconds_before(&self, _index: usize) -> f64 {
+        0.0
+    }
 }
 
 /// Traces every texel of the grid.
@@ -485,7 +492,7 @@ fn bake_light_from(
         }
         useful
     };
-    let trace_seconds = trace_started.elapsed().as_secs_f64();
+    let trace_seconds = trace_started.elapsed().as_secs_f64() + source.seconds_before(index);
     let mut kept = CasterSet::new(world.casters.len());
     for (id, caster) in world.casters.casters.iter().enumerate() {
         if !caster.receiver_only && useful.contains(id as u32) {
@@ -500,7 +507,10 @@ fn bake_light_from(
         kind: light.kind.type_name(),
         rays,
         refine_rays,
-        seconds: setup.reach_seconds + setup.top_seconds + started.elapsed().as_secs_f64(),
+        seconds: setup.reach_seconds
+            + setup.top_seconds
+            + started.elapsed().as_secs_f64()
+            + source.seconds_before(index),
         geometry_seconds: setup.reach_seconds,
         bvh_seconds: setup.top_seconds,
         trace_seconds,

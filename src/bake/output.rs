@@ -6,18 +6,30 @@ use super::{BakeResult, LightReport, Skipped};
 use crate::formats::chunk::InstanceKind;
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
+use crate::formats::Section;
 use crate::scene::Scene;
 use crate::{Error, Result};
+use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
 /// The masks of one chunk, ready for `shadow_write`.
 pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkShadows {
+    chunk_shadows_of(scene, &result.casters, chunk, |id| result.masks[id])
+}
+
+/// [`chunk_shadows`] with each caster's mask from `mask_of`.
+fn chunk_shadows_of(
+    scene: &Scene,
+    casters: &CasterTable,
+    chunk: usize,
+    mask_of: impl Fn(usize) -> u32,
+) -> ChunkShadows {
     let chunk = &scene.chunks[chunk];
     let mut instances: Vec<Option<InstanceShadow>> = vec![None; chunk.instance_elements];
     for index in chunk.instances.clone() {
         let instance = &scene.instances[index];
-        let Some(first) = result.casters.first_of_instance[index] else {
+        let Some(first) = casters.first_of_instance[index] else {
             continue;
         };
         let mut caster = first as usize;
@@ -29,7 +41,7 @@ pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkS
             for geometries in &scene.models[model].layout {
                 let mut render_set = Vec::new();
                 for &groups in geometries {
-                    let masks = result.masks[caster..caster + groups].to_vec();
+                    let masks: Vec<u32> = (caster..caster + groups).map(&mask_of).collect();
                     caster += groups;
                     shadow.mask |= masks.iter().fold(0, |a, b| a | b);
                     render_set.push(masks);
@@ -43,23 +55,8 @@ pub fn chunk_shadows(scene: &Scene, result: &BakeResult, chunk: usize) -> ChunkS
     }
     let terrain = chunk
         .terrain
-        .map(|block| result.masks[result.casters.of_block[block] as usize]);
+        .map(|block| mask_of(casters.of_block[block] as usize));
     ChunkShadows { instances, terrain }
-}
-
-/// Puts back the bits this bake did not decide (lights of other settings
-/// files, or left out by `--light`) from the chunk files' existing
-/// `<shadow>`s, so a bake of some lights never clobbers the others.
-pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
-    let keep = !result.baked_bits;
-    if keep == 0 {
-        return Ok(());
-    }
-    let old = masks_from_chunks(scene, &result.casters)?;
-    for (mask, old) in result.masks.iter_mut().zip(old) {
-        *mask |= old & keep;
-    }
-    Ok(())
 }
 
 /// The masks the chunk files hold now, per caster id: per group where an
@@ -67,36 +64,66 @@ pub fn keep_other_bits(scene: &Scene, result: &mut BakeResult) -> Result<()> {
 /// every group; 0 where there is none, and for receiver-only instances. A
 /// chunk that cannot be read back is an error naming it.
 pub fn masks_from_chunks(scene: &Scene, casters: &CasterTable) -> Result<Vec<u32>> {
+    let per_chunk: Vec<Vec<(u32, u32)>> = scene
+        .chunks
+        .par_iter()
+        .map(|chunk| chunk_masks(scene, casters, chunk))
+        .collect::<Result<_>>()?;
     let mut masks = vec![0u32; casters.casters.len()];
-    for chunk in &scene.chunks {
-        let bytes = resources::read_file(&chunk.file)?;
-        let old = crate::formats::parse_data_section(&bytes)
-            .and_then(|root| shadow_write::read_chunk_shadows(&root))
-            .map_err(|e| e.in_source(&chunk.file, &bytes))?;
-        for index in chunk.instances.clone() {
-            let instance = &scene.instances[index];
-            let (Some(first), Some(Some(shadow))) = (
-                casters.first_of_instance[index],
-                old.instances.get(instance.index),
-            ) else {
-                continue;
+    for (id, mask) in per_chunk.into_iter().flatten() {
+        masks[id as usize] = mask;
+    }
+    Ok(masks)
+}
+
+/// One chunk file's masks now, as (caster id, mask) pairs.
+fn chunk_masks(
+    scene: &Scene,
+    casters: &CasterTable,
+    chunk: &crate::scene::Chunk,
+) -> Result<Vec<(u32, u32)>> {
+    let bytes = resources::read_file(&chunk.file)?;
+    let root =
+        crate::formats::parse_data_section(&bytes).map_err(|e| e.in_source(&chunk.file, &bytes))?;
+    old_masks(scene, casters, chunk, &bytes, &root)
+}
+
+/// The masks the `<shadow>`s of `root` (the chunk file `bytes`, parsed)
+/// hold, as (caster id, mask) pairs; see [`masks_from_chunks`].
+fn old_masks(
+    scene: &Scene,
+    casters: &CasterTable,
+    chunk: &crate::scene::Chunk,
+    bytes: &[u8],
+    root: &Section,
+) -> Result<Vec<(u32, u32)>> {
+    let old =
+        shadow_write::read_chunk_shadows(root).map_err(|e| e.in_source(&chunk.file, bytes))?;
+    let mut masks = Vec::new();
+    for index in chunk.instances.clone() {
+        let instance = &scene.instances[index];
+        let (Some(first), Some(Some(shadow))) = (
+            casters.first_of_instance[index],
+            old.instances.get(instance.index),
+        ) else {
+            continue;
+        };
+        if !instance.casts_shadow {
+            continue;
+        }
+        let ids = first..first + instance_casters(scene, instance) as u32;
+        let groups: Vec<u32> = shadow.groups().collect();
+        for (n, id) in ids.clone().enumerate() {
+            let mask = if groups.len() == ids.len() {
+                groups[n]
+            } else {
+                shadow.mask
             };
-            if !instance.casts_shadow {
-                continue;
-            }
-            let ids = first as usize..first as usize + instance_casters(scene, instance);
-            let groups: Vec<u32> = shadow.groups().collect();
-            for (n, id) in ids.clone().enumerate() {
-                masks[id] = if groups.len() == ids.len() {
-                    groups[n]
-                } else {
-                    shadow.mask
-                };
-            }
+            masks.push((id, mask));
         }
-        if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
-            masks[casters.of_block[block] as usize] = mask;
-        }
+    }
+    if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
+        masks.push((casters.of_block[block], mask));
     }
     Ok(masks)
 }
@@ -125,43 +152,94 @@ pub struct ChunkOutput {
 /// written: a failure in one chunk leaves every file untouched.
 /// `out_dir`: write under it at the path relative to the chunk's res root
 /// instead of in place.
+///
+/// Puts back, in `result` too, the bits this bake did not decide (lights
+/// of other settings files, or left out by `--light`) from the chunk files'
+/// existing `<shadow>`s, so a bake of some lights never clobbers the
+/// others. Each chunk file is read and parsed once for both.
 pub fn chunk_outputs(
+    scene: &Scene,
+    result: &mut BakeResult,
+    res_paths: &ResPaths,
+    out_dir: Option<&Path>,
+) -> Result<Vec<ChunkOutput>> {
+    let made: Vec<(ChunkOutput, Vec<(u32, u32)>)> = {
+        let result = &*result;
+        // Chunks are independent; collecting keeps their order, and the
+        // first error in chunk order is the one reported, as a loop would.
+        scene
+            .chunks
+            .par_iter()
+            .enumerate()
+            .map(|(index, chunk)| chunk_output(scene, result, res_paths, out_dir, index, chunk))
+            .collect::<Result<_>>()?
+    };
+    let mut outputs = Vec::with_capacity(made.len());
+    for (output, kept) in made {
+        for (id, mask) in kept {
+            result.masks[id as usize] = mask;
+        }
+        outputs.push(output);
+    }
+    Ok(outputs)
+}
+
+/// One chunk's output, and the masks it holds where they differ from
+/// `result`'s (bits kept from the file).
+fn chunk_output(
     scene: &Scene,
     result: &BakeResult,
     res_paths: &ResPaths,
     out_dir: Option<&Path>,
-) -> Result<Vec<ChunkOutput>> {
-    let mut outputs = Vec::with_capacity(scene.chunks.len());
-    for (index, chunk) in scene.chunks.iter().enumerate() {
-        let original = resources::read_file(&chunk.file)?;
-        let bytes = shadow_write::write_shadows(&original, &chunk_shadows(scene, result, index))
-            .map_err(|e| e.in_file(&chunk.file))?;
-        let target = match out_dir {
-            None => chunk.file.clone(),
-            Some(dir) => {
-                let (_, relative) = res_paths.relative(&chunk.file).ok_or_else(|| {
-                    Error::invalid(
-                        &chunk.file,
-                        "is not under any res path, so it has no place under --out",
-                    )
-                })?;
-                dir.join(relative)
+    index: usize,
+    chunk: &crate::scene::Chunk,
+) -> Result<(ChunkOutput, Vec<(u32, u32)>)> {
+    let original = resources::read_file(&chunk.file)?;
+    let root = crate::formats::parse_data_section(&original)
+        .map_err(|e| e.in_source(&chunk.file, &original))?;
+    let keep = !result.baked_bits;
+    let mut kept: Vec<(u32, u32)> = Vec::new();
+    if keep != 0 {
+        for (id, old) in old_masks(scene, &result.casters, chunk, &original, &root)? {
+            let mask = result.masks[id as usize] | (old & keep);
+            if mask != result.masks[id as usize] {
+                kept.push((id, mask));
             }
-        };
-        let changed = match out_dir {
-            None => bytes != original,
-            Some(_) => resources::read_file(&target)
-                .map(|old| old != bytes)
-                .unwrap_or(true),
-        };
-        outputs.push(ChunkOutput {
-            source: chunk.file.clone(),
-            target,
-            bytes,
-            changed,
-        });
+        }
     }
-    Ok(outputs)
+    kept.sort_unstable();
+    let mask_of = |id: usize| match kept.binary_search_by_key(&(id as u32), |k| k.0) {
+        Ok(at) => kept[at].1,
+        Err(_) => result.masks[id],
+    };
+    let shadows = chunk_shadows_of(scene, &result.casters, index, mask_of);
+    let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
+        .map_err(|e| e.in_file(&chunk.file))?;
+    let target = match out_dir {
+        None => chunk.file.clone(),
+        Some(dir) => {
+            let (_, relative) = res_paths.relative(&chunk.file).ok_or_else(|| {
+                Error::invalid(
+                    &chunk.file,
+                    "is not under any res path, so it has no place under --out",
+                )
+            })?;
+            dir.join(relative)
+        }
+    };
+    let changed = match out_dir {
+        None => bytes != original,
+        Some(_) => resources::read_file(&target)
+            .map(|old| old != bytes)
+            .unwrap_or(true),
+    };
+    let output = ChunkOutput {
+        source: chunk.file.clone(),
+        target,
+        bytes,
+        changed,
+    };
+    Ok((output, kept))
 }
 
 /// Writes the outputs that change something, as one batch

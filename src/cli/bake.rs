@@ -164,8 +164,9 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
         reporter.say(&line);
     }
     super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
-    let result =
-        bake::bake_world(&world, config, &reporter).with_context(|| file.display().to_string())?;
+    // The plan's calibration tiles are not traced twice.
+    let result = bake::bake_from(&world, config, &reporter, &plan)
+        .with_context(|| file.display().to_string())?;
     let results = Results {
         scene: &scene,
         res_paths: &settings.res_paths,
@@ -194,9 +195,9 @@ pub(super) fn write_results(
     reporter: &Reporter,
 ) -> Result<()> {
     let scene = results.scene;
-    output::keep_other_bits(scene, &mut result)?;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
-    let outputs = output::chunk_outputs(scene, &result, &res_paths, output_args.out.as_deref())?;
+    let outputs =
+        output::chunk_outputs(scene, &mut result, &res_paths, output_args.out.as_deref())?;
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
     let written = if options.pipeline.writes_nothing() {
         Vec::new()

@@ -129,19 +129,41 @@ pub fn write_shadows(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>,
     }
 }
 
+/// [`write_shadows`] for a caller that has parsed `original` already
+/// (`root`): text XML is not parsed again before its edits.
+pub fn write_shadows_parsed(
+    original: &[u8],
+    root: &Section,
+    shadows: &ChunkShadows,
+) -> Result<Vec<u8>, FormatError> {
+    if original.starts_with(&packed_xml::MAGIC) {
+        return write_packed(original, shadows);
+    }
+    let out = edit_text(original, root, shadows)?;
+    verify(&out, shadows)?;
+    Ok(out)
+}
+
 /// The chunk's bytes with every `<shadow>` the bake writes set to 0: what
 /// a bake's answer depends on (it ignores old masks), so a fingerprint of
 /// these bytes (`bake::shard`) stays the same when a bake or a merge
-/// writes its masks into the chunk.
+/// writes its masks into the chunk. `root` is `original` already parsed
+/// (loading has it): text XML is edited from it without parsing again, and
+/// the result is only hashed, never written, so it is not read back.
 pub fn without_masks(
     original: &[u8],
+    root: &Section,
     chunk: &super::chunk::ChunkFile,
 ) -> Result<Vec<u8>, FormatError> {
     let shadows = ChunkShadows {
         instances: vec![Some(InstanceShadow::default()); chunk.instances.len()],
         terrain: chunk.terrain.as_ref().map(|_| 0),
     };
-    write_shadows(original, &shadows)
+    if original.starts_with(&packed_xml::MAGIC) {
+        write_packed(original, &shadows)
+    } else {
+        edit_text(original, root, &shadows)
+    }
 }
 
 /// Reads back the direct `<shadow>` of an instance element: `None` when it
@@ -234,10 +256,19 @@ enum Masks<'a> {
 }
 
 fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
-    let root = xml::parse(original)?;
+    write_shadows_parsed(original, &xml::parse(original)?, shadows)
+}
+
+/// `original` with `shadows` put in (see [`write_shadows`]); `root` is
+/// `original` parsed.
+fn edit_text(
+    original: &[u8],
+    root: &Section,
+    shadows: &ChunkShadows,
+) -> Result<Vec<u8>, FormatError> {
     let eol = line_ending(original);
     let mut edits: Vec<(Range<usize>, Vec<u8>)> = Vec::new();
-    for (element, masks) in targets(&root, shadows)? {
+    for (element, masks) in targets(root, shadows)? {
         element_edits(original, element, masks, eol, &mut edits)?;
     }
     edits.sort_by_key(|(range, _)| (range.start, range.end));
@@ -258,7 +289,6 @@ fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, Format
         pos = range.end;
     }
     out.extend_from_slice(original.get(pos..).unwrap_or(&[]));
-    verify(&out, shadows)?;
     Ok(out)
 }
 
@@ -1108,5 +1138,43 @@ mod tests {
             bytes[i] ^= 1 << rng.below(8);
             let _ = write_shadows(&bytes, &shadows);
         }
+    }
+
+    #[test]
+    fn without_masks_is_the_file_with_zero_masks_and_survives_a_write() {
+        let chunk_of =
+            |text: &[u8]| super::super::chunk::parse(&xml::parse(text).unwrap()).unwrap();
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[5, 2]]))],
+            terrain: Some(3),
+        };
+        let written = write_str(BASIC, &shadows);
+        for text in [BASIC.as_bytes(), written.as_bytes()] {
+            let chunk = chunk_of(text);
+            let root = xml::parse(text).unwrap();
+            let zeroed = ChunkShadows {
+                instances: vec![Some(InstanceShadow::default())],
+                terrain: Some(0),
+            };
+            assert_eq!(
+                without_masks(text, &root, &chunk).unwrap(),
+                write_shadows(text, &zeroed).unwrap()
+            );
+        }
+        let before = without_masks(
+            BASIC.as_bytes(),
+            &xml::parse(BASIC.as_bytes()).unwrap(),
+            &chunk_of(BASIC.as_bytes()),
+        );
+        let after = without_masks(
+            written.as_bytes(),
+            &xml::parse(written.as_bytes()).unwrap(),
+            &chunk_of(written.as_bytes()),
+        );
+        assert_eq!(
+            before.unwrap(),
+            after.unwrap(),
+            "writing masks leaves the fingerprinted bytes alone"
+        );
     }
 }

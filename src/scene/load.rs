@@ -398,10 +398,9 @@ fn read_parsed<T>(
 /// chunk as an input.
 fn read_chunk(path: &Path, log: &ReadLog) -> Result<ChunkFile> {
     let bytes = resources::read_file(path)?;
-    let chunk = formats::parse_data_section(&bytes)
-        .and_then(|root| chunk::parse(&root))
-        .map_err(|e| e.in_source(path, &bytes))?;
-    match shadow_write::without_masks(&bytes, &chunk) {
+    let root = formats::parse_data_section(&bytes).map_err(|e| e.in_source(path, &bytes))?;
+    let chunk = chunk::parse(&root).map_err(|e| e.in_source(path, &bytes))?;
+    match shadow_write::without_masks(&bytes, &root, &chunk) {
         Ok(canonical) => log.record(path, &canonical),
         Err(_) => log.record(path, &bytes),
     }

@@ -257,11 +257,11 @@ fn run_case(corpus: &Corpus, config: &BakeConfig, limit: Duration) -> Result<Sta
                 return 0;
             };
             let _ = shadowcull::inspect::inspect(&scene).to_text();
-            let Ok(result) = bake::bake(&scene, &config, &Silent) else {
+            let Ok(mut result) = bake::bake(&scene, &config, &Silent) else {
                 return 1;
             };
             let _ = output::report(&scene, &result);
-            match output::chunk_outputs(&scene, &result, &res_paths, Some(&out)) {
+            match output::chunk_outputs(&scene, &mut result, &res_paths, Some(&out)) {
                 Ok(outputs) if output::write_outputs(&outputs).is_ok() => 3,
                 _ => 2,
             }

@@ -646,9 +646,9 @@ fn bake_out_refuses_a_read_only_target_before_writing_any() {
     let settings = read_bake_settings(&dir.path().join(SETTINGS_FILE)).unwrap();
     let mut config = BakeConfig::from_settings(&settings);
     config.lights.truncate(1);
-    let result = bake::bake(&scene, &config, &Silent).unwrap();
+    let mut result = bake::bake(&scene, &config, &Silent).unwrap();
     let res_paths = ResPaths::new(settings.res_paths);
-    let outputs = output::chunk_outputs(&scene, &result, &res_paths, Some(out.path())).unwrap();
+    let outputs = output::chunk_outputs(&scene, &mut result, &res_paths, Some(out.path())).unwrap();
     // An old output, locked.
     let locked = out.path().join(SPACE).join("ffffffffo.chunk");
     std::fs::create_dir_all(locked.parent().unwrap()).unwrap();
