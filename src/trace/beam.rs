@@ -48,66 +48,73 @@ impl Beam {
     /// running one), for boxes within `magnitude` of the origin of their
     /// frame. `None` when the packet is empty, not finite or too wide.
     pub(crate) fn new(rays: impl Iterator<Item = TraceRay> + Clone, magnitude: f32) -> Option<Beam> {
+        // Any axis inside the cone of directions will do: their sum.
         let mut sum = DVec3::ZERO;
         let mut origin_max = 0.0f32;
-        let mut any = false;
         for ray in rays.clone() {
             if !(ray.origin.is_finite() && ray.direction.is_finite()) || ray.t_min.is_nan() {
                 return None;
             }
-            sum += ray.direction.as_dvec3().normalize_or_zero();
+            sum += ray.direction.as_dvec3();
             origin_max = origin_max.max(ray.origin.abs().max_element());
-            any = true;
         }
         let axis = sum.try_normalize()?;
-        if !any {
-            return None;
-        }
         let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
-        // Where the box test's f32 dot products may err: a few ulps of
-        // the largest coordinate involved.
-        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
         let (u, v) = perpendiculars(axis);
-        let mut normals = [Vec3::ZERO; 6];
-        let mut limits = [0.0f32; 6];
-        for (k, side) in [u, -u, v, -v].into_iter().enumerate() {
-            let mut slope = f64::NEG_INFINITY;
-            for ray in rays.clone() {
-                let d = ray.direction.as_dvec3();
-                let along = axis.dot(d);
-                if !(along > MIN_COSINE * d.length()) {
-                    return None;
-                }
-                slope = slope.max(side.dot(d) / along);
-            }
-            let slope = slope + SLOPE_MARGIN * (1.0 + slope.abs());
-            let normal = (side - axis * slope).as_vec3();
-            let n = normal.as_dvec3();
-            let mut limit = f64::NEG_INFINITY;
-            for ray in rays.clone() {
-                // n · d <= 0 by the slope margin; max(0, ·) keeps the
-                // bound honest should it not be.
-                let drift = n.dot(ray.direction.as_dvec3()).max(0.0);
-                let reach = if drift > 0.0 {
-                    f64::from(node_t_max(ray.t_max, pad)) * drift
-                } else {
-                    0.0
-                };
-                limit = limit.max(n.dot(ray.origin.as_dvec3()) + reach);
-            }
-            normals[k] = normal;
-            limits[k] = loosen(limit, n, pad, scale);
-        }
-        // Caps along the axis: from the nearest start to the farthest end.
+        // Each ray's direction and origin in the (u, v, axis) frame: the
+        // side planes' slopes are the extreme ratios u·d / axis·d.
+        let mut slope_max = [f64::NEG_INFINITY; 4];
         let mut near = f64::INFINITY;
         let mut far = f64::NEG_INFINITY;
-        for ray in rays {
-            let along = axis.dot(ray.direction.as_dvec3());
+        for ray in rays.clone() {
+            let d = ray.direction.as_dvec3();
+            let along = axis.dot(d);
+            if !(along > 0.0 && along * along > MIN_COSINE * MIN_COSINE * d.length_squared()) {
+                return None;
+            }
+            let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
+            for (m, s) in slope_max.iter_mut().zip([su, -su, sv, -sv]) {
+                *m = m.max(s);
+            }
             let o = axis.dot(ray.origin.as_dvec3());
             let t_min = f64::from(ray.t_min);
             near = near.min(o + if t_min.is_finite() { t_min * along } else { f64::NEG_INFINITY });
             far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
         }
+        // Normals widened by the slope margin and rounded to f32: n · d < 0
+        // for every ray still (the margin exceeds the rounding), so each
+        // ray's points stay at or below its origin's n · o.
+        let sides = [u, -u, v, -v];
+        let mut normals = [Vec3::ZERO; 6];
+        let mut n64 = [DVec3::ZERO; 4];
+        for k in 0..4 {
+            let slope = slope_max[k] + SLOPE_MARGIN * (1.0 + slope_max[k].abs());
+            normals[k] = (sides[k] - axis * slope).as_vec3();
+            n64[k] = normals[k].as_dvec3();
+        }
+        let mut side_max = [f64::NEG_INFINITY; 4];
+        for ray in rays {
+            let o = ray.origin.as_dvec3();
+            // A segment starting behind its origin (t_min < 0) reaches
+            // back past n · o by |t_min| · |n · d|.
+            let back = f64::from(ray.t_min.min(0.0));
+            for (m, n) in side_max.iter_mut().zip(&n64) {
+                let behind = if back < 0.0 {
+                    back * n.dot(ray.direction.as_dvec3()).min(0.0) * (1.0 + 1e-9)
+                } else {
+                    0.0
+                };
+                *m = m.max(n.dot(o) + behind);
+            }
+        }
+        // Where the box test's f32 dot products may err: a few ulps of
+        // the largest coordinate involved.
+        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let mut limits = [0.0f32; 6];
+        for k in 0..4 {
+            limits[k] = loosen(side_max[k], n64[k], pad, scale);
+        }
+        // Caps along the axis: from the nearest start to the farthest end.
         let axis32 = axis.as_vec3();
         normals[4] = -axis32;
         limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);

@@ -1351,6 +1351,27 @@ mod two_level {
     }
 
     #[test]
+    fn segments_reaching_behind_their_origins_match_single_rays() {
+        instanced_tracer_check(|tracer, _| {
+            let mut seen = 0;
+            for d in [Vec3::new(0.4, -1.0, 0.1), Vec3::new(-1.0, -0.3, 0.5)] {
+                // Origins under the surface, segments from 30 m behind.
+                let mut rays = parallel_tile(Vec3::new(5.0, -3.0, 2.0), d, 8, 0.7, 40.0);
+                for r in &mut rays {
+                    r.t_min = -30.0;
+                }
+                seen += assert_packets_agree(tracer, &rays, 64);
+                let mut rays = frustum_tile(Vec3::new(-8.0, 1.0, 4.0), d, 8, 0.3, -25.0);
+                for r in &mut rays {
+                    r.t_max = 30.0;
+                }
+                seen += assert_packets_agree(tracer, &rays, 64);
+            }
+            assert!(seen > 100, "{seen}");
+        });
+    }
+
+    #[test]
     fn packets_with_unusable_or_spread_rays_fall_back_exactly() {
         instanced_tracer_check(|tracer, _| {
             let mut rays = parallel_tile(Vec3::new(3.0, 30.0, -7.0), Vec3::NEG_Y, 8, 0.5, 200.0);
