@@ -17,7 +17,7 @@
 //! every ray gets the hits of the single-ray traversal.
 
 use super::boxtree::PAD_EPSILONS;
-use super::TraceRay;
+use super::{ToModel, TraceRay};
 use glam::{DVec3, Vec3, Vec3A};
 use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 
@@ -120,6 +120,49 @@ impl Beam {
         limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
         normals[5] = axis32;
         limits[5] = loosen(far, axis32.as_dvec3(), pad, scale);
+        Some(Beam {
+            normals,
+            limits,
+            pad,
+        })
+    }
+
+    /// This beam mapped into an instance's model space, for rays mapped by
+    /// `to_model` (and rounded to f32 there) and boxes within `magnitude`
+    /// of the model's origin; `origin_max` bounds the mapped origins. A
+    /// plane n · x <= c becomes (Wᵀn) · y <= c + (Wᵀn) · offset for the
+    /// world-linear map W (y = L x + offset, W = L⁻¹). The model-space
+    /// padding covers the rounding of the mapped rays (a few ulps of the
+    /// model-space coordinates), as it does for the single-ray test;
+    /// `None` if the map is not finite.
+    pub(crate) fn to_model(
+        &self,
+        to_model: &ToModel,
+        magnitude: f32,
+        origin_max: f32,
+    ) -> Option<Beam> {
+        let (linear, offset) = to_model.parts();
+        let world = linear.inverse();
+        if !world.is_finite() {
+            return None;
+        }
+        let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
+        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let mut normals = [Vec3::ZERO; 6];
+        let mut limits = [0.0f32; 6];
+        for k in 0..6 {
+            let n = world.transpose() * self.normals[k].as_dvec3();
+            let n32 = n.as_vec3();
+            let limit = f64::from(self.limits[k]) + n.dot(offset);
+            if !n32.is_finite() {
+                return None;
+            }
+            normals[k] = n32;
+            // The error of the inverse, relative to the terms involved.
+            let l1 = n.abs().element_sum();
+            let inverse_error = 1e-12 * (limit.abs() + l1 * (scale + offset.abs().max_element()));
+            limits[k] = loosen(limit + inverse_error, n32.as_dvec3(), 2.0 * pad, scale);
+        }
         Some(Beam {
             normals,
             limits,

@@ -47,8 +47,15 @@ impl Frame {
         self.rays.clear();
         self.prepared.clear();
         self.lanes.clear();
+        let mut last: Option<(Vec3, PreparedRay)> = None;
         for (lane, ray) in rays {
-            let prepared = PreparedRay::new(&ray);
+            let prepared = match last {
+                Some((direction, like)) if same_bits(direction, ray.direction) => {
+                    like.with_direction_of(&ray)
+                }
+                _ => PreparedRay::new(&ray),
+            };
+            last = Some((ray.direction, prepared));
             if prepared.is_valid() {
                 self.rays.push(ray);
                 self.prepared.push(prepared);
@@ -88,7 +95,10 @@ impl Frame {
         self.order.extend((0..self.rays.len()).map(|i| i as u8));
         let prepared = &self.prepared;
         let key = |i: &u8| Lanes::axes_of(&prepared[*i as usize]);
-        self.order.sort_by_key(key);
+        let first = prepared.first().map(Lanes::axes_of);
+        if prepared.iter().any(|p| Some(Lanes::axes_of(p)) != first) {
+            self.order.sort_by_key(key);
+        }
         let mut start = 0;
         while start < self.order.len() {
             let axes = key(&self.order[start]);
@@ -242,13 +252,22 @@ impl TopLevel {
                 to_model,
             } => {
                 let bvh = &bottom.models[index as usize];
-                model.fill(
-                    light
-                        .rays
-                        .iter()
-                        .zip(&light.lanes)
-                        .map(|(r, &l)| (l, to_model.ray(r))),
-                );
+                let mut last: Option<(Vec3, Vec3)> = None;
+                model.fill(light.rays.iter().zip(&light.lanes).map(|(r, &l)| {
+                    let direction = match last {
+                        Some((light_direction, mapped)) if same_bits(light_direction, r.direction) => {
+                            mapped
+                        }
+                        _ => to_model.direction(r.direction),
+                    };
+                    last = Some((r.direction, direction));
+                    (l, to_model.ray_with(r, direction))
+                }));
+                let origin_max = model
+                    .rays
+                    .iter()
+                    .fold(0.0f32, |m, r| m.max(r.origin.abs().max_element()));
+                let model_beam = beam.to_model(&to_model, bvh.tree.magnitude, origin_max);
                 let mut relay = |lane: usize, hit: Hit| {
                     on_hit(
                         lane,
@@ -258,7 +277,7 @@ impl TopLevel {
                         },
                     )
                 };
-                bvh_packet(bvh, model, t_max, &mut relay);
+                bvh_packet(bvh, model, model_beam, t_max, &mut relay);
             }
             Entry::Block { block, caster } => {
                 // The top level's beam: its padding covers the tile
@@ -285,6 +304,11 @@ impl TopLevel {
     }
 }
 
+/// Bit-for-bit equality (so +0 and -0 differ, as they may in a shear).
+fn same_bits(a: Vec3, b: Vec3) -> bool {
+    a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)
+}
+
 /// The rays (lane, ray) that can still be hit: t_min <= running t_max.
 fn live<'a>(
     rays: impl Iterator<Item = (usize, TraceRay)> + 'a,
@@ -303,17 +327,19 @@ fn reach_of(frame: &Frame, t_max: &[f32]) -> f32 {
         .fold(f32::NEG_INFINITY, f32::max)
 }
 
-/// A model's bottom level for the packet's rays in model space.
+/// A model's bottom level for the packet's rays in model space, culled by
+/// `beam` (the packet's beam mapped into model space).
 fn bvh_packet(
     bvh: &Bvh,
     model: &mut Frame,
+    beam: Option<Beam>,
     t_max: &mut [f32],
     on_hit: &mut impl FnMut(usize, Hit) -> f32,
 ) {
     if model.is_empty() {
         return;
     }
-    let Some(mut beam) = model.beam(t_max, bvh.tree.magnitude) else {
+    let Some(mut beam) = beam else {
         for (i, ray) in model.rays.iter().enumerate() {
             let lane = model.lanes[i] as usize;
             t_max[lane] = bvh.hits_within(ray, t_max[lane], &mut |hit| on_hit(lane, hit));

@@ -93,6 +93,33 @@ impl PreparedRay {
         }
     }
 
+    /// [`PreparedRay::new`] of `ray`, whose direction is bit for bit the
+    /// one `self` was prepared from: the permutation and shear are pure
+    /// functions of the direction, so only the origin and range change
+    /// (rays of a directional light's tile share their direction).
+    #[inline]
+    pub(crate) fn with_direction_of(&self, ray: &TraceRay) -> PreparedRay {
+        if !self.valid {
+            return PreparedRay::new(ray);
+        }
+        let valid = ray.origin.is_finite() && !ray.t_min.is_nan() && !ray.t_max.is_nan();
+        if !valid {
+            return PreparedRay::new(ray);
+        }
+        let prepared = PreparedRay {
+            origin: ray.origin,
+            t_min: ray.t_min,
+            t_max: ray.t_max,
+            ..*self
+        };
+        debug_assert_eq!(
+            format!("{prepared:?}"),
+            format!("{:?}", PreparedRay::new(ray)),
+            "{ray:?}"
+        );
+        prepared
+    }
+
     pub(crate) fn is_valid(&self) -> bool {
         self.valid
     }
