@@ -208,8 +208,10 @@ impl TopLevel {
             self.entry_packet(bottom, entry, beam, light, model, t_max, on_hit);
             // Settled rays leave; the beam shrinks with the rays' reach.
             let settled = light.retain_live(t_max);
+            // Rebuilding costs a pass over the rays: only when the reach
+            // shrank by a tenth.
             let reach = reach_of(light, t_max);
-            if settled || reach < widest {
+            if settled || reach < 0.9 * widest {
                 if light.is_empty() {
                     return false;
                 }
