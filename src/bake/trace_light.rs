@@ -241,9 +241,10 @@ impl LightRays<'_> {
         for list in hits.iter_mut() {
             list.clear();
         }
-        self.tracer.for_each_packet_hit(traced, scratch, |lane, hit| {
-            self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
-        });
+        self.tracer
+            .for_each_packet_hit(traced, scratch, |lane, hit| {
+                self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
+            });
         for (list, &limit) in hits.iter_mut().zip(limits.iter()) {
             self.conclude(list, limit, &mut on_useful);
         }

@@ -47,7 +47,10 @@ impl Beam {
     /// The beam of `rays` (each with its own `[t_min, t_max]`, t_max the
     /// running one), for boxes within `magnitude` of the origin of their
     /// frame. `None` when the packet is empty, not finite or too wide.
-    pub(crate) fn new(rays: impl Iterator<Item = TraceRay> + Clone, magnitude: f32) -> Option<Beam> {
+    pub(crate) fn new(
+        rays: impl Iterator<Item = TraceRay> + Clone,
+        magnitude: f32,
+    ) -> Option<Beam> {
         // Any axis inside the cone of directions will do: their sum.
         let mut sum = DVec3::ZERO;
         let mut origin_max = 0.0f32;
@@ -78,7 +81,13 @@ impl Beam {
             }
             let o = axis.dot(ray.origin.as_dvec3());
             let t_min = f64::from(ray.t_min);
-            near = near.min(o + if t_min.is_finite() { t_min * along } else { f64::NEG_INFINITY });
+            near = near.min(
+                o + if t_min.is_finite() {
+                    t_min * along
+                } else {
+                    f64::NEG_INFINITY
+                },
+            );
             far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
         }
         // Normals widened by the slope margin and rounded to f32: n · d < 0

@@ -128,7 +128,11 @@ impl HeightGrid<'_> {
         on_hit: &mut impl FnMut(Hit) -> f32,
     ) -> f32 {
         let mut t_max = t_max;
-        for (tri, index) in self.cell_trace_triangles(cell, reference, caster).into_iter().flatten() {
+        for (tri, index) in self
+            .cell_trace_triangles(cell, reference, caster)
+            .into_iter()
+            .flatten()
+        {
             t_max = report_hit(prepared, &tri, index, t_max, on_hit);
         }
         t_max

@@ -10,7 +10,11 @@
 //!   parts and blocks in its reach; a ray enters an instance by its inverse
 //!   transform (`instance.rs`) with t kept in world metres;
 //! - [`Tracer`]: the top level through its trees, or the brute-force oracle
-//!   over the same entries with the same arithmetic (`brute.rs`).
+//!   over the same entries with the same arithmetic (`brute.rs`);
+//! - packets (`packet.rs`): a tile of coherent rays walks the trees once
+//!   under a padded beam (`beam.rs`), and the triangles it reaches are tested
+//!   eight rays at a time, then by the single-ray test for each ray kept, so
+//!   each ray's hits are the single-ray traversal's.
 //!
 //! Hits are decided by a watertight ray/triangle test with a consistent tie
 //! rule ([`intersect`]), so a ray exactly through an edge or vertex shared by

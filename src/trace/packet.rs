@@ -123,14 +123,10 @@ impl Frame {
 
     /// The beam of the live rays with their running t_max.
     fn beam(&self, t_max: &[f32], magnitude: f32) -> Option<Beam> {
-        let rays = self
-            .rays
-            .iter()
-            .zip(&self.lanes)
-            .map(|(r, &l)| TraceRay {
-                t_max: t_max[l as usize],
-                ..*r
-            });
+        let rays = self.rays.iter().zip(&self.lanes).map(|(r, &l)| TraceRay {
+            t_max: t_max[l as usize],
+            ..*r
+        });
         Beam::new(rays, magnitude)
     }
 
@@ -185,7 +181,10 @@ impl TopLevel {
         scratch: &mut PacketScratch,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
-        assert!(rays.len() <= PACKET_RAYS, "a packet holds at most {PACKET_RAYS} rays");
+        assert!(
+            rays.len() <= PACKET_RAYS,
+            "a packet holds at most {PACKET_RAYS} rays"
+        );
         let PacketScratch {
             light,
             model,
@@ -257,7 +256,9 @@ impl TopLevel {
                 let mut last: Option<(Vec3, Vec3)> = None;
                 model.fill(light.rays.iter().zip(&light.lanes).map(|(r, &l)| {
                     let direction = match last {
-                        Some((light_direction, mapped)) if same_bits(light_direction, r.direction) => {
+                        Some((light_direction, mapped))
+                            if same_bits(light_direction, r.direction) =>
+                        {
                             mapped
                         }
                         _ => to_model.direction(r.direction),
@@ -348,9 +349,10 @@ fn bvh_packet(
         }
         return;
     };
-    bvh.tree.visit_beam(&mut beam, model.direction(), |slot, _| {
-        let (tri, index) = bvh.slot(slot);
-        model.triangle(tri, index, t_max, on_hit);
-        true
-    });
+    bvh.tree
+        .visit_beam(&mut beam, model.direction(), |slot, _| {
+            let (tri, index) = bvh.slot(slot);
+            model.triangle(tri, index, t_max, on_hit);
+            true
+        });
 }

@@ -1123,7 +1123,11 @@ mod two_level {
         let offer = |lane: usize, h: Hit, out: &mut Vec<HitList>| {
             let list = &mut out[lane];
             list.push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
-            list.sort_by(|a, b| f32::from_bits(a.0).total_cmp(&f32::from_bits(b.0)).then(a.cmp(b)));
+            list.sort_by(|a, b| {
+                f32::from_bits(a.0)
+                    .total_cmp(&f32::from_bits(b.0))
+                    .then(a.cmp(b))
+            });
             if list.len() >= 2 {
                 f32::from_bits(list[1].0)
             } else {
@@ -1192,7 +1196,13 @@ mod two_level {
 
     /// A spot or point light's tile: `n`×`n` rays from `origin` through a
     /// square of half-angle tangent `spread` around `forward`.
-    fn frustum_tile(origin: Vec3, forward: Vec3, n: usize, spread: f32, t_min: f32) -> Vec<TraceRay> {
+    fn frustum_tile(
+        origin: Vec3,
+        forward: Vec3,
+        n: usize,
+        spread: f32,
+        t_min: f32,
+    ) -> Vec<TraceRay> {
         let f = forward.normalize();
         let helper = if f.x.abs() < 0.6 { Vec3::X } else { Vec3::Y };
         let u = f.cross(helper).normalize();
@@ -1310,7 +1320,11 @@ mod two_level {
             // to the reference: rays straight down and slanted through its
             // edges, face diagonals and corners (multiples of 0.375 are
             // exact in f32).
-            for d in [Vec3::NEG_Y, Vec3::new(0.5, -1.0, 0.25), Vec3::new(-1.0, -1.0, 0.0)] {
+            for d in [
+                Vec3::NEG_Y,
+                Vec3::new(0.5, -1.0, 0.25),
+                Vec3::new(-1.0, -1.0, 0.0),
+            ] {
                 let d = d.normalize();
                 let rays: Vec<TraceRay> = (0..=8)
                     .flat_map(|i| (0..=8).map(move |j| (i, j)))
@@ -1334,7 +1348,8 @@ mod two_level {
             for d in [Vec3::NEG_Y, Vec3::new(0.3, -1.0, 0.2).normalize()] {
                 let rays: Vec<TraceRay> = (0..17 * 17)
                     .map(|k| {
-                        let w = origin + DVec3::new((k % 17) as f64 * step, 0.0, (k / 17) as f64 * step);
+                        let w = origin
+                            + DVec3::new((k % 17) as f64 * step, 0.0, (k / 17) as f64 * step);
                         let p = (w - world.reference).as_vec3();
                         TraceRay {
                             origin: Vec3::new(p.x, 40.0, p.z),
@@ -1382,7 +1397,13 @@ mod two_level {
             assert_packets_agree(tracer, &rays, 64);
             // Opposite directions in one packet: no beam bounds them.
             let mut spread = parallel_tile(Vec3::new(3.0, 30.0, -7.0), Vec3::NEG_Y, 4, 0.5, 200.0);
-            spread.extend(parallel_tile(Vec3::new(3.0, -30.0, -7.0), Vec3::Y, 4, 0.5, 200.0));
+            spread.extend(parallel_tile(
+                Vec3::new(3.0, -30.0, -7.0),
+                Vec3::Y,
+                4,
+                0.5,
+                200.0,
+            ));
             let seen = assert_packets_agree(tracer, &spread, 32);
             assert!(seen > 16, "{seen}");
             // Larger than one packet: split.

@@ -528,12 +528,26 @@ mod tests {
         };
         let (mut kept, mut hits) = (0, 0);
         for round in 0..400 {
-            let d = if round % 4 == 0 { Vec3::NEG_Y } else { (p(1.0) + vec3(0.0, -2.0, 0.0)).normalize() };
+            let d = if round % 4 == 0 {
+                Vec3::NEG_Y
+            } else {
+                (p(1.0) + vec3(0.0, -2.0, 0.0)).normalize()
+            };
             let rays: Vec<PreparedRay> = (0..LANES)
-                .map(|_| ray(p(2.0) + vec3(0.0, 5.0, 0.0), if round % 2 == 0 { d } else { (d + p(0.05)).normalize() }))
+                .map(|_| {
+                    ray(
+                        p(2.0) + vec3(0.0, 5.0, 0.0),
+                        if round % 2 == 0 {
+                            d
+                        } else {
+                            (d + p(0.05)).normalize()
+                        },
+                    )
+                })
                 .collect();
             let axes = Lanes::axes_of(&rays[0]);
-            let same: Vec<&PreparedRay> = rays.iter().filter(|r| Lanes::axes_of(r) == axes).collect();
+            let same: Vec<&PreparedRay> =
+                rays.iter().filter(|r| Lanes::axes_of(r) == axes).collect();
             let lanes = Lanes::new(same.iter().copied());
             for _ in 0..20 {
                 let c = p(1.5);
