@@ -215,6 +215,8 @@ impl Beam {
 
     /// The eight children's boxes decoded as obvhs does (`q · extent + p`)
     /// and tested against the six planes, child by child in lanes.
+    // Children index several arrays in lockstep: the form that vectorizes.
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn hitmask_inline(&self, node: &CwBvhNode, oct_inv4: u32) -> u32 {
         let e = node.compute_extent();

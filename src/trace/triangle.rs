@@ -284,6 +284,8 @@ impl Lanes {
 
     /// Bit l set when ray l passes [`hit_t`]'s early out (finite edge
     /// functions, not of mixed signs) for `tri`: only those can hit it.
+    // Lanes index several arrays in lockstep: the form that vectorizes.
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn candidates_inline(&self, tri: &TraceTriangle) -> u32 {
         let [kx, ky, kz] = self.axes;
