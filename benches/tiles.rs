@@ -47,11 +47,15 @@ fn tiles_bench(c: &mut Criterion) {
         let tiles = setup.rays(&world, &config);
         let mut single = tiles;
         single.tracer.mode = TraceMode::RayByRay;
-        // Every k-th tile: a sample spread over the whole grid.
+        // One tile in k, picked by a multiplicative hash: a sample spread
+        // over the whole grid (a plain stride would pick the same columns
+        // of every row).
         let count = tiles.tile_count();
         let per_tile = u64::from(TILE * TILE);
         let step = (count * per_tile / wanted.max(1)).max(1);
-        let sample: Vec<u64> = (0..count).step_by(step as usize).collect();
+        let sample: Vec<u64> = (0..count)
+            .filter(|t| t.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40 < (1 << 24) / step)
+            .collect();
         let rays: u64 = sample
             .iter()
             .map(|&t| {
