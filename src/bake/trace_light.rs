@@ -8,7 +8,7 @@ use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::{Hit, TraceRay, Tracer};
+use crate::trace::{Hit, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -27,6 +27,10 @@ fn cutoff_due(hits: usize) -> bool {
 pub trait RayCounter: Sync {
     fn add(&self, rays: u64);
 }
+
+/// Metres between a directional light's rays beyond which its tiles are
+/// traced ray by ray (see [`LightRays::trace_tiles`]).
+pub const MAX_PACKET_SPACING: f64 = 0.5;
 
 /// Texels per tile side: big enough to amortise scheduling, small enough
 /// to balance 2–64 threads and to report progress often.
@@ -128,6 +132,18 @@ impl CasterSet {
     }
 }
 
+/// Scratch of [`LightRays::trace_packet`], reused by one thread: the
+/// packet's rays (the caller fills `rays`) and each ray's hits.
+#[derive(Default)]
+pub struct PacketState {
+    pub rays: Vec<TexelRay>,
+    single: Vec<RayHit>,
+    traced: Vec<TraceRay>,
+    hits: Vec<Vec<RayHit>>,
+    limits: Vec<f32>,
+    scratch: PacketScratch,
+}
+
 /// Everything one light's rays need: its grid, how to find hits, what the
 /// hits belong to, the ground and the rules. Made by
 /// [`super::setup::LightSetup::rays`]; the grid pass, refinement, the
@@ -159,7 +175,10 @@ impl LightRays<'_> {
 
     /// [`Self::trace_grid`] over the tiles `tiles` only (a shard's range, or
     /// a spread sample for the plan's ray rate): the OR of the answers over
-    /// a partition of `0..tile_count()` is the grid's.
+    /// a partition of `0..tile_count()` is the grid's. Tiles are traced as
+    /// packets of coherent rays (`Tracer::for_each_packet_hit`; a
+    /// directional light's rays more than [`MAX_PACKET_SPACING`] apart, ray
+    /// by ray): the answers are the single-ray ones either way.
     pub fn trace_tiles(
         &self,
         tiles: impl IntoParallelIterator<Item = u64>,
@@ -169,52 +188,127 @@ impl LightRays<'_> {
         let grid = self.grid;
         let casters = self.casters.len();
         let samples = samples.max(1);
+        let side = self.packet_side(samples);
         tiles
             .into_par_iter()
             .fold(
-                || (CasterSet::new(casters), Vec::new()),
-                |(mut useful, mut hits), tile| {
+                || (CasterSet::new(casters), PacketState::default()),
+                |(mut useful, mut state), tile| {
                     let (face, x0, y0, x1, y1) = tile_rect(grid, tile);
-                    for y in y0..y1 {
-                        for x in x0..x1 {
-                            for ray in grid.texel_rays(face, x, y, samples) {
-                                self.trace(&ray, &mut hits, |c| useful.insert(c));
+                    let Some(side) = side else {
+                        for y in y0..y1 {
+                            for x in x0..x1 {
+                                for ray in grid.texel_rays(face, x, y, samples) {
+                                    self.trace(&ray, &mut state.single, |c| useful.insert(c));
+                                }
                             }
+                        }
+                        rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
+                        return (useful, state);
+                    };
+                    for py in (y0..y1).step_by(side as usize) {
+                        for px in (x0..x1).step_by(side as usize) {
+                            state.rays.clear();
+                            for y in py..(py + side).min(y1) {
+                                for x in px..(px + side).min(x1) {
+                                    state.rays.extend(grid.texel_rays(face, x, y, samples));
+                                }
+                            }
+                            self.trace_packet(&mut state, |c| useful.insert(c));
                         }
                     }
                     rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
-                    (useful, hits)
+                    (useful, state)
                 },
             )
             .map(|(useful, _)| useful)
             .reduce(|| CasterSet::new(casters), |a, b| a.union(&b))
     }
 
+    /// Texels per packet side: about 64 rays (8×8 texels, fewer when
+    /// supersampled); `None`: ray by ray, for a directional light whose
+    /// rays lie more than [`MAX_PACKET_SPACING`] apart, where a packet's
+    /// footprint outgrows the triangles and the tile path is slower
+    /// (measured on `bench`: 0.25 m texels 2–4× faster, 0.98 m ~25 % slower).
+    fn packet_side(&self, samples: u32) -> Option<u32> {
+        let grid = self.grid;
+        if grid.width() >= 2 {
+            let (a, b) = (grid.ray(0, 0, 0), grid.ray(0, 1, 0));
+            let spacing = (b.origin - a.origin).length() / f64::from(samples);
+            if a.direction == b.direction && spacing > MAX_PACKET_SPACING {
+                return None;
+            }
+        }
+        Some((8 / samples).max(1))
+    }
+
     /// One ray of the light: its hits filtered by face culling and the
     /// below-ground test, classified, and each caster it proves useful handed
     /// to `on_useful` (a caster useful in both passes is handed twice).
     /// `hits` is scratch space reused across rays.
-    pub fn trace(&self, ray: &TexelRay, hits: &mut Vec<RayHit>, on_useful: impl FnMut(u32)) {
-        let rules = self.rules;
+    pub fn trace(&self, ray: &TexelRay, hits: &mut Vec<RayHit>, mut on_useful: impl FnMut(u32)) {
         let traced = self.light_relative(ray);
         hits.clear();
         let mut limit = traced.t_max;
-        self.tracer.for_each_hit(&traced, |hit| {
-            if hit.t > limit {
-                return limit;
-            }
-            let Some(kept) = self.filter_hit(&hit, ray) else {
-                return limit;
-            };
-            hits.push(kept);
-            if cutoff_due(hits.len()) {
-                classify::sort_hits(hits);
-                limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
-            }
-            limit
-        });
+        self.tracer
+            .for_each_hit(&traced, |hit| self.offer(&hit, ray, hits, &mut limit));
+        self.conclude(hits, limit, &mut on_useful);
+    }
+
+    /// [`Self::trace`] for each ray of `state.rays` (a tile of coherent
+    /// rays), traced as packets: every ray gets the answer it gets alone.
+    pub fn trace_packet(&self, state: &mut PacketState, mut on_useful: impl FnMut(u32)) {
+        let PacketState {
+            rays,
+            traced,
+            hits,
+            limits,
+            scratch,
+            ..
+        } = state;
+        traced.clear();
+        traced.extend(rays.iter().map(|r| self.light_relative(r)));
+        if hits.len() < rays.len() {
+            hits.resize_with(rays.len(), Vec::new);
+        }
+        limits.clear();
+        limits.extend(traced.iter().map(|r| r.t_max));
+        for list in hits.iter_mut() {
+            list.clear();
+        }
+        self.tracer
+            .for_each_packet_hit(traced, scratch, |lane, hit| {
+                self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
+            });
+        for (list, &limit) in hits.iter_mut().zip(limits.iter()) {
+            self.conclude(list, limit, &mut on_useful);
+        }
+    }
+
+    /// One hit of a ray being traced: kept (filtered) into `hits`, the
+    /// ray's cut-off `limit` recomputed when due; returns the ray's new t_max.
+    #[inline]
+    fn offer(&self, hit: &Hit, ray: &TexelRay, hits: &mut Vec<RayHit>, limit: &mut f32) -> f32 {
+        if hit.t > *limit {
+            return *limit;
+        }
+        let Some(kept) = self.filter_hit(hit, ray) else {
+            return *limit;
+        };
+        hits.push(kept);
+        if cutoff_due(hits.len()) {
+            classify::sort_hits(hits);
+            let rules = self.rules;
+            *limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
+        }
+        *limit
+    }
+
+    /// A traced ray's kept hits up to its cut-off, classified.
+    fn conclude(&self, hits: &mut Vec<RayHit>, limit: f32, on_useful: &mut impl FnMut(u32)) {
         hits.retain(|h| h.t <= limit);
         classify::sort_hits(hits);
+        let rules = self.rules;
         classify::classify_ray(hits, rules.tie_epsilon, rules.passes, on_useful);
     }
 

@@ -15,6 +15,7 @@
 //! only cull; the leaf tests decide hits, so the hits of a ray do not depend
 //! on the tree's shape.
 
+use super::beam::Beam;
 use super::TraceRay;
 use glam::{UVec2, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
@@ -28,7 +29,7 @@ use obvhs::BvhBuildParams;
 /// Box padding in units of f32::EPSILON × magnitude. The build's rounding
 /// (child − node origin, quantization exponent) and the slab arithmetic each
 /// err by a few ulps of the magnitude; this leaves a wide margin.
-const PAD_EPSILONS: f32 = 256.0;
+pub(crate) const PAD_EPSILONS: f32 = 256.0;
 
 /// Direction components smaller than this are raised to it (keeping the
 /// sign) so the slab arithmetic stays finite; the position error it causes,
@@ -124,6 +125,39 @@ impl BoxTree {
                             break 'traversal;
                         }
                         node_t_max = boxes.node_t_max(t_max);
+                    }
+                }
+            );
+        }
+    }
+
+    /// Calls `leaf(slot, beam)` for every leaf box `beam` may touch, in the
+    /// order of `direction` (nearer children first); `leaf` may narrow the
+    /// beam (rays settled) and returns false to stop.
+    pub(crate) fn visit_beam(
+        &self,
+        beam: &mut Beam,
+        direction: Vec3,
+        mut leaf: impl FnMut(usize, &mut Beam) -> bool,
+    ) {
+        if self.cwbvh.nodes.is_empty() {
+            return;
+        }
+        let mut state = self.cwbvh.new_traversal(Vec3A::from(direction));
+        let mut node: &CwBvhNode;
+        'traversal: {
+            obvhs::traverse!(
+                self.cwbvh,
+                node,
+                state,
+                beam.hitmask(node, state.oct_inv4),
+                {
+                    let slot = state.primitive_id as usize;
+                    if slot >= self.order.len() {
+                        continue;
+                    }
+                    if !leaf(slot, beam) {
+                        break 'traversal;
                     }
                 }
             );

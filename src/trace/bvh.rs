@@ -23,7 +23,7 @@ struct BvhTriangle {
 /// traversal reads it sequentially.
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    tree: BoxTree,
+    pub(crate) tree: BoxTree,
     triangles: Vec<BvhTriangle>,
     /// Box of the built triangles, `None` when there are none.
     bounds: Option<(Vec3, Vec3)>,
@@ -71,6 +71,13 @@ impl Bvh {
     /// Heap bytes held: nodes, slot table and triangles.
     pub fn heap_bytes(&self) -> usize {
         self.tree.heap_bytes() + self.triangles.len() * std::mem::size_of::<BvhTriangle>()
+    }
+
+    /// The triangle of leaf slot `slot` and its index in the build input.
+    #[inline]
+    pub(crate) fn slot(&self, slot: usize) -> (&TraceTriangle, u32) {
+        let entry = &self.triangles[slot];
+        (&entry.tri, entry.index)
     }
 
     /// The triangles as built (unusable ones left out), in tree order.

@@ -93,6 +93,28 @@ impl HeightGrid<'_> {
         }
     }
 
+    /// Cell (cx, cz)'s two triangles in the light-relative frame, each with
+    /// its hit index (2 × cell + 0 or 1); `None` for a hole.
+    #[inline]
+    pub(crate) fn cell_trace_triangles(
+        &self,
+        cell: (usize, usize),
+        reference: DVec3,
+        caster: u32,
+    ) -> Option<[(TraceTriangle, u32); 2]> {
+        let (cx, cz) = cell;
+        if self.is_hole(cx, cz) {
+            return None;
+        }
+        let [a, b] = self.cell_triangles(cx, cz);
+        let first = ((cz * self.cells_x + cx) * 2) as u32;
+        let traced = |triangle: [DVec3; 3]| TraceTriangle {
+            vertices: triangle.map(|p| (p - reference).as_vec3()),
+            caster,
+        };
+        Some([(traced(a), first), (traced(b), first + 1)])
+    }
+
     /// Calls `on_hit` for each of cell (cx, cz)'s triangles the ray crosses
     /// within `[t_min, t_max]` (a hole: none); returns the new t_max.
     #[inline]
@@ -105,17 +127,12 @@ impl HeightGrid<'_> {
         t_max: f32,
         on_hit: &mut impl FnMut(Hit) -> f32,
     ) -> f32 {
-        let (cx, cz) = cell;
         let mut t_max = t_max;
-        if self.is_hole(cx, cz) {
-            return t_max;
-        }
-        for (k, triangle) in self.cell_triangles(cx, cz).iter().enumerate() {
-            let tri = TraceTriangle {
-                vertices: triangle.map(|p| (p - reference).as_vec3()),
-                caster,
-            };
-            let index = ((cz * self.cells_x + cx) * 2 + k) as u32;
+        for (tri, index) in self
+            .cell_trace_triangles(cell, reference, caster)
+            .into_iter()
+            .flatten()
+        {
             t_max = report_hit(prepared, &tri, index, t_max, on_hit);
         }
         t_max
@@ -142,6 +159,13 @@ impl HeightGrid<'_> {
         }
         t_max
     }
+}
+
+/// One step of [`HeightField::walk`]: a tile's box, or a cell of a leaf
+/// tile (column, row) and its box.
+pub(crate) enum Step {
+    Tile(Vec3, Vec3),
+    Cell((usize, usize), Vec3, Vec3),
 }
 
 /// The min/max pyramid of one block: built once per bake, shared by every
@@ -237,8 +261,36 @@ impl HeightField {
     ) -> f32 {
         let prepared = PreparedRay::new(ray);
         let mut t_max = t_max;
-        if !prepared.is_valid() || self.ranges.is_empty() {
+        if !prepared.is_valid() {
             return t_max;
+        }
+        self.walk(grid, reference, ray.direction, |step| match step {
+            Step::Tile(min, max) => boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)),
+            Step::Cell(cell, min, max) => {
+                if boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+                    t_max = grid.cell_hits(cell, reference, &prepared, caster, t_max, on_hit);
+                }
+                t_max >= ray.t_min
+            }
+        });
+        t_max
+    }
+
+    /// The pyramid walk shared by the single-ray and the packet traversal:
+    /// `step` hears of each non-empty tile's box (true: look inside) and,
+    /// in a leaf tile, of each cell and its box (false: stop), nearer tiles
+    /// first for rays along `direction`. Boxes are light-relative and hold
+    /// every vertex of their cells up to a rounding or two, which the
+    /// callers' padding covers.
+    pub(crate) fn walk(
+        &self,
+        grid: &HeightGrid,
+        reference: DVec3,
+        direction: Vec3,
+        mut step: impl FnMut(Step) -> bool,
+    ) {
+        if self.ranges.is_empty() {
+            return;
         }
         // Light-relative corners, from the block's offset (f64): within a
         // rounding or two of the vertices' own, far inside the padding.
@@ -248,8 +300,8 @@ impl HeightField {
         let x_at = |cx: usize| (offset.x + cx as f64 * step_x) as f32;
         let z_at = |cz: usize| (offset.z + cz as f64 * step_z) as f32;
         let y_at = |h: f32| (offset.y + f64::from(h)) as f32;
-        let flip_x = usize::from(ray.direction.x >= 0.0);
-        let flip_z = usize::from(ray.direction.z >= 0.0);
+        let flip_x = usize::from(direction.x >= 0.0);
+        let flip_z = usize::from(direction.z >= 0.0);
         let top = self.level_start.len() - 1;
         // Depth-first with at most 3 siblings waiting per level; entries
         // pack (level, i, j) into 6 + 29 + 29 bits (a side of at most 2^29
@@ -279,7 +331,7 @@ impl HeightField {
             let cz1 = (cz0 + span).min(grid.cells_z);
             let min = Vec3::new(x_at(cx0), y_at(lo), z_at(cz0));
             let max = Vec3::new(x_at(cx1), y_at(hi), z_at(cz1));
-            if !boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+            if !step(Step::Tile(min, max)) {
                 continue;
             }
             if level > 0 {
@@ -304,16 +356,11 @@ impl HeightField {
                             });
                     let min = Vec3::new(x_at(cx), y_at(lo), z_at(cz));
                     let max = Vec3::new(x_at(cx + 1), y_at(hi), z_at(cz + 1));
-                    if boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
-                        t_max =
-                            grid.cell_hits((cx, cz), reference, &prepared, caster, t_max, on_hit);
+                    if !step(Step::Cell((cx, cz), min, max)) {
+                        return;
                     }
                 }
             }
-            if t_max < ray.t_min {
-                return t_max;
-            }
         }
-        t_max
     }
 }

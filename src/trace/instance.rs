@@ -15,7 +15,7 @@
 //! to swap two vertices of every mirrored triangle to get this.)
 
 use super::TraceRay;
-use glam::{DMat3, DMat4, DVec3};
+use glam::{DMat3, DMat4, DVec3, Vec3};
 
 /// The map from the light-relative frame (world minus the light's
 /// reference point) into one instance's model space.
@@ -44,14 +44,30 @@ impl ToModel {
         })
     }
 
+    /// The map's linear part and offset: y = linear · x + offset.
+    pub(crate) fn parts(&self) -> (DMat3, DVec3) {
+        (self.linear, self.offset)
+    }
+
     /// The ray in model space, same t range.
     #[inline]
     pub fn ray(&self, ray: &TraceRay) -> TraceRay {
+        self.ray_with(ray, self.direction(ray.direction))
+    }
+
+    /// The direction part of [`Self::ray`] (parallel rays share it).
+    #[inline]
+    pub(crate) fn direction(&self, direction: Vec3) -> Vec3 {
+        (self.linear * direction.as_dvec3()).as_vec3()
+    }
+
+    /// [`Self::ray`] given the mapped direction.
+    #[inline]
+    pub(crate) fn ray_with(&self, ray: &TraceRay, direction: Vec3) -> TraceRay {
         let origin = self.linear * ray.origin.as_dvec3() + self.offset;
-        let direction = self.linear * ray.direction.as_dvec3();
         TraceRay {
             origin: origin.as_vec3(),
-            direction: direction.as_vec3(),
+            direction,
             t_min: ray.t_min,
             t_max: ray.t_max,
         }

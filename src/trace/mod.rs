@@ -10,7 +10,11 @@
 //!   parts and blocks in its reach; a ray enters an instance by its inverse
 //!   transform (`instance.rs`) with t kept in world metres;
 //! - [`Tracer`]: the top level through its trees, or the brute-force oracle
-//!   over the same entries with the same arithmetic (`brute.rs`).
+//!   over the same entries with the same arithmetic (`brute.rs`);
+//! - packets (`packet.rs`): a tile of coherent rays walks the trees once
+//!   under a padded beam (`beam.rs`), and the triangles it reaches are tested
+//!   eight rays at a time, then by the single-ray test for each ray kept, so
+//!   each ray's hits are the single-ray traversal's.
 //!
 //! Hits are decided by a watertight ray/triangle test with a consistent tie
 //! rule ([`intersect`]), so a ray exactly through an edge or vertex shared by
@@ -20,12 +24,14 @@
 //! whatever the BVH's shape or the thread count that built it. obvhs types do
 //! not leave this module.
 
+mod beam;
 mod blas;
 mod boxtree;
 mod brute;
 mod bvh;
 mod heightfield;
 mod instance;
+mod packet;
 mod tlas;
 mod triangle;
 
@@ -37,6 +43,7 @@ pub use brute::brute_force_hits;
 pub use bvh::Bvh;
 pub use heightfield::{HeightField, HeightGrid};
 pub use instance::ToModel;
+pub use packet::{PacketScratch, PACKET_RAYS};
 pub use tlas::{transform_box, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel};
 pub use triangle::{intersect, PreparedRay};
 
@@ -79,8 +86,12 @@ impl TraceTriangle {
 /// How a [`Tracer`] finds hits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TraceMode {
-    /// Through the top level and the bottom levels' trees.
+    /// Through the top level and the bottom levels' trees; packets of rays
+    /// ([`Tracer::for_each_packet_hit`]) walk them once per packet.
     Trees,
+    /// The same trees, but packets are traced ray by ray (the reference
+    /// the packet traversal is measured and tested against).
+    RayByRay,
     /// Every triangle and terrain cell of every entry (the oracle; slow).
     BruteForce,
 }
@@ -103,6 +114,32 @@ impl Tracer<'_> {
     pub fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
         self.top
             .for_each_hit(self.bottom, ray, self.mode == TraceMode::BruteForce, on_hit);
+    }
+
+    /// [`Self::for_each_hit`] for each ray of `rays`, which should be
+    /// coherent (a tile of one light's rays) to gain from it: `on_hit(lane,
+    /// hit)` gets ray `lane`'s hits (the same set as its own
+    /// [`Self::for_each_hit`], in another order) and returns its new t_max.
+    /// `scratch` is reused across calls.
+    pub fn for_each_packet_hit(
+        &self,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        mut on_hit: impl FnMut(usize, Hit) -> f32,
+    ) {
+        if self.mode != TraceMode::Trees {
+            for (lane, ray) in rays.iter().enumerate() {
+                self.for_each_hit(ray, |hit| on_hit(lane, hit));
+            }
+            return;
+        }
+        for (k, packet) in rays.chunks(PACKET_RAYS).enumerate() {
+            let first = k * PACKET_RAYS;
+            self.top
+                .for_each_packet_hit(self.bottom, packet, scratch, &mut |lane, hit| {
+                    on_hit(first + lane, hit)
+                });
+        }
     }
 }
 

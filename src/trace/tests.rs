@@ -932,43 +932,51 @@ mod two_level {
         }
     }
 
-    #[test]
-    fn instanced_models_match_the_oracle_ray_by_ray() {
-        // Two models placed 300 times: rotated, non-uniformly scaled,
-        // mirrored, far from the origin (1e5 m), over terrain.
-        let mut rng = Rng::new(17);
-        let offset = DVec3::new(1e5, 0.0, -1e5);
-        let cube = |s: f32| -> Vec<TraceTriangle> {
-            // Two triangles a face, wound outward.
-            let mut out = Vec::new();
-            for axis in 0..3 {
-                for sign in [-1.0f32, 1.0] {
-                    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-                    let corner = |a: f32, b: f32| {
-                        let mut p = Vec3::ZERO;
-                        p[axis] = sign * s;
-                        p[u] = a * s;
-                        p[v] = b * s * sign;
-                        p
-                    };
-                    let q = [
-                        corner(-1.0, -1.0),
-                        corner(1.0, -1.0),
-                        corner(1.0, 1.0),
-                        corner(-1.0, 1.0),
-                    ];
-                    out.push(TraceTriangle {
-                        vertices: [q[0], q[1], q[2]],
-                        caster: 0,
-                    });
-                    out.push(TraceTriangle {
-                        vertices: [q[0], q[2], q[3]],
-                        caster: 0,
-                    });
-                }
+    /// Two models placed 300 times: rotated, non-uniformly scaled,
+    /// mirrored, far from the origin (1e5 m), over terrain; and one cube
+    /// unrotated at the reference point, so model space is the
+    /// light-relative frame and rays can run exactly along its edges.
+    struct Instanced {
+        blocks: Vec<(Vec<f32>, Vec<bool>, DVec3)>,
+        models: [Vec<TraceTriangle>; 2],
+        parts: Vec<PlacedPart>,
+        reference: DVec3,
+    }
+
+    fn cube(s: f32) -> Vec<TraceTriangle> {
+        // Two triangles a face, wound outward.
+        let mut out = Vec::new();
+        for axis in 0..3 {
+            for sign in [-1.0f32, 1.0] {
+                let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+                let corner = |a: f32, b: f32| {
+                    let mut p = Vec3::ZERO;
+                    p[axis] = sign * s;
+                    p[u] = a * s;
+                    p[v] = b * s * sign;
+                    p
+                };
+                let q = [
+                    corner(-1.0, -1.0),
+                    corner(1.0, -1.0),
+                    corner(1.0, 1.0),
+                    corner(-1.0, 1.0),
+                ];
+                out.push(TraceTriangle {
+                    vertices: [q[0], q[1], q[2]],
+                    caster: 0,
+                });
+                out.push(TraceTriangle {
+                    vertices: [q[0], q[2], q[3]],
+                    caster: 0,
+                });
             }
-            out
-        };
+        }
+        out
+    }
+
+    fn instanced(rng: &mut Rng) -> Instanced {
+        let offset = DVec3::new(1e5, 0.0, -1e5);
         let card = vec![
             TraceTriangle {
                 vertices: [
@@ -987,12 +995,11 @@ mod two_level {
                 caster: 1,
             },
         ];
-        let models = [cube(0.7), card];
+        let models = [cube(0.75), card];
         let blocks: Vec<(Vec<f32>, Vec<bool>, DVec3)> = terrain(1, 8, 100.0, true)
             .into_iter()
             .map(|(h, holes, o)| (h, holes, o + offset))
             .collect();
-        let bottom = BottomLevels::build(2, |m| models[m].clone(), grids(&blocks, 8, 100.0));
         let mut parts = Vec::new();
         for i in 0..300 {
             let mut scale = DVec3::new(
@@ -1022,14 +1029,36 @@ mod two_level {
             });
         }
         let reference = offset + DVec3::new(50.0, 0.0, 50.0);
+        parts.push(PlacedPart {
+            model: 0,
+            world: DMat4::from_translation(reference + DVec3::new(0.0, 10.0, 0.0)),
+            first_caster: 5,
+        });
+        Instanced {
+            blocks,
+            models,
+            parts,
+            reference,
+        }
+    }
+
+    #[test]
+    fn instanced_models_match_the_oracle_ray_by_ray() {
+        let mut rng = Rng::new(17);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
         let top = TopLevel::build(
             &bottom,
-            &parts[..],
+            &world.parts[..],
             std::iter::once(PlacedBlock {
                 block: 0,
                 caster: 1,
             }),
-            reference,
+            world.reference,
         );
         let trees = Tracer {
             bottom: &bottom,
@@ -1064,5 +1093,322 @@ mod two_level {
             assert_eq!(a, hits(&oracle, &ray), "ray {ray:?}");
         }
         assert!(with_hits > 200, "{with_hits}");
+    }
+
+    // -----------------------------------------------------------------------
+    // Packets: the tile traversal against the single-ray traversal, ray by
+    // ray, hit lists (not only masks).
+
+    type HitList = Vec<(u32, u32, bool, u32)>;
+
+    /// Every hit of each ray of `rays` through the packet traversal.
+    fn packet_hits(tracer: &Tracer, rays: &[TraceRay]) -> Vec<HitList> {
+        let mut out = vec![Vec::new(); rays.len()];
+        let mut scratch = PacketScratch::default();
+        tracer.for_each_packet_hit(rays, &mut scratch, |lane, h| {
+            out[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+            f32::INFINITY
+        });
+        for list in &mut out {
+            list.sort();
+        }
+        out
+    }
+
+    /// The two nearest hits of each ray (all hits tying with the second),
+    /// with t_max shrinking to the second nearest so far: rays settle and
+    /// leave the packet at different times.
+    fn two_nearest(tracer: &Tracer, rays: &[TraceRay], packets: bool) -> Vec<HitList> {
+        let mut out: Vec<HitList> = vec![Vec::new(); rays.len()];
+        let offer = |lane: usize, h: Hit, out: &mut Vec<HitList>| {
+            let list = &mut out[lane];
+            list.push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+            list.sort_by(|a, b| {
+                f32::from_bits(a.0)
+                    .total_cmp(&f32::from_bits(b.0))
+                    .then(a.cmp(b))
+            });
+            if list.len() >= 2 {
+                f32::from_bits(list[1].0)
+            } else {
+                f32::INFINITY
+            }
+        };
+        if packets {
+            let mut scratch = PacketScratch::default();
+            tracer.for_each_packet_hit(rays, &mut scratch, |lane, h| offer(lane, h, &mut out));
+        } else {
+            for (lane, ray) in rays.iter().enumerate() {
+                tracer.for_each_hit(ray, |h| offer(lane, h, &mut out));
+            }
+        }
+        for list in &mut out {
+            if list.len() >= 2 {
+                let second = f32::from_bits(list[1].0);
+                list.retain(|h| f32::from_bits(h.0) <= second);
+            }
+            list.sort();
+        }
+        out
+    }
+
+    /// Packets of `rays` (consecutive runs of `size`) agree with the
+    /// single-ray traversal ray by ray, all hits and two nearest; returns
+    /// the number of hits seen.
+    fn assert_packets_agree(tracer: &Tracer, rays: &[TraceRay], size: usize) -> usize {
+        let mut seen = 0;
+        for packet in rays.chunks(size) {
+            let got = packet_hits(tracer, packet);
+            for (ray, list) in packet.iter().zip(&got) {
+                assert_eq!(*list, hits(tracer, ray), "ray {ray:?}");
+                seen += list.len();
+            }
+            assert_eq!(
+                two_nearest(tracer, packet, true),
+                two_nearest(tracer, packet, false),
+                "packet from {:?}",
+                packet[0]
+            );
+        }
+        seen
+    }
+
+    /// A directional light's tile: `n`×`n` parallel rays along `d`, from a
+    /// plane through `centre` perpendicular to d, `spacing` apart.
+    fn parallel_tile(centre: Vec3, d: Vec3, n: usize, spacing: f32, t_max: f32) -> Vec<TraceRay> {
+        let d = d.normalize();
+        let helper = if d.x.abs() < 0.6 { Vec3::X } else { Vec3::Y };
+        let u = d.cross(helper).normalize();
+        let v = d.cross(u);
+        let half = (n as f32 - 1.0) / 2.0;
+        (0..n * n)
+            .map(|k| {
+                let (i, j) = ((k % n) as f32 - half, (k / n) as f32 - half);
+                TraceRay {
+                    origin: centre + u * (i * spacing) + v * (j * spacing),
+                    direction: d,
+                    t_min: 0.0,
+                    t_max,
+                }
+            })
+            .collect()
+    }
+
+    /// A spot or point light's tile: `n`×`n` rays from `origin` through a
+    /// square of half-angle tangent `spread` around `forward`.
+    fn frustum_tile(
+        origin: Vec3,
+        forward: Vec3,
+        n: usize,
+        spread: f32,
+        t_min: f32,
+    ) -> Vec<TraceRay> {
+        let f = forward.normalize();
+        let helper = if f.x.abs() < 0.6 { Vec3::X } else { Vec3::Y };
+        let u = f.cross(helper).normalize();
+        let v = f.cross(u);
+        (0..n * n)
+            .map(|k| {
+                let s = ((k % n) as f32 + 0.5) / n as f32 * 2.0 - 1.0;
+                let t = ((k / n) as f32 + 0.5) / n as f32 * 2.0 - 1.0;
+                TraceRay {
+                    origin,
+                    direction: (f + u * (s * spread) + v * (t * spread)).normalize(),
+                    t_min,
+                    t_max: 300.0,
+                }
+            })
+            .collect()
+    }
+
+    fn instanced_tracer_check(check: impl Fn(&Tracer, &Instanced)) {
+        let mut rng = Rng::new(23);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
+        let top = TopLevel::build(
+            &bottom,
+            &world.parts[..],
+            std::iter::once(PlacedBlock {
+                block: 0,
+                caster: 1,
+            }),
+            world.reference,
+        );
+        let tracer = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        check(&tracer, &world);
+    }
+
+    #[test]
+    fn directional_tiles_match_single_rays_far_from_the_origin() {
+        instanced_tracer_check(|tracer, _| {
+            let mut rng = Rng::new(31);
+            let mut seen = 0;
+            for k in 0..60 {
+                let d = match k % 6 {
+                    // Straight down (axis-parallel), grazing, and slanted.
+                    0 => Vec3::NEG_Y,
+                    1 => Vec3::new(1.0, -0.04, 0.3),
+                    2 => Vec3::new(-0.2, -1e-7, 1.0),
+                    _ => Vec3::new(
+                        rng.range(-1.0, 1.0) as f32,
+                        rng.range(-1.0, -0.2) as f32,
+                        rng.range(-1.0, 1.0) as f32,
+                    ),
+                };
+                // Tile centres inside the world and across its border
+                // (the world spans -50..50 around the reference).
+                let c = Vec3::new(
+                    rng.range(-70.0, 70.0) as f32,
+                    rng.range(0.0, 12.0) as f32,
+                    rng.range(-70.0, 70.0) as f32,
+                );
+                let spacing = [0.05, 0.25, 1.0][k % 3];
+                let rays = parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0);
+                seen += assert_packets_agree(tracer, &rays, 64);
+            }
+            assert!(seen > 2000, "{seen}");
+        });
+    }
+
+    #[test]
+    fn spot_and_point_tiles_match_single_rays() {
+        instanced_tracer_check(|tracer, _| {
+            let mut rng = Rng::new(37);
+            let mut seen = 0;
+            for k in 0..48 {
+                let origin = Vec3::new(
+                    rng.range(-40.0, 40.0) as f32,
+                    rng.range(8.0, 30.0) as f32,
+                    rng.range(-40.0, 40.0) as f32,
+                );
+                // The six cube faces of a point light, and random spots.
+                let forward = match k % 8 {
+                    0 => Vec3::NEG_Y,
+                    1 => Vec3::X,
+                    2 => Vec3::NEG_X,
+                    3 => Vec3::Z,
+                    4 => Vec3::NEG_Z,
+                    5 => Vec3::Y,
+                    _ => Vec3::new(
+                        rng.range(-1.0, 1.0) as f32,
+                        rng.range(-1.0, -0.3) as f32,
+                        rng.range(-1.0, 1.0) as f32,
+                    ),
+                };
+                // A whole face in one packet, and a narrow tile of it.
+                let spread = if k % 2 == 0 { 1.0 } else { 0.05 };
+                let rays = frustum_tile(origin, forward, 16, spread, 0.1);
+                seen += assert_packets_agree(tracer, &rays, 64);
+            }
+            assert!(seen > 2000, "{seen}");
+        });
+    }
+
+    #[test]
+    fn tiles_along_shared_edges_of_models_and_terrain_match_single_rays() {
+        instanced_tracer_check(|tracer, world| {
+            let mut seen = 0;
+            // The unrotated cube of half-size 0.75 at (0, 10, 0) relative
+            // to the reference: rays straight down and slanted through its
+            // edges, face diagonals and corners (multiples of 0.375 are
+            // exact in f32).
+            for d in [
+                Vec3::NEG_Y,
+                Vec3::new(0.5, -1.0, 0.25),
+                Vec3::new(-1.0, -1.0, 0.0),
+            ] {
+                let d = d.normalize();
+                let rays: Vec<TraceRay> = (0..=8)
+                    .flat_map(|i| (0..=8).map(move |j| (i, j)))
+                    .map(|(i, j)| {
+                        let p = Vec3::new(-1.5 + 0.375 * i as f32, 10.75, -1.5 + 0.375 * j as f32);
+                        TraceRay {
+                            origin: p - d * 20.0,
+                            direction: d,
+                            t_min: 0.0,
+                            t_max: 100.0,
+                        }
+                    })
+                    .collect();
+                seen += assert_packets_agree(tracer, &rays, 81);
+                seen += assert_packets_agree(tracer, &rays, 8);
+            }
+            // Terrain cell corners, edges and diagonals (8 cells of 12.5 m):
+            // the points exactly on the lattice, light-relative.
+            let step = 100.0 / 8.0 / 2.0;
+            let origin = world.blocks[0].2;
+            for d in [Vec3::NEG_Y, Vec3::new(0.3, -1.0, 0.2).normalize()] {
+                let rays: Vec<TraceRay> = (0..17 * 17)
+                    .map(|k| {
+                        let w = origin
+                            + DVec3::new((k % 17) as f64 * step, 0.0, (k / 17) as f64 * step);
+                        let p = (w - world.reference).as_vec3();
+                        TraceRay {
+                            origin: Vec3::new(p.x, 40.0, p.z),
+                            direction: d,
+                            t_min: 0.0,
+                            t_max: 200.0,
+                        }
+                    })
+                    .collect();
+                seen += assert_packets_agree(tracer, &rays, 64);
+            }
+            assert!(seen > 300, "{seen}");
+        });
+    }
+
+    #[test]
+    fn segments_reaching_behind_their_origins_match_single_rays() {
+        instanced_tracer_check(|tracer, _| {
+            let mut seen = 0;
+            for d in [Vec3::new(0.4, -1.0, 0.1), Vec3::new(-1.0, -0.3, 0.5)] {
+                // Origins under the surface, segments from 30 m behind.
+                let mut rays = parallel_tile(Vec3::new(5.0, -3.0, 2.0), d, 8, 0.7, 40.0);
+                for r in &mut rays {
+                    r.t_min = -30.0;
+                }
+                seen += assert_packets_agree(tracer, &rays, 64);
+                let mut rays = frustum_tile(Vec3::new(-8.0, 1.0, 4.0), d, 8, 0.3, -25.0);
+                for r in &mut rays {
+                    r.t_max = 30.0;
+                }
+                seen += assert_packets_agree(tracer, &rays, 64);
+            }
+            assert!(seen > 100, "{seen}");
+        });
+    }
+
+    #[test]
+    fn packets_with_unusable_or_spread_rays_fall_back_exactly() {
+        instanced_tracer_check(|tracer, _| {
+            let mut rays = parallel_tile(Vec3::new(3.0, 30.0, -7.0), Vec3::NEG_Y, 8, 0.5, 200.0);
+            rays[5].origin.x = f32::NAN;
+            rays[9].direction = Vec3::ZERO;
+            rays[13].t_min = 500.0;
+            rays[17].t_max = f32::NAN;
+            assert_packets_agree(tracer, &rays, 64);
+            // Opposite directions in one packet: no beam bounds them.
+            let mut spread = parallel_tile(Vec3::new(3.0, 30.0, -7.0), Vec3::NEG_Y, 4, 0.5, 200.0);
+            spread.extend(parallel_tile(
+                Vec3::new(3.0, -30.0, -7.0),
+                Vec3::Y,
+                4,
+                0.5,
+                200.0,
+            ));
+            let seen = assert_packets_agree(tracer, &spread, 32);
+            assert!(seen > 16, "{seen}");
+            // Larger than one packet: split.
+            let many = parallel_tile(Vec3::new(0.0, 30.0, 0.0), Vec3::NEG_Y, 20, 0.5, 200.0);
+            assert_packets_agree(tracer, &many, 400);
+        });
     }
 }

@@ -93,7 +93,7 @@ pub(crate) enum Entry {
 /// One light's top level.
 #[derive(Debug, Default)]
 pub struct TopLevel {
-    tree: BoxTree,
+    pub(crate) tree: BoxTree,
     /// In tree order.
     pub(crate) entries: Vec<Entry>,
     pub(crate) reference: DVec3,

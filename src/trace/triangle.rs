@@ -93,6 +93,33 @@ impl PreparedRay {
         }
     }
 
+    /// [`PreparedRay::new`] of `ray`, whose direction is bit for bit the
+    /// one `self` was prepared from: the permutation and shear are pure
+    /// functions of the direction, so only the origin and range change
+    /// (rays of a directional light's tile share their direction).
+    #[inline]
+    pub(crate) fn with_direction_of(&self, ray: &TraceRay) -> PreparedRay {
+        if !self.valid {
+            return PreparedRay::new(ray);
+        }
+        let valid = ray.origin.is_finite() && !ray.t_min.is_nan() && !ray.t_max.is_nan();
+        if !valid {
+            return PreparedRay::new(ray);
+        }
+        let prepared = PreparedRay {
+            origin: ray.origin,
+            t_min: ray.t_min,
+            t_max: ray.t_max,
+            ..*self
+        };
+        debug_assert_eq!(
+            format!("{prepared:?}"),
+            format!("{:?}", PreparedRay::new(ray)),
+            "{ray:?}"
+        );
+        prepared
+    }
+
     pub(crate) fn is_valid(&self) -> bool {
         self.valid
     }
@@ -201,6 +228,126 @@ pub(crate) fn hit_t(ray: &PreparedRay, tri: &TraceTriangle) -> Option<(f32, bool
     let t = az + (v * (bz - az) + w * (cz - az)) / det;
     let t = t as f32;
     t.is_finite().then_some((t, !front))
+}
+
+/// Lanes per [`Lanes`] group: one AVX register of f32.
+pub(crate) const LANES: usize = 8;
+
+/// Up to [`LANES`] prepared rays sharing one permutation, laid out lane by
+/// lane for the first step of [`hit_t`] over many rays at once: the shear of
+/// the three vertices and the three f32 edge functions, with the same
+/// operations in the same order (Rust does not contract `a - b * c`), so
+/// each lane's values are bit for bit the single-ray test's. A lane that
+/// step rejects is rejected by [`hit_t`] too; every other lane goes through
+/// [`hit_t`] itself, so the hits are exactly the single-ray test's.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Lanes {
+    axes: [usize; 3],
+    ox: [f32; LANES],
+    oy: [f32; LANES],
+    oz: [f32; LANES],
+    sx: [f32; LANES],
+    sy: [f32; LANES],
+    live: u32,
+}
+
+impl Lanes {
+    /// The permutation (kx, ky, kz) of a ray: rays of one group share it.
+    pub(crate) fn axes_of(ray: &PreparedRay) -> [usize; 3] {
+        [ray.kx, ray.ky, ray.kz]
+    }
+
+    /// At most [`LANES`] valid rays, all with the same [`Self::axes_of`].
+    pub(crate) fn new<'r>(rays: impl Iterator<Item = &'r PreparedRay>) -> Lanes {
+        let mut lanes = Lanes {
+            axes: [0, 1, 2],
+            ox: [0.0; LANES],
+            oy: [0.0; LANES],
+            oz: [0.0; LANES],
+            sx: [0.0; LANES],
+            sy: [0.0; LANES],
+            live: 0,
+        };
+        for (l, ray) in rays.take(LANES).enumerate() {
+            debug_assert!(ray.valid);
+            lanes.axes = Self::axes_of(ray);
+            let o = ray.origin.to_array();
+            lanes.ox[l] = o[ray.kx];
+            lanes.oy[l] = o[ray.ky];
+            lanes.oz[l] = o[ray.kz];
+            lanes.sx[l] = ray.sx;
+            lanes.sy[l] = ray.sy;
+            lanes.live |= 1 << l;
+        }
+        lanes
+    }
+
+    /// Bit l set when ray l passes [`hit_t`]'s early out (finite edge
+    /// functions, not of mixed signs) for `tri`: only those can hit it.
+    // Lanes index several arrays in lockstep: the form that vectorizes.
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn candidates_inline(&self, tri: &TraceTriangle) -> u32 {
+        let [kx, ky, kz] = self.axes;
+        let permuted = |v: Vec3| {
+            let a = v.to_array();
+            (a[kx], a[ky], a[kz])
+        };
+        let (p0x, p0y, p0z) = permuted(tri.vertices[0]);
+        let (p1x, p1y, p1z) = permuted(tri.vertices[1]);
+        let (p2x, p2y, p2z) = permuted(tri.vertices[2]);
+        let mut keep = [0u32; LANES];
+        for l in 0..LANES {
+            let (ox, oy, oz, sx, sy) = (self.ox[l], self.oy[l], self.oz[l], self.sx[l], self.sy[l]);
+            let az = p0z - oz;
+            let ax = (p0x - ox) - sx * az;
+            let ay = (p0y - oy) - sy * az;
+            let bz = p1z - oz;
+            let bx = (p1x - ox) - sx * bz;
+            let by = (p1y - oy) - sy * bz;
+            let cz = p2z - oz;
+            let cx = (p2x - ox) - sx * cz;
+            let cy = (p2y - oy) - sy * cz;
+            let u = cx * by - cy * bx;
+            let v = ax * cy - ay * cx;
+            let w = bx * ay - by * ax;
+            let finite = u.is_finite() & v.is_finite() & w.is_finite();
+            let negative = (u < 0.0) | (v < 0.0) | (w < 0.0);
+            let positive = (u > 0.0) | (v > 0.0) | (w > 0.0);
+            keep[l] = u32::from(finite & !(negative & positive));
+        }
+        let mut mask = 0;
+        for (l, k) in keep.iter().enumerate() {
+            mask |= k << l;
+        }
+        mask & self.live
+    }
+
+    /// [`Self::candidates_inline`] for every group, into `masks`; with AVX2
+    /// when the processor has it (the same operations, eight lanes wide).
+    pub(crate) fn candidates(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor has AVX2 (checked just above).
+            unsafe { candidates_avx2(groups, tri, masks) };
+            return;
+        }
+        candidates_portable(groups, tri, masks);
+    }
+}
+
+fn candidates_portable(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
+    for (g, m) in groups.iter().zip(masks) {
+        *m = g.candidates_inline(tri);
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn candidates_avx2(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
+    for (g, m) in groups.iter().zip(masks) {
+        *m = g.candidates_inline(tri);
+    }
 }
 
 #[cfg(test)]
@@ -367,6 +514,62 @@ mod tests {
             t_max: 1.0
         })
         .is_valid());
+    }
+
+    /// The lane filter keeps every ray the single-ray test hits (and
+    /// rejects only what its early out rejects), portable and AVX2 alike.
+    #[test]
+    fn lane_filter_keeps_every_hit_and_matches_the_early_out() {
+        let mut rng = crate::rng::Rng::new(5);
+        let mut p = |s: f64| {
+            vec3(
+                rng.range(-s, s) as f32,
+                rng.range(-s, s) as f32,
+                rng.range(-s, s) as f32,
+            )
+        };
+        let (mut kept, mut hits) = (0, 0);
+        for round in 0..400 {
+            let d = if round % 4 == 0 {
+                Vec3::NEG_Y
+            } else {
+                (p(1.0) + vec3(0.0, -2.0, 0.0)).normalize()
+            };
+            let rays: Vec<PreparedRay> = (0..LANES)
+                .map(|_| {
+                    ray(
+                        p(2.0) + vec3(0.0, 5.0, 0.0),
+                        if round % 2 == 0 {
+                            d
+                        } else {
+                            (d + p(0.05)).normalize()
+                        },
+                    )
+                })
+                .collect();
+            let axes = Lanes::axes_of(&rays[0]);
+            let same: Vec<&PreparedRay> =
+                rays.iter().filter(|r| Lanes::axes_of(r) == axes).collect();
+            let lanes = Lanes::new(same.iter().copied());
+            for _ in 0..20 {
+                let c = p(1.5);
+                let t = tri(c + p(1.0), c + p(1.0), c + p(1.0));
+                let mut portable = [0u32];
+                candidates_portable(&[lanes], &t, &mut portable);
+                let mut best = [0u32];
+                Lanes::candidates(&[lanes], &t, &mut best);
+                assert_eq!(portable, best);
+                for (l, r) in same.iter().enumerate() {
+                    let keep = portable[0] & (1 << l) != 0;
+                    if hit_t(r, &t).is_some() {
+                        assert!(keep, "lane {l} hits but was filtered out");
+                        hits += 1;
+                    }
+                    kept += usize::from(keep);
+                }
+            }
+        }
+        assert!(hits > 100 && kept < 400 * 20 * LANES / 2, "{hits} {kept}");
     }
 
     #[test]

@@ -22,5 +22,6 @@ mod shards;
 mod support;
 mod sweep;
 mod terrain_real;
+mod tiles;
 mod visual_real;
 mod xml_real;

@@ -1,0 +1,369 @@
+//! The node test of a packet of rays: six planes that every ray segment of
+//! the packet lies within (four sides around a central direction, a near and
+//! a far cap), so a box entirely outside one of them meets none of the
+//! rays. For a directional light's tile the sides are a slab around parallel
+//! rays; for a spot or point light's tile, a frustum from the common origin;
+//! the construction is the same for any packet whose directions lie within a
+//! cone (otherwise [`Beam::new`] declines and the caller traces the rays one
+//! by one).
+//!
+//! Conservative like the single-ray node test (`boxtree`): every box is
+//! grown by the same padding (hundreds of ulps of the magnitude of the
+//! boxes and the ray origins), which covers the rounding of a tree's
+//! quantized boxes and of the triangle test; and the planes are built in
+//! f64 with a slope margin so that rounding the normals to f32 cannot tip a
+//! ray out of them, then loosened by a bound on the f32 evaluation error.
+//! A beam only culls: the triangle test of each ray decides its hits, so
+//! every ray gets the hits of the single-ray traversal.
+
+use super::boxtree::PAD_EPSILONS;
+use super::{ToModel, TraceRay};
+use glam::{DVec3, Vec3};
+use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
+
+/// A packet whose rays spread beyond this cosine from the central
+/// direction is not bundled (the side planes would bound little).
+const MIN_COSINE: f64 = 0.25;
+
+/// Relative widening of the side planes' slopes: far beyond the f64
+/// rounding of the slopes and the f32 rounding of the normals (6e-8), so
+/// every ray direction stays within the planes that are actually tested.
+const SLOPE_MARGIN: f64 = 1e-6;
+
+/// Six planes `n · x <= limit` that hold every point of every ray segment
+/// of a packet; a box is culled when it lies entirely outside one of them.
+#[derive(Clone, Debug)]
+pub(crate) struct Beam {
+    normals: [Vec3; 6],
+    /// Plane offsets, already loosened by the padding and the evaluation
+    /// error bound.
+    limits: [f32; 6],
+    /// Padding of the single-ray node test for these rays.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pad: f32,
+}
+
+impl Beam {
+    /// The beam of `rays` (each with its own `[t_min, t_max]`, t_max the
+    /// running one), for boxes within `magnitude` of the origin of their
+    /// frame. `None` when the packet is empty, not finite or too wide.
+    pub(crate) fn new(
+        rays: impl Iterator<Item = TraceRay> + Clone,
+        magnitude: f32,
+    ) -> Option<Beam> {
+        // Any axis inside the cone of directions will do: their sum.
+        let mut sum = DVec3::ZERO;
+        let mut origin_max = 0.0f32;
+        for ray in rays.clone() {
+            if !(ray.origin.is_finite() && ray.direction.is_finite()) || ray.t_min.is_nan() {
+                return None;
+            }
+            sum += ray.direction.as_dvec3();
+            origin_max = origin_max.max(ray.origin.abs().max_element());
+        }
+        let axis = sum.try_normalize()?;
+        let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
+        let (u, v) = perpendiculars(axis);
+        // Each ray's direction and origin in the (u, v, axis) frame: the
+        // side planes' slopes are the extreme ratios u·d / axis·d.
+        let mut slope_max = [f64::NEG_INFINITY; 4];
+        let mut near = f64::INFINITY;
+        let mut far = f64::NEG_INFINITY;
+        for ray in rays.clone() {
+            let d = ray.direction.as_dvec3();
+            let along = axis.dot(d);
+            if !(along > 0.0 && along * along > MIN_COSINE * MIN_COSINE * d.length_squared()) {
+                return None;
+            }
+            let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
+            for (m, s) in slope_max.iter_mut().zip([su, -su, sv, -sv]) {
+                *m = m.max(s);
+            }
+            let o = axis.dot(ray.origin.as_dvec3());
+            let t_min = f64::from(ray.t_min);
+            near = near.min(
+                o + if t_min.is_finite() {
+                    t_min * along
+                } else {
+                    f64::NEG_INFINITY
+                },
+            );
+            far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
+        }
+        // Normals widened by the slope margin and rounded to f32: n · d < 0
+        // for every ray still (the margin exceeds the rounding), so each
+        // ray's points stay at or below its origin's n · o.
+        let sides = [u, -u, v, -v];
+        let mut normals = [Vec3::ZERO; 6];
+        let mut n64 = [DVec3::ZERO; 4];
+        for k in 0..4 {
+            let slope = slope_max[k] + SLOPE_MARGIN * (1.0 + slope_max[k].abs());
+            normals[k] = (sides[k] - axis * slope).as_vec3();
+            n64[k] = normals[k].as_dvec3();
+        }
+        let mut side_max = [f64::NEG_INFINITY; 4];
+        for ray in rays {
+            let o = ray.origin.as_dvec3();
+            // A segment starting behind its origin (t_min < 0) reaches
+            // back past n · o by |t_min| · |n · d|.
+            let back = f64::from(ray.t_min.min(0.0));
+            for (m, n) in side_max.iter_mut().zip(&n64) {
+                let behind = if back < 0.0 {
+                    back * n.dot(ray.direction.as_dvec3()).min(0.0) * (1.0 + 1e-9)
+                } else {
+                    0.0
+                };
+                *m = m.max(n.dot(o) + behind);
+            }
+        }
+        // Where the box test's f32 dot products may err: a few ulps of
+        // the largest coordinate involved.
+        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let mut limits = [0.0f32; 6];
+        for k in 0..4 {
+            limits[k] = loosen(side_max[k], n64[k], pad, scale);
+        }
+        // Caps along the axis: from the nearest start to the farthest end.
+        let axis32 = axis.as_vec3();
+        normals[4] = -axis32;
+        limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
+        normals[5] = axis32;
+        limits[5] = loosen(far, axis32.as_dvec3(), pad, scale);
+        Some(Beam {
+            normals,
+            limits,
+            pad,
+        })
+    }
+
+    /// This beam mapped into an instance's model space, for rays mapped by
+    /// `to_model` (and rounded to f32 there) and boxes within `magnitude`
+    /// of the model's origin; `origin_max` bounds the mapped origins. A
+    /// plane n · x <= c becomes (Wᵀn) · y <= c + (Wᵀn) · offset for the
+    /// world-linear map W (y = L x + offset, W = L⁻¹). The model-space
+    /// padding covers the rounding of the mapped rays (a few ulps of the
+    /// model-space coordinates), as it does for the single-ray test;
+    /// `None` if the map is not finite.
+    pub(crate) fn to_model(
+        &self,
+        to_model: &ToModel,
+        magnitude: f32,
+        origin_max: f32,
+    ) -> Option<Beam> {
+        let (linear, offset) = to_model.parts();
+        let world = linear.inverse();
+        if !world.is_finite() {
+            return None;
+        }
+        let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
+        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let mut normals = [Vec3::ZERO; 6];
+        let mut limits = [0.0f32; 6];
+        for k in 0..6 {
+            let n = world.transpose() * self.normals[k].as_dvec3();
+            let n32 = n.as_vec3();
+            let limit = f64::from(self.limits[k]) + n.dot(offset);
+            if !n32.is_finite() {
+                return None;
+            }
+            normals[k] = n32;
+            // The error of the inverse, relative to the terms involved.
+            let l1 = n.abs().element_sum();
+            let inverse_error = 1e-12 * (limit.abs() + l1 * (scale + offset.abs().max_element()));
+            limits[k] = loosen(limit + inverse_error, n32.as_dvec3(), 2.0 * pad, scale);
+        }
+        Some(Beam {
+            normals,
+            limits,
+            pad,
+        })
+    }
+
+    /// Whether any ray of the packet may touch the box (grown by the
+    /// padding). NaN counts as a touch.
+    #[inline(always)]
+    pub(crate) fn touches(&self, min: Vec3, max: Vec3) -> bool {
+        for k in 0..6 {
+            let n = self.normals[k];
+            let x = if n.x > 0.0 { min.x } else { max.x };
+            let y = if n.y > 0.0 { min.y } else { max.y };
+            let z = if n.z > 0.0 { min.z } else { max.z };
+            if n.x * x + n.y * y + n.z * z > self.limits[k] {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// obvhs's hit mask for the children of `node` the beam may touch;
+    /// with AVX2 when the processor has it (the same arithmetic).
+    #[inline]
+    pub(crate) fn hitmask(&self, node: &CwBvhNode, oct_inv4: u32) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor has AVX2 (checked just above).
+            return unsafe { self.hitmask_avx2(node, oct_inv4) };
+        }
+        self.hitmask_inline(node, oct_inv4)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn hitmask_avx2(&self, node: &CwBvhNode, oct_inv4: u32) -> u32 {
+        self.hitmask_inline(node, oct_inv4)
+    }
+
+    /// The eight children's boxes decoded as obvhs does (`q · extent + p`)
+    /// and tested against the six planes, child by child in lanes.
+    // Children index several arrays in lockstep: the form that vectorizes.
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn hitmask_inline(&self, node: &CwBvhNode, oct_inv4: u32) -> u32 {
+        let e = node.compute_extent();
+        let decode = |q: &[u8; 8], e: f32, p: f32| q.map(|v| v as f32 * e + p);
+        let lo = [
+            decode(&node.child_min_x, e.x, node.p.x),
+            decode(&node.child_min_y, e.y, node.p.y),
+            decode(&node.child_min_z, e.z, node.p.z),
+        ];
+        let hi = [
+            decode(&node.child_max_x, e.x, node.p.x),
+            decode(&node.child_max_y, e.y, node.p.y),
+            decode(&node.child_max_z, e.z, node.p.z),
+        ];
+        let mut outside = [false; 8];
+        for k in 0..6 {
+            let n = self.normals[k].to_array();
+            let pick = |i: usize| if n[i] > 0.0 { &lo[i] } else { &hi[i] };
+            let (x, y, z) = (pick(0), pick(1), pick(2));
+            let limit = self.limits[k];
+            for c in 0..8 {
+                outside[c] |= n[0] * x[c] + n[1] * y[c] + n[2] * z[c] > limit;
+            }
+        }
+        let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+        let mut hit_mask = 0;
+        for (c, &out) in outside.iter().enumerate() {
+            if !out {
+                hit_mask |= extract_byte64(child_bits8, c) << extract_byte64(bit_index8, c);
+            }
+        }
+        hit_mask
+    }
+
+    #[cfg(test)]
+    pub(crate) fn pad(&self) -> f32 {
+        self.pad
+    }
+}
+
+/// `BoxRay::node_t_max` for padding `pad`: t_max plus slack for hits whose
+/// computed t lies within t_max while the exact point lies beyond.
+#[inline]
+fn node_t_max(t_max: f32, pad: f32) -> f32 {
+    t_max + 4.0 * pad + t_max.abs() * (1.0 / 65536.0)
+}
+
+/// Plane offset `limit` for normal `n` (its f32 value, exactly in f64),
+/// loosened by the box padding (a box grown by `pad` reaches `pad·|n|₁`
+/// further along n) and by a bound on the error of the f32 dot product of
+/// n with coordinates up to `scale`, rounded up to f32.
+fn loosen(limit: f64, n: DVec3, pad: f32, scale: f64) -> f32 {
+    let l1 = n.x.abs() + n.y.abs() + n.z.abs();
+    let slack = l1 * (f64::from(pad) + 8.0 * f64::from(f32::EPSILON) * scale);
+    let value = limit + slack + 1e-12 * limit.abs();
+    if value.is_nan() {
+        return f32::INFINITY;
+    }
+    let f = value as f32;
+    if f64::from(f) < value {
+        f.next_up()
+    } else {
+        f
+    }
+}
+
+/// Two unit vectors perpendicular to `axis` and to each other.
+fn perpendiculars(axis: DVec3) -> (DVec3, DVec3) {
+    let helper = if axis.x.abs() < 0.6 {
+        DVec3::X
+    } else {
+        DVec3::Y
+    };
+    let u = axis.cross(helper).normalize();
+    (u, axis.cross(u))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::vec3;
+
+    fn ray(o: Vec3, d: Vec3, t_max: f32) -> TraceRay {
+        TraceRay {
+            origin: o,
+            direction: d.normalize(),
+            t_min: 0.0,
+            t_max,
+        }
+    }
+
+    /// A box just outside the packet's extreme ray, by less than the
+    /// padding, is still touched; one farther out is not. Taking the
+    /// padding out of the beam fails this.
+    #[test]
+    fn boxes_within_the_padding_of_the_extreme_ray_are_touched() {
+        let rays: Vec<TraceRay> = (0..4)
+            .flat_map(|i| (0..4).map(move |j| (i, j)))
+            .map(|(i, j)| ray(vec3(i as f32, 50.0, j as f32), Vec3::NEG_Y, f32::INFINITY))
+            .collect();
+        let beam = Beam::new(rays.iter().copied(), 100.0).unwrap();
+        let pad = beam.pad();
+        assert!(pad > 1e-3, "{pad}");
+        // The rays' largest x is 3 (and z 3): boxes beside them.
+        for (x, touched) in [(3.0 + 0.5 * pad, true), (3.0 + 2.0 * pad, false)] {
+            let reach = beam.touches(vec3(x, -1.0, 1.0), vec3(x + 1.0, 1.0, 2.0));
+            assert_eq!(reach, touched, "x {x}");
+            let reach = beam.touches(vec3(1.0, -1.0, x), vec3(2.0, 1.0, x + 1.0));
+            assert_eq!(reach, touched, "z {x}");
+            let reach = beam.touches(vec3(-1.0, -1.0, 1.0), vec3(3.0 - x, 1.0, 2.0));
+            assert_eq!(reach, touched, "-x {x}");
+        }
+        // Above the origins: only the padding reaches it.
+        assert!(beam.touches(vec3(1.0, 50.0 + 0.5 * pad, 1.0), vec3(2.0, 51.0, 2.0)));
+        assert!(!beam.touches(vec3(1.0, 50.0 + 2.0 * pad, 1.0), vec3(2.0, 51.0, 2.0)));
+        assert!(beam.touches(vec3(1.0, -80.0, 1.0), vec3(2.0, -79.0, 2.0)));
+    }
+
+    #[test]
+    fn frusta_cull_beside_and_behind_and_keep_what_rays_reach() {
+        let o = vec3(5.0, 20.0, -3.0);
+        let rays: Vec<TraceRay> = (0..8)
+            .flat_map(|i| (0..8).map(move |j| (i, j)))
+            .map(|(i, j)| ray(o, vec3(i as f32 * 0.02 - 0.07, -1.0, j as f32 * 0.02), 30.0))
+            .collect();
+        let beam = Beam::new(rays.iter().copied(), 100.0).unwrap();
+        for r in &rays {
+            for t in [0.5f32, 7.0, 29.0] {
+                let p = r.origin + r.direction * t;
+                let e = Vec3::splat(1e-3);
+                assert!(beam.touches(p - e, p + e), "{p} of {r:?}");
+            }
+        }
+        // Behind the origin, beside the frustum, beyond t_max.
+        assert!(!beam.touches(o + vec3(-1.0, 1.0, -1.0), o + vec3(1.0, 2.0, 1.0)));
+        assert!(!beam.touches(o + vec3(5.0, -10.0, 0.0), o + vec3(6.0, -9.0, 1.0)));
+        assert!(!beam.touches(o + vec3(-1.0, -40.0, -1.0), o + vec3(1.0, -35.0, 1.0)));
+    }
+
+    #[test]
+    fn wide_empty_and_nan_packets_are_declined() {
+        let up = ray(Vec3::ZERO, Vec3::Y, 1.0);
+        let down = ray(Vec3::ZERO, Vec3::NEG_Y, 1.0);
+        assert!(Beam::new([up, down].into_iter(), 10.0).is_none());
+        assert!(Beam::new(std::iter::empty(), 10.0).is_none());
+        let mut nan = up;
+        nan.origin.x = f32::NAN;
+        assert!(Beam::new([up, nan].into_iter(), 10.0).is_none());
+    }
+}

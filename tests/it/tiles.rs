@@ -1,0 +1,82 @@
+//! The bake's tile traversal (packets of coherent rays) against the same
+//! rays traced one by one, on generated worlds: every light kind, with and
+//! without supersampling, a directional light fine enough to be traced as
+//! packets and one coarse enough to be traced ray by ray.
+
+use crate::generated::load_world;
+use shadowcull::bake::setup::{BakeWorld, LightSetup};
+use shadowcull::bake::trace_light::{PacketState, RayCounter, MAX_PACKET_SPACING};
+use shadowcull::bake::BakeConfig;
+use shadowcull::formats::bake_settings::LightKind;
+use shadowcull::formats::read_bake_settings;
+use shadowcull::formats::resources::write_tree;
+use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
+use shadowcull::trace::TraceMode;
+
+struct NoCount;
+impl RayCounter for NoCount {
+    fn add(&self, _: u64) {}
+}
+
+#[test]
+fn tiles_give_every_light_the_single_ray_answers() {
+    let world = generate(Preset::Small, 3);
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &world.files).unwrap();
+    let settings_file = dir.path().join(SETTINGS_FILE);
+    let scene = load_world(&settings_file);
+    let settings = read_bake_settings(&settings_file).unwrap();
+    let baked = BakeWorld::new(&scene);
+    for texel in [0.4, 2.0 * MAX_PACKET_SPACING] {
+        let mut config = BakeConfig::from_settings(&settings);
+        for light in &mut config.lights {
+            if let LightKind::Directional { texel_size, .. } = &mut light.kind {
+                *texel_size = texel;
+            }
+        }
+        for index in 0..config.lights.len() {
+            let directional = matches!(config.lights[index].kind, LightKind::Directional { .. });
+            if !directional && texel != 0.4 {
+                continue; // The spot and point do not depend on it.
+            }
+            let setup = LightSetup::new(&baked, &config, index).unwrap();
+            let tiles = setup.rays(&baked, &config);
+            let mut single = tiles;
+            single.tracer.mode = TraceMode::RayByRay;
+            let kind = config.lights[index].kind.type_name();
+            let samples_list: &[u32] = if directional { &[1, 2] } else { &[1] };
+            for &samples in samples_list {
+                let all = 0..tiles.tile_count();
+                let a = tiles.trace_tiles(all.clone(), samples, &NoCount);
+                let b = single.trace_tiles(all, samples, &NoCount);
+                assert_eq!(a, b, "{kind} at {texel} m, {samples}² samples");
+                assert!(!a.is_empty(), "{kind}: some caster is useful");
+            }
+            // Ray by ray, each ray's own answer (not only the union).
+            let grid = &setup.grid;
+            let mut state = PacketState::default();
+            let mut hits = Vec::new();
+            for (face, y) in [(0, 0), (grid.faces() - 1, grid.height() / 2)] {
+                for x0 in (0..grid.width()).step_by(8) {
+                    state.rays.clear();
+                    for x in x0..(x0 + 8).min(grid.width()) {
+                        state.rays.push(grid.ray(face, x, y));
+                    }
+                    let mut by_ray = Vec::new();
+                    for ray in &state.rays {
+                        let mut useful = Vec::new();
+                        tiles.trace(ray, &mut hits, |c| useful.push(c));
+                        by_ray.push(useful);
+                    }
+                    let mut together = Vec::new();
+                    tiles.trace_packet(&mut state, |c| together.push(c));
+                    assert_eq!(
+                        together,
+                        by_ray.concat(),
+                        "{kind} face {face} row {y} from {x0}"
+                    );
+                }
+            }
+        }
+    }
+}
