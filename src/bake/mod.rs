@@ -5,7 +5,9 @@
 
 pub mod casters;
 pub mod estimate;
+pub mod filter_margin;
 pub mod geometry;
+pub mod grid_pass;
 pub mod ground;
 pub mod memory;
 pub mod output;
@@ -42,9 +44,33 @@ pub struct BakeConfig {
     /// Refinement: rays aimed at this many points of every caster's own
     /// surface that the grid did not prove useful (0: off).
     pub refine_samples: u32,
+    /// Refinement's footprint lattice: rays per texel side at which the
+    /// light-space footprint of every caster the grid did not prove useful
+    /// is sampled (0: off). See [`refine`].
+    pub refine_density: u32,
+    /// What a texel of the grid pass stands for: its centre ray, or every
+    /// ray of its beam.
+    pub grid_mode: GridMode,
+    /// The filter margin in texels (`--filter-radius`): 0 is SPEC §4's
+    /// rule; K keeps a caster front-most at a texel when a surface lies
+    /// behind its depth at a texel up to K away (PCF). See
+    /// [`filter_margin`].
+    pub filter_radius: u32,
     /// Per light, its bit in the masks (`<bit>`); empty or short: a light's
     /// bit is its position. See [`BakeConfig::bit`].
     pub bits: Vec<u32>,
+}
+
+/// What a texel of the grid pass stands for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GridMode {
+    /// One ray through the texel's centre (k×k with supersampling): SPEC §4.
+    #[default]
+    Centres,
+    /// The texel's whole beam (`--conservative`): a caster is kept whenever
+    /// some placement of the shadow-map grid at this texel size could make
+    /// it useful. See [`grid_pass`] and `trace::beam`.
+    Conservative,
 }
 
 impl BakeConfig {
@@ -58,6 +84,9 @@ impl BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            refine_density: 0,
+            grid_mode: GridMode::Centres,
+            filter_radius: 0,
             bits: settings.bits.clone(),
         }
     }
@@ -118,6 +147,9 @@ impl Default for BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            refine_density: 0,
+            grid_mode: GridMode::Centres,
+            filter_radius: 0,
             bits: Vec::new(),
         }
     }
@@ -273,9 +305,10 @@ pub trait GridSource: Sync {
     /// (receiver-only ones included; the caller drops them).
     fn grid(
         &self,
+        world: &BakeWorld,
         setup: &LightSetup,
         rays_of_light: &LightRays<'_>,
-        supersample: u32,
+        config: &BakeConfig,
         rays_done: &dyn RayCounter,
     ) -> CasterSet;
 }
@@ -286,12 +319,14 @@ pub struct TraceGrid;
 impl GridSource for TraceGrid {
     fn grid(
         &self,
-        _setup: &LightSetup,
+        world: &BakeWorld,
+        setup: &LightSetup,
         rays_of_light: &LightRays<'_>,
-        supersample: u32,
+        config: &BakeConfig,
         rays_done: &dyn RayCounter,
     ) -> CasterSet {
-        rays_of_light.trace_grid(supersample, rays_done)
+        let tiles = 0..rays_of_light.tile_count();
+        grid_pass::trace_tiles(world, setup, rays_of_light, config, tiles, rays_done)
     }
 }
 
@@ -474,7 +509,7 @@ fn bake_light_from(
     } else {
         let rays_of_light = setup.rays(world, config);
         let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
-        let mut useful = source.grid(setup, &rays_of_light, supersample, &counter);
+        let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
         counter.finish();
         if config.refine_samples > 0 {
             let (refined, traced) =
