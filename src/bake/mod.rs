@@ -511,9 +511,8 @@ fn bake_light_from(
         let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
         let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
         counter.finish();
-        if config.refine_samples > 0 {
-            let (refined, traced) =
-                refine::refine(world, setup, &rays_of_light, &useful, config.refine_samples);
+        if config.refine_samples > 0 || config.refine_density > 0 {
+            let (refined, traced) = refine::refine(world, setup, &rays_of_light, &useful, config);
             useful = useful.union(&refined);
             refine_rays = traced;
             rays += traced;

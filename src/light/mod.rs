@@ -516,6 +516,100 @@ impl TexelGrid {
         }
     }
 
+    /// A directional light's unit direction; `None` for spot and point
+    /// lights (their rays' directions vary).
+    pub fn direction(&self) -> Option<DVec3> {
+        match &self.projection {
+            Projection::Orthographic { direction, .. } => Some(*direction),
+            Projection::Perspective { .. } => None,
+        }
+    }
+
+    /// World point `p` on `face` in texel units (see
+    /// [`Self::project_triangle`]), or `None` when it lies too near the
+    /// light's plane (or behind it) for any ray of the face to reach it.
+    pub fn project_point(&self, face: usize, p: DVec3) -> Option<(f64, f64)> {
+        let polygon = self.project_triangle(face, [p, p, p])?;
+        (polygon.len() == 3).then(|| polygon[0])
+    }
+
+    /// The part of triangle `triangle` (world points) that rays of `face`
+    /// can hit, projected to the face in texel units (texel (x, y) spans
+    /// [x, x+1) × [y, y+1)): a convex polygon, not clipped to the face.
+    /// For a perspective face the triangle is first clipped to depths
+    /// (along the face's axis) of at least `near` / (the longest unit-depth
+    /// ray of the face), below which no ray reaches `near`. `None`: no part
+    /// of it can be hit from this face, or a vertex is not finite.
+    pub fn project_triangle(&self, face: usize, triangle: [DVec3; 3]) -> Option<Vec<(f64, f64)>> {
+        if !triangle.iter().all(|p| p.is_finite()) {
+            return None;
+        }
+        match &self.projection {
+            Projection::Orthographic {
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                ..
+            } => Some(
+                triangle
+                    .iter()
+                    .map(|p| {
+                        (
+                            (p.dot(*u) - u_min) / texel_size,
+                            (p.dot(*v) - v_min) / texel_size,
+                        )
+                    })
+                    .collect(),
+            ),
+            Projection::Perspective {
+                position,
+                near,
+                half_extent,
+                frame,
+                cube,
+                ..
+            } => {
+                let (forward, u, v) = if *cube {
+                    CUBE_FACES[face % CUBE_FACES.len()]
+                } else {
+                    *frame
+                };
+                let min_depth = near / (1.0 + 2.0 * half_extent * half_extent).sqrt();
+                let rel = triangle.map(|p| p - *position);
+                let depth = |p: DVec3| p.dot(forward);
+                let mut clipped: Vec<DVec3> = Vec::with_capacity(4);
+                for i in 0..3 {
+                    let (a, b) = (rel[i], rel[(i + 1) % 3]);
+                    let (da, db) = (depth(a) - min_depth, depth(b) - min_depth);
+                    if da >= 0.0 {
+                        clipped.push(a);
+                    }
+                    if (da >= 0.0) != (db >= 0.0) {
+                        clipped.push(a + (b - a) * (da / (da - db)));
+                    }
+                }
+                if clipped.is_empty() {
+                    return None;
+                }
+                let (w, h) = (self.width as f64, self.height as f64);
+                Some(
+                    clipped
+                        .iter()
+                        .map(|&p| {
+                            let z = depth(p).max(min_depth);
+                            (
+                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w,
+                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h,
+                            )
+                        })
+                        .collect(),
+                )
+            }
+        }
+    }
+
     /// Whether some ray of this light may hit a point of the box `min..max`
     /// within its `[t_min, t_max]`. Conservative: `false` only when no point
     /// of the box can be hit — for a spot light, the box misses the pyramid of

@@ -20,6 +20,7 @@
 //! whatever the BVH's shape or the thread count that built it. obvhs types do
 //! not leave this module.
 
+pub mod beam;
 mod blas;
 mod boxtree;
 mod brute;
