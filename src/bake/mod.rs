@@ -56,6 +56,10 @@ pub struct BakeConfig {
     /// behind its depth at a texel up to K away (PCF). See
     /// [`filter_margin`].
     pub filter_radius: u32,
+    /// Every light's grid moved by this sub-texel amount (texel units, see
+    /// `TexelGrid::with_offset`): the sweep's offset references and the
+    /// tests bake at other placements of the game's shadow map.
+    pub grid_offset: (f64, f64),
     /// Per light, its bit in the masks (`<bit>`); empty or short: a light's
     /// bit is its position. See [`BakeConfig::bit`].
     pub bits: Vec<u32>,
@@ -87,6 +91,7 @@ impl BakeConfig {
             refine_density: 0,
             grid_mode: GridMode::Centres,
             filter_radius: 0,
+            grid_offset: (0.0, 0.0),
             bits: settings.bits.clone(),
         }
     }
@@ -150,6 +155,7 @@ impl Default for BakeConfig {
             refine_density: 0,
             grid_mode: GridMode::Centres,
             filter_radius: 0,
+            grid_offset: (0.0, 0.0),
             bits: Vec::new(),
         }
     }
@@ -286,7 +292,11 @@ pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeErr
     let errors: Vec<crate::light::GridError> = config
         .lights
         .iter()
-        .filter_map(|light| crate::light::TexelGrid::new(light, bounds).err())
+        .filter_map(|light| {
+            crate::light::TexelGrid::new(light, bounds)
+                .map(|grid| grid.with_offset(config.grid_offset))
+                .err()
+        })
         .filter(|e| !matches!(e, crate::light::GridError::EmptyWorld { .. }))
         .collect();
     if errors.is_empty() {

@@ -210,7 +210,7 @@ impl Plan {
         for light in &config.lights {
             let grid = match world.bounds.map(|b| TexelGrid::new(light, b)) {
                 None => None,
-                Some(Ok(grid)) => Some(grid),
+                Some(Ok(grid)) => Some(grid.with_offset(config.grid_offset)),
                 Some(Err(GridError::EmptyWorld { .. })) => None,
                 Some(Err(err)) => return Err(err.into()),
             };
@@ -338,7 +338,7 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
 /// its res root (so machines mounting the roots elsewhere agree).
 pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> Fingerprint {
     let mut settings = format!(
-        "shadowcull {} (partial format {})\nfaceCulling = {:?}\nheightBias = {:?}\ntieEpsilon = {:?}\nsupersample = {}\nbruteForce = {}\ngridMode = {:?}\nfilterRadius = {}\n",
+        "shadowcull {} (partial format {})\nfaceCulling = {:?}\nheightBias = {:?}\ntieEpsilon = {:?}\nsupersample = {}\nbruteForce = {}\ngridMode = {:?}\nfilterRadius = {}\ngridOffset = {:?}\n",
         env!("CARGO_PKG_VERSION"),
         partial::VERSION,
         config.face_culling,
@@ -348,6 +348,7 @@ pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> 
         config.brute_force,
         config.grid_mode,
         config.filter_radius,
+        config.grid_offset,
     );
     for (index, light) in config.lights.iter().enumerate() {
         settings.push_str(&format!("light {index} = {light:?}\n"));

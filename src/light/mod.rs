@@ -144,6 +144,9 @@ pub struct TexelGrid {
     width: u32,
     height: u32,
     reference: DVec3,
+    /// A perspective grid's texel positions moved by this much (texel
+    /// units, each in [0, 1)); see [`TexelGrid::with_offset`].
+    offset: (f64, f64),
 }
 
 #[derive(Debug, Clone)]
@@ -239,6 +242,7 @@ impl TexelGrid {
                     width: resolution,
                     height: resolution,
                     reference: position,
+                    offset: (0.0, 0.0),
                 })
             }
             LightKind::Point {
@@ -262,6 +266,7 @@ impl TexelGrid {
                     width: resolution,
                     height: resolution,
                     reference: position,
+                    offset: (0.0, 0.0),
                 })
             }
         }
@@ -321,7 +326,41 @@ impl TexelGrid {
             width: width as u32,
             height: height as u32,
             reference: (min + max) * 0.5,
+            offset: (0.0, 0.0),
         })
+    }
+
+    /// The same light's grid moved by a sub-texel `offset` (texel units;
+    /// each coordinate is taken modulo 1): where the game's shadow map may
+    /// lie instead, since cascades snap to their own texel grid. Texel
+    /// centres move by −offset. A directional grid's origin moves and it
+    /// grows by one texel per moved side, so it still covers the world; a
+    /// perspective grid's texels move within the light's fixed frustum
+    /// (the last fraction of a texel at one edge goes uncovered, as in a
+    /// shadow map rendered with a sub-texel jitter). Deterministic: the
+    /// sweep's offset references and the tests choose offsets from a seed.
+    pub fn with_offset(mut self, offset: (f64, f64)) -> TexelGrid {
+        let wrap = |o: f64| if o.is_finite() { o.rem_euclid(1.0) } else { 0.0 };
+        let (ox, oy) = (wrap(offset.0), wrap(offset.1));
+        match &mut self.projection {
+            Projection::Orthographic {
+                u_min,
+                v_min,
+                texel_size,
+                ..
+            } => {
+                if ox > 0.0 {
+                    *u_min -= ox * *texel_size;
+                    self.width = self.width.saturating_add(1);
+                }
+                if oy > 0.0 {
+                    *v_min -= oy * *texel_size;
+                    self.height = self.height.saturating_add(1);
+                }
+            }
+            Projection::Perspective { .. } => self.offset = (ox, oy),
+        }
+        self
     }
 
     /// 1, or 6 for a point light.
@@ -434,6 +473,7 @@ impl TexelGrid {
                 } else {
                     *frame
                 };
+                let (cx, cy) = (cx - self.offset.0, cy - self.offset.1);
                 let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
                 let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
                 TexelRay {
@@ -600,8 +640,8 @@ impl TexelGrid {
                         .map(|&p| {
                             let z = depth(p).max(min_depth);
                             (
-                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w,
-                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h,
+                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w + self.offset.0,
+                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h + self.offset.1,
                             )
                         })
                         .collect(),
@@ -732,7 +772,7 @@ impl TexelGrid {
                     let image = |axis: DVec3, side: f64| {
                         (rel.dot(axis) / depth / half_extent + 1.0) * 0.5 * side
                     };
-                    (image(u, w), image(v, h))
+                    (image(u, w) + self.offset.0, image(v, h) + self.offset.1)
                 }
             };
             lo = (lo.0.min(x), lo.1.min(y));
