@@ -15,8 +15,8 @@
 //! some placement of the grid makes useful and the row culls.
 
 use crate::bake::{self, BakeConfig, BakeError, BakeResult, GridMode, Silent};
-use crate::rng::Rng;
 use crate::formats::bake_settings::{LightKind, LightSettings};
+use crate::rng::Rng;
 use crate::scene::Scene;
 use serde::Serialize;
 use std::fmt::Write as _;
@@ -720,7 +720,10 @@ mod tests {
         let densities: Vec<f64> = ladder
             .iter()
             .filter(|s| {
-                s.supersample == 1 && s.refine_samples == 0 && !s.conservative && s.filter_radius == 0
+                s.supersample == 1
+                    && s.refine_samples == 0
+                    && !s.conservative
+                    && s.filter_radius == 0
             })
             .map(|s| s.density)
             .collect();

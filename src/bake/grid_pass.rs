@@ -5,7 +5,7 @@
 
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
-use super::{filter_margin, BakeConfig, GridMode};
+use super::{conservative, filter_margin, BakeConfig, GridMode};
 use rayon::prelude::*;
 
 /// The casters the grid rays of `tiles` prove useful (receiver-only ones
@@ -20,6 +20,8 @@ pub fn trace_tiles(
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
     let samples = config.supersample.max(1);
+    let tiles: Vec<u64> = tiles.into_par_iter().collect();
+    let tiles_again = tiles.clone();
     let centres = if config.filter_radius > 0 {
         filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
     } else {
@@ -28,8 +30,23 @@ pub fn trace_tiles(
     match config.grid_mode {
         GridMode::Centres => centres,
         GridMode::Conservative => {
-            let _ = (world, setup);
-            centres
+            let beams = conservative::trace_tiles(
+                world,
+                setup,
+                rays,
+                config,
+                tiles_again,
+                &centres,
+                &NoCount,
+            );
+            centres.union(&beams)
         }
     }
+}
+
+/// Progress is counted once, by the centre rays.
+struct NoCount;
+
+impl RayCounter for NoCount {
+    fn add(&self, _rays: u64) {}
 }

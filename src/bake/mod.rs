@@ -4,6 +4,7 @@
 //! in `classify`, the rays in `light`, the traversal in `trace`.
 
 pub mod casters;
+pub mod conservative;
 pub mod estimate;
 pub mod filter_margin;
 pub mod geometry;

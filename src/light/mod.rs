@@ -144,8 +144,8 @@ pub struct TexelGrid {
     width: u32,
     height: u32,
     reference: DVec3,
-    /// A perspective grid's texel positions moved by this much (texel
-    /// units, each in [0, 1)); see [`TexelGrid::with_offset`].
+    /// Every ray position moved by this much (texel units, each in
+    /// [−½, ½)); see [`TexelGrid::with_offset`].
     offset: (f64, f64),
 }
 
@@ -330,36 +330,24 @@ impl TexelGrid {
         })
     }
 
-    /// The same light's grid moved by a sub-texel `offset` (texel units;
-    /// each coordinate is taken modulo 1): where the game's shadow map may
-    /// lie instead, since cascades snap to their own texel grid. Texel
-    /// centres move by −offset. A directional grid's origin moves and it
-    /// grows by one texel per moved side, so it still covers the world; a
-    /// perspective grid's texels move within the light's fixed frustum
-    /// (the last fraction of a texel at one edge goes uncovered, as in a
-    /// shadow map rendered with a sub-texel jitter). Deterministic: the
-    /// sweep's offset references and the tests choose offsets from a seed.
+    /// The same light's grid moved by a sub-texel `offset` (texel units,
+    /// each coordinate wrapped into [−½, ½)): where the game's shadow map
+    /// may sample instead, since cascades snap to their own texel grid.
+    /// Every ray position `(cx, cy)` of [`Self::ray_through`] moves to
+    /// `(cx + offset)`, so texel `(x, y)`'s centre ray passes anywhere
+    /// within its own square: the texels (and a directional grid's cover of
+    /// the world) stay where they are, only the sample points move.
+    /// Deterministic: the sweep's offset references and the tests choose
+    /// offsets from a seed.
     pub fn with_offset(mut self, offset: (f64, f64)) -> TexelGrid {
-        let wrap = |o: f64| if o.is_finite() { o.rem_euclid(1.0) } else { 0.0 };
-        let (ox, oy) = (wrap(offset.0), wrap(offset.1));
-        match &mut self.projection {
-            Projection::Orthographic {
-                u_min,
-                v_min,
-                texel_size,
-                ..
-            } => {
-                if ox > 0.0 {
-                    *u_min -= ox * *texel_size;
-                    self.width = self.width.saturating_add(1);
-                }
-                if oy > 0.0 {
-                    *v_min -= oy * *texel_size;
-                    self.height = self.height.saturating_add(1);
-                }
+        let wrap = |o: f64| {
+            if o.is_finite() {
+                (o + 0.5).rem_euclid(1.0) - 0.5
+            } else {
+                0.0
             }
-            Projection::Perspective { .. } => self.offset = (ox, oy),
-        }
+        };
+        self.offset = (wrap(offset.0), wrap(offset.1));
         self
     }
 
@@ -440,6 +428,7 @@ impl TexelGrid {
     /// (texel (x, y) spans [x, x+1) × [y, y+1); its centre is (x+0.5,
     /// y+0.5)): supersampling traces several per texel.
     pub fn ray_through(&self, face: usize, cx: f64, cy: f64) -> TexelRay {
+        let (cx, cy) = (cx + self.offset.0, cy + self.offset.1);
         match &self.projection {
             Projection::Orthographic {
                 direction,
@@ -473,7 +462,6 @@ impl TexelGrid {
                 } else {
                     *frame
                 };
-                let (cx, cy) = (cx - self.offset.0, cy - self.offset.1);
                 let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
                 let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
                 TexelRay {
@@ -573,6 +561,42 @@ impl TexelGrid {
         (polygon.len() == 3).then(|| polygon[0])
     }
 
+    /// The ray direction through image position `(cx, cy)` of `face`
+    /// (texel units, as [`Self::ray_through`] takes them), not normalised
+    /// for a perspective face: unit depth along its axis, so its length is
+    /// the factor from depth z to distance t. A directional light's unit
+    /// direction.
+    pub fn unit_depth_direction(&self, face: usize, cx: f64, cy: f64) -> DVec3 {
+        let (cx, cy) = (cx + self.offset.0, cy + self.offset.1);
+        match &self.projection {
+            Projection::Orthographic { direction, .. } => *direction,
+            Projection::Perspective {
+                half_extent,
+                frame,
+                cube,
+                ..
+            } => {
+                let (forward, u, v) = if *cube {
+                    CUBE_FACES[face % CUBE_FACES.len()]
+                } else {
+                    *frame
+                };
+                let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
+                let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
+                forward + u * s + v * t
+            }
+        }
+    }
+
+    /// A perspective light's `near` and `far`; `None` for a directional
+    /// light (its rays cover the whole world).
+    pub fn near_far(&self) -> Option<(f64, f64)> {
+        match &self.projection {
+            Projection::Orthographic { .. } => None,
+            Projection::Perspective { near, far, .. } => Some((*near, *far)),
+        }
+    }
+
     /// The part of triangle `triangle` (world points) that rays of `face`
     /// can hit, projected to the face in texel units (texel (x, y) spans
     /// [x, x+1) × [y, y+1)): a convex polygon, not clipped to the face.
@@ -581,11 +605,24 @@ impl TexelGrid {
     /// ray of the face), below which no ray reaches `near`. `None`: no part
     /// of it can be hit from this face, or a vertex is not finite.
     pub fn project_triangle(&self, face: usize, triangle: [DVec3; 3]) -> Option<Vec<(f64, f64)>> {
+        let polygon = self.project_triangle_with_depth(face, triangle)?;
+        Some(polygon.into_iter().map(|(x, y, _)| (x, y)).collect())
+    }
+
+    /// [`Self::project_triangle`] with each vertex's depth: `p·direction`
+    /// for a directional light (t plus a constant), the depth `z` along
+    /// the face's axis for a perspective face.
+    pub fn project_triangle_with_depth(
+        &self,
+        face: usize,
+        triangle: [DVec3; 3],
+    ) -> Option<Vec<(f64, f64, f64)>> {
         if !triangle.iter().all(|p| p.is_finite()) {
             return None;
         }
         match &self.projection {
             Projection::Orthographic {
+                direction,
                 u,
                 v,
                 u_min,
@@ -597,8 +634,9 @@ impl TexelGrid {
                     .iter()
                     .map(|p| {
                         (
-                            (p.dot(*u) - u_min) / texel_size,
-                            (p.dot(*v) - v_min) / texel_size,
+                            (p.dot(*u) - u_min) / texel_size - self.offset.0,
+                            (p.dot(*v) - v_min) / texel_size - self.offset.1,
+                            p.dot(*direction),
                         )
                     })
                     .collect(),
@@ -640,8 +678,9 @@ impl TexelGrid {
                         .map(|&p| {
                             let z = depth(p).max(min_depth);
                             (
-                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w + self.offset.0,
-                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h + self.offset.1,
+                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w - self.offset.0,
+                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h - self.offset.1,
+                                z,
                             )
                         })
                         .collect(),
@@ -749,8 +788,8 @@ impl TexelGrid {
                     texel_size,
                     ..
                 } => (
-                    (corner.dot(*u) - u_min) / texel_size,
-                    (corner.dot(*v) - v_min) / texel_size,
+                    (corner.dot(*u) - u_min) / texel_size - self.offset.0,
+                    (corner.dot(*v) - v_min) / texel_size - self.offset.1,
                 ),
                 Projection::Perspective {
                     position,
@@ -772,7 +811,7 @@ impl TexelGrid {
                     let image = |axis: DVec3, side: f64| {
                         (rel.dot(axis) / depth / half_extent + 1.0) * 0.5 * side
                     };
-                    (image(u, w) + self.offset.0, image(v, h) + self.offset.1)
+                    (image(u, w) - self.offset.0, image(v, h) - self.offset.1)
                 }
             };
             lo = (lo.0.min(x), lo.1.min(y));
