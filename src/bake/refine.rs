@@ -349,25 +349,43 @@ impl Footprint {
             x1: (i0 + ni) as f64 / d,
             y1: (j0 + nj) as f64 / d,
         };
-        let polygons = || near.polygons.iter().map(|&i| &self.polygons[i as usize]);
-        if !polygons().any(|p| beam::overlaps_rect(p, rect.grown(TOUCH))) {
-            return false;
-        }
         let point = |i: i64, j: i64| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
         let grid = sampler.rays.grid;
         if ni == 1 && nj == 1 {
             let p = point(i0, j0);
-            if !polygons().any(|poly| beam::inside_convex(poly, p, TOUCH)) {
-                return false;
-            }
-            return sampler.trace(&grid.ray_through(self.face, p.0, p.1)).0;
+            let inside = near
+                .polygons
+                .iter()
+                .any(|&i| beam::inside_convex(&self.polygons[i as usize], p, TOUCH));
+            return inside && sampler.trace(&grid.ray_through(self.face, p.0, p.1)).0;
         }
-        let crossed = match &self.outline {
-            None => true,
-            Some(edges) => near.edges.iter().any(|&e| {
-                let (a, b) = edges[e as usize];
-                beam::segment_meets_rect(a, b, rect.grown(TOUCH))
-            }),
+        // What meets this cell, handed down so smaller cells test less.
+        let grown = rect.grown(TOUCH);
+        let polygons: Vec<u32> = near
+            .polygons
+            .iter()
+            .copied()
+            .filter(|&i| beam::overlaps_rect(&self.polygons[i as usize], grown))
+            .collect();
+        if polygons.is_empty() {
+            return false;
+        }
+        let edges: Vec<u32> = match &self.outline {
+            None => Vec::new(),
+            Some(all) => near
+                .edges
+                .iter()
+                .copied()
+                .filter(|&e| {
+                    let (a, b) = all[e as usize];
+                    beam::segment_meets_rect(a, b, grown)
+                })
+                .collect(),
+        };
+        let crossed = self.outline.is_none() || !edges.is_empty();
+        let near = &Near {
+            polygons: &polygons,
+            edges: &edges,
         };
         if !crossed {
             let mut fronts = Vec::with_capacity(4);
