@@ -105,7 +105,8 @@ impl Affine {
         let (x2, y2) = (p[2].0 - p[0].0, p[2].1 - p[0].1);
         let det = x1 * y2 - x2 * y1;
         let scale = (x1.abs() + y1.abs()) * (x2.abs() + y2.abs());
-        if !(det.abs() > 1e-12 * scale) {
+        // NaN fails the comparison too.
+        if det.abs().partial_cmp(&(1e-12 * scale)) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         let (v1, v2) = (p[1].2 - p[0].2, p[2].2 - p[0].2);

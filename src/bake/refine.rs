@@ -252,7 +252,9 @@ fn outline_edges(
     config: &BakeConfig,
 ) -> Vec<(DVec3, DVec3)> {
     let key = |v: glam::Vec3| v.to_array().map(f32::to_bits);
-    let mut uses: HashMap<([u32; 3], [u32; 3]), (u32, DVec3, DVec3)> = HashMap::new();
+    // Edge (its vertices' bits, ordered) → uses and its two ends.
+    type Uses = HashMap<([u32; 3], [u32; 3]), (u32, DVec3, DVec3)>;
+    let mut uses = Uses::new();
     for t in run
         .iter()
         .filter(|t| hittable(t, direction, double_sided, config))
