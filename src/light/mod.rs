@@ -428,6 +428,7 @@ impl TexelGrid {
     /// (texel (x, y) spans [x, x+1) × [y, y+1); its centre is (x+0.5,
     /// y+0.5)): supersampling traces several per texel.
     pub fn ray_through(&self, face: usize, cx: f64, cy: f64) -> TexelRay {
+        let direction = self.unit_depth_direction(face, cx, cy);
         let (cx, cy) = (cx + self.offset.0, cy + self.offset.1);
         match &self.projection {
             Projection::Orthographic {
@@ -453,24 +454,13 @@ impl TexelGrid {
                 position,
                 near,
                 far,
-                half_extent,
-                frame,
-                cube,
-            } => {
-                let (forward, u, v) = if *cube {
-                    CUBE_FACES[face % CUBE_FACES.len()]
-                } else {
-                    *frame
-                };
-                let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
-                let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
-                TexelRay {
-                    origin: *position,
-                    direction: (forward + u * s + v * t).normalize(),
-                    t_min: *near,
-                    t_max: *far,
-                }
-            }
+                ..
+            } => TexelRay {
+                origin: *position,
+                direction: direction.normalize(),
+                t_min: *near,
+                t_max: *far,
+            },
         }
     }
 
