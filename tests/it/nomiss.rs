@@ -331,3 +331,33 @@ fn a_grid_offset_moves_sample_points_within_their_texels() {
         "{masks:?}"
     );
 }
+
+#[test]
+fn conservative_culls_what_the_terrain_covers() {
+    // Box B (5..7, y −2..−1) and below it box C (y −4..−3) are buried under
+    // flat terrain. The plain bake drops their hits (below ground). In
+    // every beam over B, C could lie behind B, but the terrain (never
+    // dropped by the below-ground rule, so a sure occluder) covers B's
+    // fragment 1 m nearer: B is culled; C has nothing behind it: culled.
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let b = one(
+        &mut world,
+        cube(Vec3::new(5.0, -2.0, 5.0), Vec3::new(7.0, -1.0, 7.0)),
+        OPAQUE,
+    );
+    let c = one(
+        &mut world,
+        cube(Vec3::new(5.0, -4.0, 5.0), Vec3::new(7.0, -3.0, 7.0)),
+        OPAQUE,
+    );
+    let b = world.place((0, 0), &[b], DMat4::IDENTITY, true);
+    let c = world.place((0, 0), &[c], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 0.7)]);
+    let plain = run(&world, &settings);
+    assert_eq!(instance_masks(&plain, &world, b), vec![0]);
+    settings.grid_mode = GridMode::Conservative;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, b), vec![0]);
+    assert_eq!(instance_masks(&result, &world, c), vec![0]);
+}
