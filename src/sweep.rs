@@ -45,7 +45,7 @@ impl Default for SweepConfig {
         SweepConfig {
             reference_density: 8.0,
             reference_refine_samples: 64,
-            refine_samples: 16,
+            refine_samples: 64,
             refine_density: 8,
             offset_references: 3,
             offset_seed: 17,

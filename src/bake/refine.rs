@@ -8,19 +8,22 @@
 //! not depend on order or threads):
 //! - area-weighted points of the caster's own surface (`refine_samples`
 //!   per caster, deterministic per (light, caster));
-//! - its light-space footprint, sampled adaptively on the lattice of a grid
-//!   `refine_density` times denser per side (the rays of that denser
-//!   grid, so at density 8 refinement finds every caster the ×8 grid
-//!   finds among those it refines). The footprint is cut into cells; a cell
-//!   that an edge of the footprint crosses (a silhouette or open border of
-//!   the caster's hittable triangles, seen from the light) is split down to
-//!   single lattice points, so a caster's outline and anything smaller than
-//!   a texel is sampled at the full density. A cell wholly inside the
-//!   footprint is probed at its corners and split only where the probes
-//!   disagree on whether the caster is front-most (in either pass): inside
-//!   its own outline a caster changes verdict only where other geometry's
-//!   outline crosses, which the probes see unless it is thinner than the
-//!   cell — the one place where refinement stays a sample.
+//! - its light-space footprint on the lattice of a grid `refine_density`
+//!   times denser per side (the rays of that denser grid). The footprint is
+//!   cut into cells; cells its hittable triangles miss are dropped whole and
+//!   the caster's rays stop at the first that proves it useful. For a
+//!   directional light every lattice point on the footprint is traced, so
+//!   at density 8 refinement finds every caster the ×8 grid finds among
+//!   those it refines (a directional footprint is bounded by the caster's
+//!   size over the texel size). A perspective footprint is not (a wall a
+//!   metre from a point light fills most of a face: a million lattice
+//!   points), so there a cell that the outline of the caster's union of
+//!   hittable triangles does not cross is probed at its corners and split
+//!   only where the probes disagree on whether the caster is front-most (in
+//!   either pass); outline cells still go down to single lattice points.
+//!   Probing is a sample: on `bench` it lost five sun casters the ×8 grid
+//!   keeps (walls and a pillar useful only inside such cells), which is why
+//!   the sun traces the whole lattice.
 
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays};
@@ -170,8 +173,8 @@ const TOP_CELL: u32 = 4;
 const TOUCH: f64 = 1e-6;
 
 /// One face's view of a caster: its hittable triangles projected, and the
-/// edges of their union (`None`: some edge reaches behind the face's
-/// plane, so every cell is treated as crossed).
+/// edges of their union (`None`: a directional light, or some edge reaches
+/// behind the face's plane: every cell is treated as crossed).
 struct Footprint {
     face: usize,
     polygons: Vec<Vec<Point>>,
@@ -194,21 +197,28 @@ fn footprint_lattice(
         .filter(|t| hittable(t, grid.direction(), caster.double_sided, config))
         .map(|t| t.vertices.map(|v| reference + v.as_dvec3()))
         .collect();
-    let outline = outline_edges(run, grid.direction(), caster.double_sided, config);
+    // A directional light traces the whole lattice (no outline, every cell
+    // crossed); a perspective one probes cells inside the outline.
+    let outline = match grid.direction() {
+        Some(_) => None,
+        None => Some(outline_edges(run, None, caster.double_sided, config)),
+    };
     for face in 0..grid.faces() {
         let polygons: Vec<Vec<Point>> = kept
             .iter()
             .filter_map(|&t| grid.project_triangle(face, t))
             .collect();
-        let outline = outline
-            .iter()
-            .map(|&(a, b)| {
-                Some((
-                    grid.project_point(face, reference + a)?,
-                    grid.project_point(face, reference + b)?,
-                ))
-            })
-            .collect::<Option<Vec<_>>>();
+        let outline = outline.as_ref().and_then(|edges| {
+            edges
+                .iter()
+                .map(|&(a, b)| {
+                    Some((
+                        grid.project_point(face, reference + a)?,
+                        grid.project_point(face, reference + b)?,
+                    ))
+                })
+                .collect::<Option<Vec<_>>>()
+        });
         let footprint = Footprint {
             face,
             polygons,

@@ -67,8 +67,10 @@ pub struct BakeOptions {
     /// refines in `merge`.
     #[arg(long)]
     pub refine: bool,
-    /// Rays per caster for --refine, at area-weighted points of its surface.
-    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    /// Rays per caster for --refine, at area-weighted points of its surface
+    /// (64: the sweep reference's; they find slivers thinner than the
+    /// footprint lattice).
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
     refine_samples: u32,
     /// Rays per texel side with which --refine samples the light-space
     /// footprint of every caster the grid did not prove useful (8: the

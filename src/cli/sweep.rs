@@ -23,7 +23,7 @@ pub struct SweepArgs {
     #[arg(long, value_name = "N", default_value_t = 64)]
     reference_refine_samples: u32,
     /// Refinement samples per caster in the ladder's refinement rows.
-    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
     refine_samples: u32,
     /// Footprint lattice (rays per texel side) of the refinement rows.
     #[arg(long, value_name = "D", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]

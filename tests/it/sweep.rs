@@ -44,9 +44,9 @@ fn sweep_counts_the_misses_of_a_caster_smaller_than_a_texel() {
         ("density x4", 0),
         ("density x1, 2x2 samples", 1),
         ("density x1, 4x4 samples", 0),
-        ("density x1/4, refine 16 + footprint x8", 0),
-        ("density x1/2, refine 16 + footprint x8", 0),
-        ("density x1, refine 16 + footprint x8", 0),
+        ("density x1/4, refine 64 + footprint x8", 0),
+        ("density x1/2, refine 64 + footprint x8", 0),
+        ("density x1, refine 64 + footprint x8", 0),
         // The box's beam meets it with terrain behind: kept.
         ("density x1, conservative", 0),
         // The box is never front-most at a ×1 centre, so no margin helps.
