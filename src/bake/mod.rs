@@ -74,7 +74,7 @@ pub enum GridMode {
     Centres,
     /// The texel's whole beam (`--conservative`): a caster is kept whenever
     /// some placement of the shadow-map grid at this texel size could make
-    /// it useful. See [`grid_pass`] and `trace::beam`.
+    /// it useful. See [`grid_pass`] and `trace::texel_beam`.
     Conservative,
 }
 

@@ -33,7 +33,7 @@ use crate::classify::{self, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::TexelRay;
 use crate::rng::{mix, Rng};
-use crate::trace::beam::{self, Point, Rect};
+use crate::trace::texel_beam::{self as beam, Point, Rect};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use rayon::prelude::*;

@@ -20,13 +20,13 @@
 //! whatever the BVH's shape or the thread count that built it. obvhs types do
 //! not leave this module.
 
-pub mod beam;
 mod blas;
 mod boxtree;
 mod brute;
 mod bvh;
 mod heightfield;
 mod instance;
+pub mod texel_beam;
 mod tlas;
 mod triangle;
 
