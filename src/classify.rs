@@ -92,6 +92,60 @@ pub fn classify_ray(hits: &[RayHit], epsilon: f32, which: Passes, mut useful: im
     }
 }
 
+/// One pass's depths along a ray, for the filter margin
+/// (`bake::filter_margin`): what a shadow map stores at the texel (`front`,
+/// the nearest caster hit; `f32::INFINITY` when none) and the farthest
+/// receiving surface (`far`, the farthest hit of the pass, caster or
+/// receiver-only; `f32::NEG_INFINITY` when none).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PassDepths {
+    pub front: f32,
+    pub far: f32,
+}
+
+impl PassDepths {
+    pub const NONE: PassDepths = PassDepths {
+        front: f32::INFINITY,
+        far: f32::NEG_INFINITY,
+    };
+}
+
+/// How many passes `which` evaluates (All first, then Opaque).
+pub fn pass_count(which: Passes) -> usize {
+    passes(which).len()
+}
+
+/// Pass `pass` (an index below [`pass_count`]) of `hits` (sorted, every hit
+/// of the ray: no cut-off): its depths, and each caster of its front set
+/// handed to `front` (the casters a K = 0 ray would prove useful, given
+/// something behind).
+pub fn pass_depths(
+    hits: &[RayHit],
+    which: Passes,
+    pass: usize,
+    epsilon: f32,
+    mut front: impl FnMut(u32),
+) -> PassDepths {
+    let pass = passes(which)[pass];
+    let far = hits
+        .iter()
+        .rev()
+        .find(|h| pass.keeps(h))
+        .map_or(f32::NEG_INFINITY, |h| h.t);
+    let Some(t1) = nearest_caster(hits, pass) else {
+        return PassDepths {
+            far,
+            ..PassDepths::NONE
+        };
+    };
+    for hit in hits.iter().take_while(|h| h.t <= t1 + epsilon) {
+        if pass.keeps(hit) && !hit.receiver_only {
+            front(hit.caster);
+        }
+    }
+    PassDepths { front: t1, far }
+}
+
 /// How far along the ray hits can still change [`classify_ray`]'s answer,
 /// given the hits found so far (sorted). Hits beyond the returned distance
 /// cannot: the nearest caster cannot move past it, the front set ends before

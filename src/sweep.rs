@@ -7,9 +7,16 @@
 //! Every caster a bake keeps was proven useful by a ray, so a *false keep*
 //! (kept here, culled by the reference) is a caster the reference missed;
 //! the error that costs shadows in game is the *false cull*.
+//!
+//! The game's shadow map is not aligned with the bake's grid (cascades
+//! snap to their own texels), so a second reference ORs the first with
+//! several dense grids moved by random sub-texel offsets (seeded, so the
+//! sweep is repeatable): a row's *false culls at any offset* count casters
+//! some placement of the grid makes useful and the row culls.
 
-use crate::bake::{self, BakeConfig, BakeError, BakeResult, Silent};
+use crate::bake::{self, BakeConfig, BakeError, BakeResult, GridMode, Silent};
 use crate::formats::bake_settings::{LightKind, LightSettings};
+use crate::rng::Rng;
 use crate::scene::Scene;
 use serde::Serialize;
 use std::fmt::Write as _;
@@ -24,6 +31,13 @@ pub struct SweepConfig {
     pub reference_refine_samples: u32,
     /// Samples per caster of the ladder's refinement rows.
     pub refine_samples: u32,
+    /// Footprint lattice (rays per texel side) of the refinement rows.
+    pub refine_density: u32,
+    /// How many randomly offset grids at `reference_density` the offset
+    /// reference ORs with the reference.
+    pub offset_references: u32,
+    /// Seed of the offsets.
+    pub offset_seed: u64,
 }
 
 impl Default for SweepConfig {
@@ -31,7 +45,10 @@ impl Default for SweepConfig {
         SweepConfig {
             reference_density: 8.0,
             reference_refine_samples: 64,
-            refine_samples: 16,
+            refine_samples: 64,
+            refine_density: 8,
+            offset_references: 3,
+            offset_seed: 17,
         }
     }
 }
@@ -45,6 +62,12 @@ pub struct Setting {
     pub supersample: u32,
     /// Refinement samples per caster (0: none).
     pub refine_samples: u32,
+    /// Refinement's footprint lattice, rays per texel side (0: none).
+    pub refine_density: u32,
+    /// Texel beams (`--conservative`) instead of centre rays.
+    pub conservative: bool,
+    /// The filter margin in texels (`--filter-radius`).
+    pub filter_radius: u32,
 }
 
 impl Setting {
@@ -55,6 +78,15 @@ impl Setting {
         }
         if self.refine_samples > 0 {
             let _ = write!(label, ", refine {}", self.refine_samples);
+        }
+        if self.refine_density > 0 {
+            let _ = write!(label, " + footprint x{}", self.refine_density);
+        }
+        if self.conservative {
+            label.push_str(", conservative");
+        }
+        if self.filter_radius > 0 {
+            let _ = write!(label, ", filter radius {}", self.filter_radius);
         }
         label
     }
@@ -68,13 +100,17 @@ fn fraction(value: f64) -> String {
     }
 }
 
-/// The ladder: density ×¼ … ×4, 2×2 and 4×4 supersampling at ×1, and
-/// refinement at ×¼, ×½ and ×1.
+/// The ladder: density ×¼ … ×4, 2×2 and 4×4 supersampling at ×1,
+/// refinement at ×¼, ×½ and ×1, and at ×1 the conservative mode and the
+/// filter margin of one texel.
 pub fn ladder(config: &SweepConfig) -> Vec<Setting> {
     let plain = |density| Setting {
         density,
         supersample: 1,
         refine_samples: 0,
+        refine_density: 0,
+        conservative: false,
+        filter_radius: 0,
     };
     let mut settings: Vec<Setting> = [0.25, 0.5, 1.0, 2.0, 4.0].map(plain).to_vec();
     for k in [2, 4] {
@@ -86,9 +122,18 @@ pub fn ladder(config: &SweepConfig) -> Vec<Setting> {
     for density in [0.25, 0.5, 1.0] {
         settings.push(Setting {
             refine_samples: config.refine_samples,
+            refine_density: config.refine_density,
             ..plain(density)
         });
     }
+    settings.push(Setting {
+        conservative: true,
+        ..plain(1.0)
+    });
+    settings.push(Setting {
+        filter_radius: 1,
+        ..plain(1.0)
+    });
     settings
 }
 
@@ -104,6 +149,12 @@ pub struct Row {
     /// Culled in the reference, kept here: wasted shadow-pass work (or a
     /// caster the reference missed).
     pub false_keeps: u64,
+    /// Useful in the offset reference (the reference or a dense grid at
+    /// some sub-texel offset), culled here: a shadow missing at some
+    /// placement of the game's shadow map.
+    pub false_culls_any_offset: u64,
+    /// Culled in the offset reference, kept here.
+    pub false_keeps_any_offset: u64,
     /// (caster, light) pairs compared.
     pub pairs: u64,
 }
@@ -111,6 +162,9 @@ pub struct Row {
 #[derive(Debug, Clone, Serialize)]
 pub struct SweepReport {
     pub reference: Row,
+    /// The sub-texel offsets (texels of the reference grid) of the offset
+    /// reference's extra grids.
+    pub offsets: Vec<(f64, f64)>,
     pub rows: Vec<Row>,
 }
 
@@ -131,6 +185,15 @@ fn bake_setting(
     base: &BakeConfig,
     setting: Setting,
 ) -> Result<(BakeResult, f64), BakeError> {
+    bake_at(scene, base, setting, (0.0, 0.0))
+}
+
+fn bake_at(
+    scene: &Scene,
+    base: &BakeConfig,
+    setting: Setting,
+    grid_offset: (f64, f64),
+) -> Result<(BakeResult, f64), BakeError> {
     let config = BakeConfig {
         lights: base
             .lights
@@ -139,6 +202,14 @@ fn bake_setting(
             .collect(),
         supersample: setting.supersample,
         refine_samples: setting.refine_samples,
+        refine_density: setting.refine_density,
+        grid_mode: if setting.conservative {
+            GridMode::Conservative
+        } else {
+            GridMode::Centres
+        },
+        filter_radius: setting.filter_radius,
+        grid_offset,
         // Rows compare light i at bit i: positions, not the file's <bit>s.
         bits: Vec::new(),
         ..base.clone()
@@ -148,19 +219,30 @@ fn bake_setting(
     Ok((result, started.elapsed().as_secs_f64()))
 }
 
-fn row(setting: Setting, result: &BakeResult, seconds: f64, reference: &BakeResult) -> Row {
-    let lights = reference.lights.len().max(result.lights.len());
+/// The two references: the dense bake, and its masks OR-ed with dense
+/// bakes at other grid offsets.
+struct References<'r> {
+    reference: &'r BakeResult,
+    any_offset: &'r [u32],
+}
+
+fn row(setting: Setting, result: &BakeResult, seconds: f64, refs: &References<'_>) -> Row {
+    let lights = refs.reference.lights.len().max(result.lights.len());
     let (mut false_culls, mut false_keeps, mut pairs) = (0, 0, 0);
+    let (mut culls_any, mut keeps_any) = (0, 0);
     for (id, caster) in result.casters.casters.iter().enumerate() {
         if caster.receiver_only {
             continue;
         }
-        let (here, truth) = (result.masks[id], reference.masks[id]);
+        let here = result.masks[id];
+        let (truth, any) = (refs.reference.masks[id], refs.any_offset[id]);
         for light in 0..lights {
             let bit = 1u32 << light;
             pairs += 1;
             false_culls += u64::from(truth & bit != 0 && here & bit == 0);
             false_keeps += u64::from(truth & bit == 0 && here & bit != 0);
+            culls_any += u64::from(any & bit != 0 && here & bit == 0);
+            keeps_any += u64::from(any & bit == 0 && here & bit != 0);
         }
     }
     Row {
@@ -170,8 +252,21 @@ fn row(setting: Setting, result: &BakeResult, seconds: f64, reference: &BakeResu
         seconds,
         false_culls,
         false_keeps,
+        false_culls_any_offset: culls_any,
+        false_keeps_any_offset: keeps_any,
         pairs,
     }
+}
+
+/// `count` sub-texel offsets from `seed`, each coordinate in (0, 1).
+pub fn offsets(count: u32, seed: u64) -> Vec<(f64, f64)> {
+    let mut rng = Rng::new(seed);
+    (0..count)
+        .map(|_| {
+            let mut draw = || rng.unit().clamp(1.0 / 64.0, 63.0 / 64.0);
+            (draw(), draw())
+        })
+        .collect()
 }
 
 /// Bakes the reference and every setting of the ladder. `on_row` hears of
@@ -186,19 +281,39 @@ pub fn sweep(
         density: config.reference_density,
         supersample: 1,
         refine_samples: config.reference_refine_samples,
+        refine_density: 0,
+        conservative: false,
+        filter_radius: 0,
     };
     let (reference, reference_seconds) = bake_setting(scene, base, reference_setting)?;
-    let reference_row = row(reference_setting, &reference, reference_seconds, &reference);
+    let offsets = offsets(config.offset_references, config.offset_seed);
+    let mut any_offset = reference.masks.clone();
+    for &offset in &offsets {
+        let plain = Setting {
+            refine_samples: 0,
+            ..reference_setting
+        };
+        let (moved, _) = bake_at(scene, base, plain, offset)?;
+        for (any, mask) in any_offset.iter_mut().zip(&moved.masks) {
+            *any |= mask;
+        }
+    }
+    let refs = References {
+        reference: &reference,
+        any_offset: &any_offset,
+    };
+    let reference_row = row(reference_setting, &reference, reference_seconds, &refs);
     on_row(&reference_row);
     let mut rows = Vec::new();
     for setting in ladder(config) {
         let (result, seconds) = bake_setting(scene, base, setting)?;
-        let row = row(setting, &result, seconds, &reference);
+        let row = row(setting, &result, seconds, &refs);
         on_row(&row);
         rows.push(row);
     }
     Ok(SweepReport {
         reference: reference_row,
+        offsets,
         rows,
     })
 }
@@ -206,25 +321,31 @@ pub fn sweep(
 impl SweepReport {
     pub fn to_csv(&self) -> String {
         let mut out = String::from(
-            "label,density,supersample,refine_samples,rays,seconds,false_culls,false_keeps,pairs\n",
+            "label,density,supersample,refine_samples,refine_density,conservative,filter_radius,rays,seconds,false_culls,false_keeps,false_culls_any_offset,false_keeps_any_offset,pairs\n",
         );
         for row in std::iter::once(&self.reference).chain(&self.rows) {
+            let setting = &row.setting;
             let _ = writeln!(
                 out,
-                "\"{}{}\",{},{},{},{},{:.6},{},{},{}",
+                "\"{}{}\",{},{},{},{},{},{},{},{:.6},{},{},{},{},{}",
                 if std::ptr::eq(row, &self.reference) {
                     "reference: "
                 } else {
                     ""
                 },
                 row.label,
-                row.setting.density,
-                row.setting.supersample,
-                row.setting.refine_samples,
+                setting.density,
+                setting.supersample,
+                setting.refine_samples,
+                setting.refine_density,
+                setting.conservative,
+                setting.filter_radius,
                 row.rays,
                 row.seconds,
                 row.false_culls,
                 row.false_keeps,
+                row.false_culls_any_offset,
+                row.false_keeps_any_offset,
                 row.pairs
             );
         }
@@ -233,22 +354,33 @@ impl SweepReport {
 
     pub fn to_table(&self) -> String {
         let mut out = format!(
-            "reference: {} ({} rays, {:.2} s)\n{:<34} {:>12} {:>9} {:>11} {:>11} {:>8}\n",
+            "reference: {} ({} rays, {:.2} s); offset reference: it OR {} grids at random sub-texel offsets (the reference itself misses {} there)\n{:<44} {:>12} {:>9} {:>11} {:>11} {:>10} {:>10} {:>8}\n",
             self.reference.label,
             self.reference.rays,
             self.reference.seconds,
+            self.offsets.len(),
+            self.reference.false_culls_any_offset,
             "setting",
             "rays",
             "seconds",
             "false culls",
             "false keeps",
+            "culls@any",
+            "keeps@any",
             "pairs"
         );
         for row in &self.rows {
             let _ = writeln!(
                 out,
-                "{:<34} {:>12} {:>9.3} {:>11} {:>11} {:>8}",
-                row.label, row.rays, row.seconds, row.false_culls, row.false_keeps, row.pairs
+                "{:<44} {:>12} {:>9.3} {:>11} {:>11} {:>10} {:>10} {:>8}",
+                row.label,
+                row.rays,
+                row.seconds,
+                row.false_culls,
+                row.false_keeps,
+                row.false_culls_any_offset,
+                row.false_keeps_any_offset,
+                row.pairs
             );
         }
         out
@@ -587,12 +719,19 @@ mod tests {
         let ladder = ladder(&SweepConfig::default());
         let densities: Vec<f64> = ladder
             .iter()
-            .filter(|s| s.supersample == 1 && s.refine_samples == 0)
+            .filter(|s| {
+                s.supersample == 1
+                    && s.refine_samples == 0
+                    && !s.conservative
+                    && s.filter_radius == 0
+            })
             .map(|s| s.density)
             .collect();
         assert_eq!(densities, [0.25, 0.5, 1.0, 2.0, 4.0]);
         assert!(ladder.iter().any(|s| s.supersample == 2));
         assert_eq!(ladder.iter().filter(|s| s.refine_samples > 0).count(), 3);
+        assert_eq!(ladder.iter().filter(|s| s.conservative).count(), 1);
+        assert_eq!(ladder.iter().filter(|s| s.filter_radius == 1).count(), 1);
         assert_eq!(ladder[0].label(), "density x1/4");
     }
 }

@@ -16,7 +16,7 @@
 
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
-use super::{BakeConfig, BakeError, GridSource};
+use super::{grid_pass, BakeConfig, BakeError, GridMode, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -74,14 +74,35 @@ pub struct LightPlan {
 }
 
 /// The tiles a light's calibration traced — every `every`-th of
-/// `tile_count`, at `supersample` — and the casters they proved useful.
+/// `tile_count` — under `pass` (the grid settings they were traced with),
+/// and the casters they proved useful.
 #[derive(Debug, Clone)]
 pub struct TracedSample {
     pub every: u64,
     pub tile_count: u64,
-    pub supersample: u32,
+    pub pass: GridPassSettings,
     pub rays: u64,
     pub useful: CasterSet,
+}
+
+/// What decides a tile's answer besides the light and the world.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridPassSettings {
+    supersample: u32,
+    grid_mode: GridMode,
+    filter_radius: u32,
+    grid_offset: (f64, f64),
+}
+
+impl GridPassSettings {
+    fn of(config: &BakeConfig) -> GridPassSettings {
+        GridPassSettings {
+            supersample: config.supersample.max(1),
+            grid_mode: config.grid_mode,
+            filter_radius: config.filter_radius,
+            grid_offset: config.grid_offset,
+        }
+    }
 }
 
 impl TracedSample {
@@ -92,14 +113,15 @@ impl TracedSample {
 
 /// A bake after its plan: each light's grid is the calibration's answer OR
 /// the other tiles' (the answer over a partition of the tiles is the
-/// grid's, [`LightRays::trace_tiles`]). A light whose grid differs from
-/// the sample's is traced whole.
+/// grid's, [`grid_pass::trace_tiles`]). A light whose grid or grid pass
+/// differs from the sample's is traced whole.
 impl GridSource for Plan {
     fn grid(
         &self,
+        world: &BakeWorld,
         setup: &LightSetup,
         rays_of_light: &LightRays<'_>,
-        supersample: u32,
+        config: &BakeConfig,
         rays_done: &dyn RayCounter,
     ) -> CasterSet {
         let tile_count = rays_of_light.tile_count();
@@ -107,16 +129,15 @@ impl GridSource for Plan {
             .lights
             .get(setup.index)
             .and_then(|light| light.sample.as_ref())
-            .filter(|s| s.tile_count == tile_count && s.supersample == supersample);
+            .filter(|s| s.tile_count == tile_count && s.pass == GridPassSettings::of(config));
         let Some(sample) = sample else {
-            return rays_of_light.trace_grid(supersample, rays_done);
+            return TraceGrid.grid(world, setup, rays_of_light, config, rays_done);
         };
         rays_done.add(sample.rays);
         let rest = (0..tile_count)
             .into_par_iter()
             .filter(|&t| !sample.holds(t));
-        rays_of_light
-            .trace_tiles(rest, supersample, rays_done)
+        grid_pass::trace_tiles(world, setup, rays_of_light, config, rest, rays_done)
             .union(&sample.useful)
     }
 
@@ -255,14 +276,14 @@ fn plan_light(
     );
     let started = Instant::now();
     let sample = (0..sampled_tiles).into_par_iter().map(|n| n * every);
-    let useful = rays.trace_tiles(sample, config.supersample, &counter);
+    let useful = grid_pass::trace_tiles(world, &setup, &rays, config, sample, &counter);
     plan.sample_seconds = started.elapsed().as_secs_f64();
     plan.sample_rays = counter.done();
     counter.finish();
     plan.sample = Some(TracedSample {
         every,
         tile_count: tiles,
-        supersample: config.supersample.max(1),
+        pass: GridPassSettings::of(config),
         rays: plan.sample_rays,
         useful,
     });
@@ -331,11 +352,29 @@ mod tests {
             })
             .unwrap();
             let world = BakeWorld::build(&scene, &Silent);
-            for supersample in [1, 2] {
-                let config = BakeConfig {
-                    supersample,
-                    ..BakeConfig::from_settings(&settings)
-                };
+            let plain = BakeConfig::from_settings(&settings);
+            let passes = [
+                plain.clone(),
+                BakeConfig {
+                    supersample: 2,
+                    ..plain.clone()
+                },
+                BakeConfig {
+                    filter_radius: 1,
+                    ..plain.clone()
+                },
+                BakeConfig {
+                    grid_mode: GridMode::Conservative,
+                    ..plain.clone()
+                },
+            ];
+            // The beams and halos on the smaller fixture only (seconds).
+            let passes = if name == "small" {
+                &passes[..]
+            } else {
+                &passes[..2]
+            };
+            for config in passes.iter().cloned() {
                 let plan = plan(&world, &config, Baseline::default(), &Silent).unwrap();
                 let sampled = plan.lights.iter().filter(|l| l.sample.is_some()).count();
                 assert_eq!(sampled, config.lights.len(), "{name}: every light sampled");
@@ -346,8 +385,10 @@ mod tests {
                 let after_plan = super::super::bake_from(&world, &config, &Silent, &plan).unwrap();
                 let whole = super::super::bake_world(&world, &config, &Silent).unwrap();
                 assert_eq!(
-                    after_plan.masks, whole.masks,
-                    "{name} at supersample {supersample}"
+                    after_plan.masks,
+                    whole.masks,
+                    "{name} with {:?}",
+                    GridPassSettings::of(&config)
                 );
                 for (a, b) in after_plan.lights.iter().zip(&whole.lights) {
                     assert_eq!(a.rays, b.rays);

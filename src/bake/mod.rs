@@ -4,8 +4,11 @@
 //! in `classify`, the rays in `light`, the traversal in `trace`.
 
 pub mod casters;
+pub mod conservative;
 pub mod estimate;
+pub mod filter_margin;
 pub mod geometry;
+pub mod grid_pass;
 pub mod ground;
 pub mod memory;
 pub mod output;
@@ -42,9 +45,37 @@ pub struct BakeConfig {
     /// Refinement: rays aimed at this many points of every caster's own
     /// surface that the grid did not prove useful (0: off).
     pub refine_samples: u32,
+    /// Refinement's footprint lattice: rays per texel side at which the
+    /// light-space footprint of every caster the grid did not prove useful
+    /// is sampled (0: off). See [`refine`].
+    pub refine_density: u32,
+    /// What a texel of the grid pass stands for: its centre ray, or every
+    /// ray of its beam.
+    pub grid_mode: GridMode,
+    /// The filter margin in texels (`--filter-radius`): 0 is SPEC §4's
+    /// rule; K keeps a caster front-most at a texel when a surface lies
+    /// behind its depth at a texel up to K away (PCF). See
+    /// [`filter_margin`].
+    pub filter_radius: u32,
+    /// Every light's grid moved by this sub-texel amount (texel units, see
+    /// `TexelGrid::with_offset`): the sweep's offset references and the
+    /// tests bake at other placements of the game's shadow map.
+    pub grid_offset: (f64, f64),
     /// Per light, its bit in the masks (`<bit>`); empty or short: a light's
     /// bit is its position. See [`BakeConfig::bit`].
     pub bits: Vec<u32>,
+}
+
+/// What a texel of the grid pass stands for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GridMode {
+    /// One ray through the texel's centre (k×k with supersampling): SPEC §4.
+    #[default]
+    Centres,
+    /// The texel's whole beam (`--conservative`): a caster is kept whenever
+    /// some placement of the shadow-map grid at this texel size could make
+    /// it useful. See [`grid_pass`] and `trace::texel_beam`.
+    Conservative,
 }
 
 impl BakeConfig {
@@ -58,6 +89,10 @@ impl BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            refine_density: 0,
+            grid_mode: GridMode::Centres,
+            filter_radius: 0,
+            grid_offset: (0.0, 0.0),
             bits: settings.bits.clone(),
         }
     }
@@ -118,6 +153,10 @@ impl Default for BakeConfig {
             brute_force: false,
             supersample: 1,
             refine_samples: 0,
+            refine_density: 0,
+            grid_mode: GridMode::Centres,
+            filter_radius: 0,
+            grid_offset: (0.0, 0.0),
             bits: Vec::new(),
         }
     }
@@ -254,7 +293,11 @@ pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeErr
     let errors: Vec<crate::light::GridError> = config
         .lights
         .iter()
-        .filter_map(|light| crate::light::TexelGrid::new(light, bounds).err())
+        .filter_map(|light| {
+            crate::light::TexelGrid::new(light, bounds)
+                .map(|grid| grid.with_offset(config.grid_offset))
+                .err()
+        })
         .filter(|e| !matches!(e, crate::light::GridError::EmptyWorld { .. }))
         .collect();
     if errors.is_empty() {
@@ -273,9 +316,10 @@ pub trait GridSource: Sync {
     /// (receiver-only ones included; the caller drops them).
     fn grid(
         &self,
+        world: &BakeWorld,
         setup: &LightSetup,
         rays_of_light: &LightRays<'_>,
-        supersample: u32,
+        config: &BakeConfig,
         rays_done: &dyn RayCounter,
     ) -> CasterSet;
 
@@ -293,12 +337,14 @@ pub struct TraceGrid;
 impl GridSource for TraceGrid {
     fn grid(
         &self,
-        _setup: &LightSetup,
+        world: &BakeWorld,
+        setup: &LightSetup,
         rays_of_light: &LightRays<'_>,
-        supersample: u32,
+        config: &BakeConfig,
         rays_done: &dyn RayCounter,
     ) -> CasterSet {
-        rays_of_light.trace_grid(supersample, rays_done)
+        let tiles = 0..rays_of_light.tile_count();
+        grid_pass::trace_tiles(world, setup, rays_of_light, config, tiles, rays_done)
     }
 }
 
@@ -481,11 +527,10 @@ fn bake_light_from(
     } else {
         let rays_of_light = setup.rays(world, config);
         let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
-        let mut useful = source.grid(setup, &rays_of_light, supersample, &counter);
+        let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
         counter.finish();
-        if config.refine_samples > 0 {
-            let (refined, traced) =
-                refine::refine(world, setup, &rays_of_light, &useful, config.refine_samples);
+        if config.refine_samples > 0 || config.refine_density > 0 {
+            let (refined, traced) = refine::refine(world, setup, &rays_of_light, &useful, config);
             useful = useful.union(&refined);
             refine_rays = traced;
             rays += traced;

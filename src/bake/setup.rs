@@ -159,7 +159,7 @@ impl LightSetup {
     ) -> Result<LightSetup, NoSetup> {
         let light = &config.lights[index];
         let bounds = world.bounds.ok_or(NoSetup::NoGeometry)?;
-        let grid = TexelGrid::new(light, bounds)?;
+        let grid = TexelGrid::new(light, bounds)?.with_offset(config.grid_offset);
         let started = Instant::now();
         let reach = reach(world, &grid);
         let reach_seconds = started.elapsed().as_secs_f64();

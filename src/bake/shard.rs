@@ -22,7 +22,7 @@
 
 use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{tile_count, tile_rect, CasterSet, LightRays, RayCounter, TILE};
-use super::{BakeConfig, BakeError, GridSource};
+use super::{grid_pass, BakeConfig, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
 use crate::formats::resources::ResPaths;
@@ -210,7 +210,7 @@ impl Plan {
         for light in &config.lights {
             let grid = match world.bounds.map(|b| TexelGrid::new(light, b)) {
                 None => None,
-                Some(Ok(grid)) => Some(grid),
+                Some(Ok(grid)) => Some(grid.with_offset(config.grid_offset)),
                 Some(Err(GridError::EmptyWorld { .. })) => None,
                 Some(Err(err)) => return Err(err.into()),
             };
@@ -333,12 +333,12 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
 }
 
 /// The inputs of a bake, to compare between shards and the merge: the
-/// settings that decide the grid's answer (refinement runs in the merge and
-/// is not among them) and every file the load read, by its name relative to
+/// settings that decide the grid's answer (supersampling, grid mode, filter
+/// radius; refinement runs in the merge and is not among them) and every file the load read, by its name relative to
 /// its res root (so machines mounting the roots elsewhere agree).
 pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> Fingerprint {
     let mut settings = format!(
-        "shadowcull {} (partial format {})\nfaceCulling = {:?}\nheightBias = {:?}\ntieEpsilon = {:?}\nsupersample = {}\nbruteForce = {}\n",
+        "shadowcull {} (partial format {})\nfaceCulling = {:?}\nheightBias = {:?}\ntieEpsilon = {:?}\nsupersample = {}\nbruteForce = {}\ngridMode = {:?}\nfilterRadius = {}\ngridOffset = {:?}\n",
         env!("CARGO_PKG_VERSION"),
         partial::VERSION,
         config.face_culling,
@@ -346,6 +346,9 @@ pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> 
         config.tie_epsilon,
         config.supersample.max(1),
         config.brute_force,
+        config.grid_mode,
+        config.filter_radius,
+        config.grid_offset,
     );
     for (index, light) in config.lights.iter().enumerate() {
         settings.push_str(&format!("light {index} = {light:?}\n"));
@@ -411,9 +414,11 @@ pub fn bake_shard(
         );
         for unit in units {
             let unit_started = Instant::now();
-            let useful = match &rays_of_light {
-                Some(rays) => rays.trace_tiles(unit.tiles.clone(), samples, &counter),
-                None => CasterSet::new(world.casters.len()),
+            let useful = match (&setup, &rays_of_light) {
+                (Some(setup), Some(rays)) => {
+                    grid_pass::trace_tiles(world, setup, rays, config, unit.tiles.clone(), &counter)
+                }
+                _ => CasterSet::new(world.casters.len()),
             };
             out.push(PartialUnit {
                 light,
@@ -442,9 +447,10 @@ pub struct Merged {
 impl GridSource for Merged {
     fn grid(
         &self,
+        _world: &BakeWorld,
         setup: &LightSetup,
         _rays_of_light: &LightRays<'_>,
-        _supersample: u32,
+        _config: &BakeConfig,
         _rays_done: &dyn RayCounter,
     ) -> CasterSet {
         self.per_light

@@ -312,6 +312,21 @@ impl LightRays<'_> {
         classify::classify_ray(hits, rules.tie_epsilon, rules.passes, on_useful);
     }
 
+    /// Every hit of `ray` that survives the filter, sorted (no early
+    /// cut-off): the filter margin needs the farthest surface, not only an
+    /// answer.
+    pub fn all_hits(&self, ray: &TexelRay, hits: &mut Vec<RayHit>) {
+        let traced = self.light_relative(ray);
+        hits.clear();
+        self.tracer.for_each_hit(&traced, |hit| {
+            if let Some(kept) = self.filter_hit(&hit, ray) {
+                hits.push(kept);
+            }
+            traced.t_max
+        });
+        classify::sort_hits(hits);
+    }
+
     /// The front surface of texel `(face, x, y)` as the bake's All pass sees
     /// it: the nearest hit that survives the same filter as the bake's rays
     /// (face culling, double-sided, mirrored, below ground), whatever its

@@ -9,7 +9,7 @@ use super::progress::{ProgressArgs, Reporter};
 use super::{load_config, load_settings, SettingsArgs};
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
-use shadowcull::bake::{self, output, BakeConfig, BakeResult};
+use shadowcull::bake::{self, output, BakeConfig, BakeResult, GridMode};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::formats::resources::{self, ResPaths};
 use shadowcull::progress::{Counter, Phase};
@@ -67,9 +67,25 @@ pub struct BakeOptions {
     /// refines in `merge`.
     #[arg(long)]
     pub refine: bool,
-    /// Rays per caster for --refine.
-    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    /// Rays per caster for --refine, at area-weighted points of its surface
+    /// (64: the sweep reference's; they find slivers thinner than the
+    /// footprint lattice).
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
     refine_samples: u32,
+    /// Rays per texel side with which --refine samples the light-space
+    /// footprint of every caster the grid did not prove useful (8: the
+    /// lattice of a grid 8× denser).
+    #[arg(long, value_name = "D", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    refine_density: u32,
+    /// Trace each texel's beam instead of its centre ray: keep every caster
+    /// that some placement of the shadow-map grid could make useful (never a
+    /// missing shadow at any grid offset; keeps more).
+    #[arg(long)]
+    conservative: bool,
+    /// PCF margin in texels: a caster front-most at a texel is also useful
+    /// for surfaces behind its depth up to K texels away (0: SPEC §4).
+    #[arg(long, value_name = "K", default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=16))]
+    filter_radius: u32,
     /// Trace every ray against every triangle instead of the BVH (the
     /// correctness oracle; slow).
     #[arg(long, hide = true)]
@@ -89,6 +105,13 @@ impl BakeOptions {
             brute_force: self.brute_force,
             supersample: self.supersample,
             refine_samples: if self.refine { self.refine_samples } else { 0 },
+            refine_density: if self.refine { self.refine_density } else { 0 },
+            grid_mode: if self.conservative {
+                GridMode::Conservative
+            } else {
+                GridMode::Centres
+            },
+            filter_radius: self.filter_radius,
             ..BakeConfig::from_settings(settings)
         };
         if let Some(mode) = &self.face_culling {

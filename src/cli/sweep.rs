@@ -23,8 +23,18 @@ pub struct SweepArgs {
     #[arg(long, value_name = "N", default_value_t = 64)]
     reference_refine_samples: u32,
     /// Refinement samples per caster in the ladder's refinement rows.
-    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
     refine_samples: u32,
+    /// Footprint lattice (rays per texel side) of the refinement rows.
+    #[arg(long, value_name = "D", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    refine_density: u32,
+    /// Grids at random sub-texel offsets (at the reference density) OR-ed
+    /// into the offset reference.
+    #[arg(long, value_name = "N", default_value_t = 3, value_parser = clap::value_parser!(u32).range(0..=64))]
+    offset_references: u32,
+    /// Seed of those offsets.
+    #[arg(long, value_name = "N", default_value_t = 17)]
+    offset_seed: u64,
 }
 
 pub fn run(args: SweepArgs) -> Result<()> {
@@ -44,11 +54,15 @@ pub fn run(args: SweepArgs) -> Result<()> {
         reference_density: args.reference_density,
         reference_refine_samples: args.reference_refine_samples,
         refine_samples: args.refine_samples,
+        refine_density: args.refine_density,
+        offset_references: args.offset_references,
+        offset_seed: args.offset_seed,
     };
     eprintln!(
-        "sweep: reference = grids x{} per side + refinement ({} samples per caster), then {} settings",
+        "sweep: reference = grids x{} per side + refinement ({} samples per caster), {} offset grids, then {} settings",
         config.reference_density,
         config.reference_refine_samples,
+        config.offset_references,
         sweep::ladder(&config).len()
     );
     let report = sweep::sweep(

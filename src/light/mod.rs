@@ -144,6 +144,9 @@ pub struct TexelGrid {
     width: u32,
     height: u32,
     reference: DVec3,
+    /// Every ray position moved by this much (texel units, each in
+    /// [−½, ½)); see [`TexelGrid::with_offset`].
+    offset: (f64, f64),
 }
 
 #[derive(Debug, Clone)]
@@ -239,6 +242,7 @@ impl TexelGrid {
                     width: resolution,
                     height: resolution,
                     reference: position,
+                    offset: (0.0, 0.0),
                 })
             }
             LightKind::Point {
@@ -262,6 +266,7 @@ impl TexelGrid {
                     width: resolution,
                     height: resolution,
                     reference: position,
+                    offset: (0.0, 0.0),
                 })
             }
         }
@@ -321,7 +326,29 @@ impl TexelGrid {
             width: width as u32,
             height: height as u32,
             reference: (min + max) * 0.5,
+            offset: (0.0, 0.0),
         })
+    }
+
+    /// The same light's grid moved by a sub-texel `offset` (texel units,
+    /// each coordinate wrapped into [−½, ½)): where the game's shadow map
+    /// may sample instead, since cascades snap to their own texel grid.
+    /// Every ray position `(cx, cy)` of [`Self::ray_through`] moves to
+    /// `(cx + offset)`, so texel `(x, y)`'s centre ray passes anywhere
+    /// within its own square: the texels (and a directional grid's cover of
+    /// the world) stay where they are, only the sample points move.
+    /// Deterministic: the sweep's offset references and the tests choose
+    /// offsets from a seed.
+    pub fn with_offset(mut self, offset: (f64, f64)) -> TexelGrid {
+        let wrap = |o: f64| {
+            if o.is_finite() {
+                (o + 0.5).rem_euclid(1.0) - 0.5
+            } else {
+                0.0
+            }
+        };
+        self.offset = (wrap(offset.0), wrap(offset.1));
+        self
     }
 
     /// 1, or 6 for a point light.
@@ -401,6 +428,8 @@ impl TexelGrid {
     /// (texel (x, y) spans [x, x+1) × [y, y+1); its centre is (x+0.5,
     /// y+0.5)): supersampling traces several per texel.
     pub fn ray_through(&self, face: usize, cx: f64, cy: f64) -> TexelRay {
+        let direction = self.unit_depth_direction(face, cx, cy);
+        let (cx, cy) = (cx + self.offset.0, cy + self.offset.1);
         match &self.projection {
             Projection::Orthographic {
                 direction,
@@ -425,24 +454,13 @@ impl TexelGrid {
                 position,
                 near,
                 far,
-                half_extent,
-                frame,
-                cube,
-            } => {
-                let (forward, u, v) = if *cube {
-                    CUBE_FACES[face % CUBE_FACES.len()]
-                } else {
-                    *frame
-                };
-                let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
-                let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
-                TexelRay {
-                    origin: *position,
-                    direction: (forward + u * s + v * t).normalize(),
-                    t_min: *near,
-                    t_max: *far,
-                }
-            }
+                ..
+            } => TexelRay {
+                origin: *position,
+                direction: direction.normalize(),
+                t_min: *near,
+                t_max: *far,
+            },
         }
     }
 
@@ -512,6 +530,151 @@ impl TexelGrid {
                     t_min: *near,
                     t_max: *far,
                 })
+            }
+        }
+    }
+
+    /// A directional light's unit direction; `None` for spot and point
+    /// lights (their rays' directions vary).
+    pub fn direction(&self) -> Option<DVec3> {
+        match &self.projection {
+            Projection::Orthographic { direction, .. } => Some(*direction),
+            Projection::Perspective { .. } => None,
+        }
+    }
+
+    /// World point `p` on `face` in texel units (see
+    /// [`Self::project_triangle`]), or `None` when it lies too near the
+    /// light's plane (or behind it) for any ray of the face to reach it.
+    pub fn project_point(&self, face: usize, p: DVec3) -> Option<(f64, f64)> {
+        let polygon = self.project_triangle(face, [p, p, p])?;
+        (polygon.len() == 3).then(|| polygon[0])
+    }
+
+    /// The ray direction through image position `(cx, cy)` of `face`
+    /// (texel units, as [`Self::ray_through`] takes them), not normalised
+    /// for a perspective face: unit depth along its axis, so its length is
+    /// the factor from depth z to distance t. A directional light's unit
+    /// direction.
+    pub fn unit_depth_direction(&self, face: usize, cx: f64, cy: f64) -> DVec3 {
+        let (cx, cy) = (cx + self.offset.0, cy + self.offset.1);
+        match &self.projection {
+            Projection::Orthographic { direction, .. } => *direction,
+            Projection::Perspective {
+                half_extent,
+                frame,
+                cube,
+                ..
+            } => {
+                let (forward, u, v) = if *cube {
+                    CUBE_FACES[face % CUBE_FACES.len()]
+                } else {
+                    *frame
+                };
+                let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
+                let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
+                forward + u * s + v * t
+            }
+        }
+    }
+
+    /// A perspective light's `near` and `far`; `None` for a directional
+    /// light (its rays cover the whole world).
+    pub fn near_far(&self) -> Option<(f64, f64)> {
+        match &self.projection {
+            Projection::Orthographic { .. } => None,
+            Projection::Perspective { near, far, .. } => Some((*near, *far)),
+        }
+    }
+
+    /// The part of triangle `triangle` (world points) that rays of `face`
+    /// can hit, projected to the face in texel units (texel (x, y) spans
+    /// [x, x+1) × [y, y+1)): a convex polygon, not clipped to the face.
+    /// For a perspective face the triangle is first clipped to depths
+    /// (along the face's axis) of at least `near` / (the longest unit-depth
+    /// ray of the face), below which no ray reaches `near`. `None`: no part
+    /// of it can be hit from this face, or a vertex is not finite.
+    pub fn project_triangle(&self, face: usize, triangle: [DVec3; 3]) -> Option<Vec<(f64, f64)>> {
+        let polygon = self.project_triangle_with_depth(face, triangle)?;
+        Some(polygon.into_iter().map(|(x, y, _)| (x, y)).collect())
+    }
+
+    /// [`Self::project_triangle`] with each vertex's depth: `p·direction`
+    /// for a directional light (t plus a constant), the depth `z` along
+    /// the face's axis for a perspective face.
+    pub fn project_triangle_with_depth(
+        &self,
+        face: usize,
+        triangle: [DVec3; 3],
+    ) -> Option<Vec<(f64, f64, f64)>> {
+        if !triangle.iter().all(|p| p.is_finite()) {
+            return None;
+        }
+        match &self.projection {
+            Projection::Orthographic {
+                direction,
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                ..
+            } => Some(
+                triangle
+                    .iter()
+                    .map(|p| {
+                        (
+                            (p.dot(*u) - u_min) / texel_size - self.offset.0,
+                            (p.dot(*v) - v_min) / texel_size - self.offset.1,
+                            p.dot(*direction),
+                        )
+                    })
+                    .collect(),
+            ),
+            Projection::Perspective {
+                position,
+                near,
+                half_extent,
+                frame,
+                cube,
+                ..
+            } => {
+                let (forward, u, v) = if *cube {
+                    CUBE_FACES[face % CUBE_FACES.len()]
+                } else {
+                    *frame
+                };
+                let min_depth = near / (1.0 + 2.0 * half_extent * half_extent).sqrt();
+                let rel = triangle.map(|p| p - *position);
+                let depth = |p: DVec3| p.dot(forward);
+                let mut clipped: Vec<DVec3> = Vec::with_capacity(4);
+                for i in 0..3 {
+                    let (a, b) = (rel[i], rel[(i + 1) % 3]);
+                    let (da, db) = (depth(a) - min_depth, depth(b) - min_depth);
+                    if da >= 0.0 {
+                        clipped.push(a);
+                    }
+                    if (da >= 0.0) != (db >= 0.0) {
+                        clipped.push(a + (b - a) * (da / (da - db)));
+                    }
+                }
+                if clipped.is_empty() {
+                    return None;
+                }
+                let (w, h) = (self.width as f64, self.height as f64);
+                Some(
+                    clipped
+                        .iter()
+                        .map(|&p| {
+                            let z = depth(p).max(min_depth);
+                            (
+                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w - self.offset.0,
+                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h - self.offset.1,
+                                z,
+                            )
+                        })
+                        .collect(),
+                )
             }
         }
     }
@@ -615,8 +778,8 @@ impl TexelGrid {
                     texel_size,
                     ..
                 } => (
-                    (corner.dot(*u) - u_min) / texel_size,
-                    (corner.dot(*v) - v_min) / texel_size,
+                    (corner.dot(*u) - u_min) / texel_size - self.offset.0,
+                    (corner.dot(*v) - v_min) / texel_size - self.offset.1,
                 ),
                 Projection::Perspective {
                     position,
@@ -638,7 +801,7 @@ impl TexelGrid {
                     let image = |axis: DVec3, side: f64| {
                         (rel.dot(axis) / depth / half_extent + 1.0) * 0.5 * side
                     };
-                    (image(u, w), image(v, h))
+                    (image(u, w) - self.offset.0, image(v, h) - self.offset.1)
                 }
             };
             lo = (lo.0.min(x), lo.1.min(y));

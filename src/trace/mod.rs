@@ -32,6 +32,7 @@ mod bvh;
 mod heightfield;
 mod instance;
 mod packet;
+pub mod texel_beam;
 mod tlas;
 mod triangle;
 

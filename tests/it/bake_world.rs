@@ -13,7 +13,7 @@ use shadowcull::rng::Rng;
 use std::path::Path;
 use std::process::Command;
 
-fn random_light(rng: &mut Rng, centre: DVec3) -> LightSettings {
+pub fn random_light(rng: &mut Rng, centre: DVec3) -> LightSettings {
     let direction = loop {
         let d = DVec3::new(
             rng.range(-1.0, 1.0),
@@ -58,7 +58,7 @@ fn random_light(rng: &mut Rng, centre: DVec3) -> LightSettings {
 /// A random 2×2-chunk world: hilly terrain on some chunks, boxes and cards
 /// with random flags, rotations, scales and mirrors, some receiver-only,
 /// some sunk, some two-part.
-fn random_world(seed: u64) -> World {
+pub fn random_world(seed: u64) -> World {
     let mut rng = Rng::new(seed);
     let mut world = World::new(2, 2);
     for grid in [(0, 0), (1, 0), (0, 1), (1, 1)] {

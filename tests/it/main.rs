@@ -9,6 +9,7 @@ mod generated;
 mod hardening;
 mod memory;
 mod micro;
+mod nomiss;
 mod packed_real;
 mod pipeline;
 mod primitives_real;

@@ -161,6 +161,26 @@ fn shards_merged_equal_one_bake_with_supersampling_and_refinement() {
 }
 
 #[test]
+fn shards_merged_equal_one_bake_with_conservative_filter_margin_and_refinement() {
+    // Issue 17's options: the grid mode and the filter margin run in the
+    // shards (tiles with their halo), footprint refinement in the merge.
+    let dir = tempfile::tempdir().unwrap();
+    let settings = world(Preset::Village, &dir.path().join("world"));
+    for (shards, extra) in [
+        (2, &["--conservative", "--refine"][..]),
+        (
+            3,
+            &["--filter-radius", "1", "--refine", "--refine-density", "4"][..],
+        ),
+        (3, &["--conservative", "--filter-radius", "2"][..]),
+    ] {
+        let work = dir.path().join(format!("w{shards}-{}", extra.len()));
+        std::fs::create_dir_all(&work).unwrap();
+        assert_shards_equal_one_bake(&settings, shards, extra, &work);
+    }
+}
+
+#[test]
 fn shards_merged_equal_one_bake_on_bench() {
     // Eight bakes of bench: minutes in a debug build, so release only
     // (`.ci/run` runs it with `cargo test --release`).
@@ -261,6 +281,23 @@ fn a_partial_of_other_inputs_is_refused_naming_it_and_the_file() {
         &["p0.part", "p1.part", "p2.part", "supersample"],
     );
     assert!(!out.exists());
+    // The grid mode and the filter radius decide the grid's answer too.
+    for (flag, setting) in [
+        (&["--conservative"][..], "gridMode"),
+        (&["--filter-radius", "1"][..], "filterRadius"),
+    ] {
+        let mut args = vec![
+            "merge",
+            s(&settings),
+            s(&parts[0]),
+            s(&parts[1]),
+            s(&parts[2]),
+        ];
+        args.extend(flag);
+        args.extend(["--out", s(&out)]);
+        refused(shadowcull(&args), &["p0.part", setting]);
+        assert!(!out.exists());
+    }
     // The right partials merge.
     ok(
         merge(&settings, &[&parts[0], &parts[1], &parts[2]], &out),

@@ -44,17 +44,32 @@ fn sweep_counts_the_misses_of_a_caster_smaller_than_a_texel() {
         ("density x4", 0),
         ("density x1, 2x2 samples", 1),
         ("density x1, 4x4 samples", 0),
-        ("density x1/4, refine 16", 0),
-        ("density x1/2, refine 16", 0),
-        ("density x1, refine 16", 0),
+        ("density x1/4, refine 64 + footprint x8", 0),
+        ("density x1/2, refine 64 + footprint x8", 0),
+        ("density x1, refine 64 + footprint x8", 0),
+        // The box's beam meets it with terrain behind: kept.
+        ("density x1, conservative", 0),
+        // The box is never front-most at a ×1 centre, so no margin helps.
+        ("density x1, filter radius 1", 1),
     ]
     .map(|(label, culls)| (label.to_string(), culls, 0, 2));
     assert_eq!(got, expected);
+    // The offset reference adds nothing here: every ×8 grid at any offset
+    // lands two sample rows on the box, as the reference does.
+    assert_eq!(report.offsets.len(), 3);
+    for row in &report.rows {
+        assert_eq!(
+            (row.false_culls_any_offset, row.false_keeps_any_offset),
+            (row.false_culls, row.false_keeps),
+            "{}",
+            row.label
+        );
+    }
     // Rays grow with the density squared: 16² texels at ×1.
     assert_eq!(report.rows[2].rays, 256);
     assert_eq!(report.rows[4].rays, 64 * 64);
     let csv = report.to_csv();
-    assert_eq!(csv.lines().count(), 12, "header, reference, 10 rows");
+    assert_eq!(csv.lines().count(), 14, "header, reference, 12 rows");
     assert!(report.to_svg().starts_with("<svg") && report.to_svg().trim_end().ends_with("</svg>"));
 }
 
@@ -82,6 +97,8 @@ fn sweep_command_writes_csv_json_and_svg() {
             "3",
             "--reference-refine-samples",
             "4",
+            "--offset-references",
+            "1",
         ])
         .output()
         .unwrap();
@@ -97,7 +114,7 @@ fn sweep_command_writes_csv_json_and_svg() {
     );
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.path().join("sweep.json")).unwrap()).unwrap();
-    assert_eq!(json["rows"].as_array().unwrap().len(), 10);
+    assert_eq!(json["rows"].as_array().unwrap().len(), 12);
     assert_eq!(json["reference"]["false_culls"], 0);
     let pairs = json["reference"]["pairs"].as_u64().unwrap();
     for row in json["rows"].as_array().unwrap() {

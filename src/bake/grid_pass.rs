@@ -1,0 +1,52 @@
+//! The grid pass of one light over a range of tiles, as the config asks:
+//! texel centres (SPEC §4), with the filter margin, or texel beams
+//! (`--conservative`). One entry point for the bake, the shards and the
+//! plan's sample, so a shard traces exactly what one bake traces.
+
+use super::setup::{BakeWorld, LightSetup};
+use super::trace_light::{CasterSet, LightRays, RayCounter};
+use super::{conservative, filter_margin, BakeConfig, GridMode};
+use rayon::prelude::*;
+
+/// The casters the grid rays of `tiles` prove useful (receiver-only ones
+/// included; the caller drops them). The union over a partition of the
+/// light's tiles is the same whatever the partition.
+pub fn trace_tiles(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    rays: &LightRays<'_>,
+    config: &BakeConfig,
+    tiles: impl IntoParallelIterator<Item = u64>,
+    rays_done: &dyn RayCounter,
+) -> CasterSet {
+    let samples = config.supersample.max(1);
+    let tiles: Vec<u64> = tiles.into_par_iter().collect();
+    let tiles_again = tiles.clone();
+    let centres = if config.filter_radius > 0 {
+        filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
+    } else {
+        rays.trace_tiles(tiles, samples, rays_done)
+    };
+    match config.grid_mode {
+        GridMode::Centres => centres,
+        GridMode::Conservative => {
+            let beams = conservative::trace_tiles(
+                world,
+                setup,
+                rays,
+                config,
+                tiles_again,
+                &centres,
+                &NoCount,
+            );
+            centres.union(&beams)
+        }
+    }
+}
+
+/// Progress is counted once, by the centre rays.
+struct NoCount;
+
+impl RayCounter for NoCount {
+    fn add(&self, _rays: u64) {}
+}

@@ -1,0 +1,234 @@
+//! Beam tests in a light's image plane: a texel's beam (every ray through
+//! its square) against projected triangles, as convex polygons in texel
+//! units. Refinement uses them to find where a caster's footprint has an
+//! edge; the conservative grid pass (`bake::conservative`) to decide which
+//! triangles a beam meets and whether nearer triangles cover all of it.
+//!
+//! Every test errs on one documented side: "overlaps" and "crosses" may
+//! answer yes for a polygon a hair away (they take a tolerance), "covers"
+//! answers yes only when the uncovered rest is at most a sliver of
+//! [`SLIVER`] texels² (what floating-point clipping leaves along shared
+//! edges, where the ray/triangle test's tie rule gives every ray to one
+//! side). `beam` (issue 12's packet node test) bounds a tile's rays for
+//! traversal; this module bounds a texel's beam against triangles in the
+//! image plane.
+
+/// A point in texel units of one face.
+pub type Point = (f64, f64);
+
+/// Area, in texels², below which what a union of clipped triangles leaves
+/// of a square counts as covered: the residue of shared edges, where the
+/// watertight ray test gives every ray to one of the two triangles.
+pub const SLIVER: f64 = 1e-9;
+
+/// An axis-aligned rectangle `[x0, x1] × [y0, y1]` in texel units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rect {
+    pub x0: f64,
+    pub y0: f64,
+    pub x1: f64,
+    pub y1: f64,
+}
+
+impl Rect {
+    pub fn grown(self, by: f64) -> Rect {
+        Rect {
+            x0: self.x0 - by,
+            y0: self.y0 - by,
+            x1: self.x1 + by,
+            y1: self.y1 + by,
+        }
+    }
+
+    pub fn corners(self) -> [Point; 4] {
+        [
+            (self.x0, self.y0),
+            (self.x1, self.y0),
+            (self.x1, self.y1),
+            (self.x0, self.y1),
+        ]
+    }
+}
+
+/// Twice the signed area of `polygon` (positive: counter-clockwise).
+pub fn signed_area2(polygon: &[Point]) -> f64 {
+    (0..polygon.len())
+        .map(|i| {
+            let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+            a.0 * b.1 - a.1 * b.0
+        })
+        .sum()
+}
+
+fn cross(o: Point, a: Point, b: Point) -> f64 {
+    (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0)
+}
+
+/// Whether `p` lies in the convex `polygon` (either winding) or within
+/// `tolerance` texels of it.
+pub fn inside_convex(polygon: &[Point], p: Point, tolerance: f64) -> bool {
+    let sign = signed_area2(polygon).signum();
+    if polygon.len() < 3 || sign == 0.0 {
+        return false;
+    }
+    (0..polygon.len()).all(|i| {
+        let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+        let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+        sign * cross(a, b, p) >= -tolerance * length
+    })
+}
+
+/// Whether the convex `polygon` and `rect` share a point (separating axes:
+/// the rectangle's two and the polygon's edge normals).
+pub fn overlaps_rect(polygon: &[Point], rect: Rect) -> bool {
+    if polygon.is_empty() {
+        return false;
+    }
+    let (mut lo, mut hi) = (
+        (f64::INFINITY, f64::INFINITY),
+        (f64::NEG_INFINITY, f64::NEG_INFINITY),
+    );
+    for &(x, y) in polygon {
+        lo = (lo.0.min(x), lo.1.min(y));
+        hi = (hi.0.max(x), hi.1.max(y));
+    }
+    if hi.0 < rect.x0 || lo.0 > rect.x1 || hi.1 < rect.y0 || lo.1 > rect.y1 {
+        return false;
+    }
+    let sign = signed_area2(polygon).signum();
+    if sign == 0.0 {
+        return true;
+    }
+    (0..polygon.len()).all(|i| {
+        let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+        rect.corners().iter().any(|&c| sign * cross(a, b, c) >= 0.0)
+    })
+}
+
+/// Whether segment `a`–`b` meets `rect` (Liang–Barsky).
+pub fn segment_meets_rect(a: Point, b: Point, rect: Rect) -> bool {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-dx, a.0 - rect.x0),
+        (dx, rect.x1 - a.0),
+        (-dy, a.1 - rect.y0),
+        (dy, rect.y1 - a.1),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return false;
+            }
+        } else {
+            let r = q / p;
+            if p < 0.0 {
+                t0 = t0.max(r);
+            } else {
+                t1 = t1.min(r);
+            }
+            if t0 > t1 {
+                return false;
+            }
+        }
+    }
+    true
+}
+
+/// The part of convex `polygon` on the side of the line `a`→`b` where
+/// `cross(a, b, p) * side >= 0` (Sutherland–Hodgman, one edge).
+fn clip_half(polygon: &[Point], a: Point, b: Point, side: f64) -> Vec<Point> {
+    let mut out = Vec::with_capacity(polygon.len() + 1);
+    for i in 0..polygon.len() {
+        let (p, q) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+        let (dp, dq) = (side * cross(a, b, p), side * cross(a, b, q));
+        if dp >= 0.0 {
+            out.push(p);
+        }
+        if (dp >= 0.0) != (dq >= 0.0) {
+            let t = dp / (dp - dq);
+            out.push((p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t));
+        }
+    }
+    out
+}
+
+/// `rect` ∩ convex `polygon` (empty when they do not meet).
+pub fn clip_to_rect(polygon: &[Point], rect: Rect) -> Vec<Point> {
+    let corners = rect.corners();
+    let mut out = polygon.to_vec();
+    for i in 0..4 {
+        if out.is_empty() {
+            break;
+        }
+        out = clip_half(&out, corners[i], corners[(i + 1) % 4], 1.0);
+    }
+    out
+}
+
+/// `pieces` (convex polygons) minus the convex `cutter`: each piece is
+/// split into its parts outside each edge of the cutter (at most one per
+/// edge), pieces of at most [`SLIVER`] texels² are dropped.
+pub fn subtract(pieces: Vec<Vec<Point>>, cutter: &[Point]) -> Vec<Vec<Point>> {
+    let sign = signed_area2(cutter).signum();
+    if cutter.len() < 3 || sign == 0.0 {
+        return pieces;
+    }
+    let mut out = Vec::new();
+    for piece in pieces {
+        let mut rest = piece;
+        for i in 0..cutter.len() {
+            if rest.is_empty() {
+                break;
+            }
+            let (a, b) = (cutter[i], cutter[(i + 1) % cutter.len()]);
+            let outside = clip_half(&rest, a, b, -sign);
+            if signed_area2(&outside).abs() * 0.5 > SLIVER {
+                out.push(outside);
+            }
+            rest = clip_half(&rest, a, b, sign);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SQUARE: Rect = Rect {
+        x0: 0.0,
+        y0: 0.0,
+        x1: 1.0,
+        y1: 1.0,
+    };
+
+    #[test]
+    fn two_triangles_of_a_quad_cover_a_square_on_their_diagonal() {
+        let quad = [(-1.0, -1.0), (2.0, -1.0), (2.0, 2.0), (-1.0, 2.0)];
+        let first = [quad[0], quad[1], quad[2]];
+        let second = [quad[0], quad[2], quad[3]];
+        let square = clip_to_rect(&SQUARE.corners(), SQUARE);
+        let rest = subtract(subtract(vec![square.clone()], &first), &second);
+        assert!(rest.is_empty(), "{rest:?}");
+        // One of them alone leaves half the square.
+        let half = subtract(vec![square], &first);
+        let area: f64 = half.iter().map(|p| signed_area2(p).abs() * 0.5).sum();
+        assert!((area - 0.5).abs() < 1e-12, "{area}");
+    }
+
+    #[test]
+    fn overlap_inside_and_segment_tests() {
+        let tri = [(1.5, 0.5), (3.0, 0.5), (1.5, 2.0)];
+        assert!(!overlaps_rect(&tri, SQUARE));
+        assert!(overlaps_rect(&tri, SQUARE.grown(0.6)));
+        // A triangle whose box overlaps the square but which does not.
+        let corner = [(0.9, 2.0), (2.0, 0.9), (2.0, 2.0)];
+        assert!(!overlaps_rect(&corner, SQUARE));
+        assert!(inside_convex(&tri, (1.6, 0.6), 0.0));
+        assert!(!inside_convex(&tri, (1.4, 0.6), 0.0));
+        assert!(inside_convex(&tri, (1.4, 0.6), 0.11));
+        assert!(segment_meets_rect((-1.0, 0.5), (2.0, 0.5), SQUARE));
+        assert!(!segment_meets_rect((-1.0, 1.5), (2.0, 1.5), SQUARE));
+        assert!(!segment_meets_rect((1.2, 2.0), (2.0, 1.2), SQUARE));
+    }
+}

@@ -1,0 +1,363 @@
+//! Issue 17: no missing shadow at any shadow-map offset. Designed worlds
+//! for the filter margin, refinement and the conservative mode (expected
+//! masks from each world's design, explained beside it; `micro::run` also
+//! checks the brute-force oracle), and seeded random worlds against the
+//! union of many randomly offset dense bakes.
+
+use crate::bake_world::{random_light, random_world};
+use crate::micro::*;
+use glam::{DMat4, DVec3, Vec3};
+use shadowcull::bake::{self, BakeConfig, GridMode, Silent};
+use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
+use shadowcull::rng::Rng;
+
+const DOWN: DVec3 = DVec3::new(0.0, -1.0, 0.0);
+
+fn one(world: &mut World, triangles: Vec<[Vec3; 3]>, flags: Flags) -> usize {
+    world.model(Mesh {
+        groups: vec![(triangles, flags)],
+    })
+}
+
+/// A box caster at x, z 2.1..2.9 (y 2..3) and a receiver-only box whose x
+/// starts `gap` texels further (1 m texels, light straight down, no
+/// terrain). The world's bounds start at a box edge, so each box lies
+/// inside one texel column: the caster's texel has nothing behind it.
+fn caster_beside_receiver(gap: f32) -> (World, usize) {
+    let mut world = World::new(1, 1);
+    let caster = one(
+        &mut world,
+        cube(Vec3::new(2.1, 2.0, 2.1), Vec3::new(2.9, 3.0, 2.9)),
+        OPAQUE,
+    );
+    let receiver = one(
+        &mut world,
+        cube(
+            Vec3::new(2.1 + gap, 0.0, 2.1),
+            Vec3::new(2.9 + gap, 1.0, 2.9),
+        ),
+        OPAQUE,
+    );
+    let c = world.place((0, 0), &[caster], DMat4::IDENTITY, true);
+    world.place((0, 0), &[receiver], DMat4::IDENTITY, false);
+    (world, c)
+}
+
+#[test]
+fn filter_margin_keeps_a_caster_whose_receiver_is_one_texel_beside_it() {
+    let (world, caster) = caster_beside_receiver(1.0);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    // K = 0: the caster's texel holds one crossing (its top face; the
+    // bottom is a back face): nothing behind, culled.
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, caster),
+        vec![0]
+    );
+    // K = 1: the receiver's texel is in the caster's neighbourhood and its
+    // top (y 1) lies behind the caster's depth (y 3): kept.
+    settings.filter_radius = 1;
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, caster),
+        vec![1]
+    );
+    // With 2×2 supersampling the neighbourhood is still one texel wide.
+    settings.supersample = 2;
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, caster),
+        vec![1]
+    );
+}
+
+#[test]
+fn filter_margin_reaches_k_texels_and_no_further() {
+    let (world, caster) = caster_beside_receiver(2.0);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    settings.filter_radius = 1;
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, caster),
+        vec![0]
+    );
+    settings.filter_radius = 2;
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, caster),
+        vec![1]
+    );
+}
+
+#[test]
+fn filter_margin_needs_the_receiver_behind_not_in_front() {
+    // The receiver-only box beside the caster is now above it (y 4..5):
+    // at its texel it is in front of the caster's depth, so it does not
+    // receive the caster's shadow; culled at any K.
+    let mut world = World::new(1, 1);
+    let caster = one(
+        &mut world,
+        cube(Vec3::new(2.1, 2.0, 2.1), Vec3::new(2.9, 3.0, 2.9)),
+        OPAQUE,
+    );
+    let above = one(
+        &mut world,
+        cube(Vec3::new(3.1, 4.0, 2.1), Vec3::new(3.9, 5.0, 2.9)),
+        OPAQUE,
+    );
+    let c = world.place((0, 0), &[caster], DMat4::IDENTITY, true);
+    world.place((0, 0), &[above], DMat4::IDENTITY, false);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    settings.filter_radius = 2;
+    assert_eq!(instance_masks(&run(&world, &settings), &world, c), vec![0]);
+}
+
+/// The 15 cm box of `bake_rules::casters_smaller_than_a_texel_need_…`:
+/// 1 m texels straight down over a flat 16 m block; the box spans
+/// 0.80..0.95 in x and z, between the texel centres 0.5 and 1.5.
+fn sliver_world() -> (World, usize) {
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let m = one(
+        &mut world,
+        cube(Vec3::new(0.8, 1.0, 0.8), Vec3::new(0.95, 1.2, 0.95)),
+        OPAQUE,
+    );
+    let small = world.place((0, 0), &[m], DMat4::IDENTITY, true);
+    (world, small)
+}
+
+#[test]
+fn a_caster_between_texel_centres_is_kept_by_conservative_and_refine() {
+    let (world, small) = sliver_world();
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    // The plain grid misses it: no centre lands on it.
+    assert_eq!(
+        instance_masks(&run(&world, &settings), &world, small),
+        vec![0]
+    );
+    // Its beam (texel 0..1) meets it, terrain lies behind, nothing nearer.
+    settings.grid_mode = GridMode::Conservative;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, small), vec![1]);
+    // The flat terrain has nothing behind it anywhere: still culled (the
+    // conservative mode is not "keep everything").
+    assert_eq!(terrain_mask(&result, 0), 0);
+    // Refinement's footprint lattice alone (no surface points) finds it:
+    // ×8 lattice points at k + 0.8125 and 0.9375 lie on the box.
+    settings.grid_mode = GridMode::Centres;
+    settings.refine_density = 8;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, small), vec![1]);
+    assert!(result.lights[0].refine_rays > 0);
+    assert_eq!(terrain_mask(&result, 0), 0);
+}
+
+#[test]
+fn a_caster_hidden_behind_a_larger_occluder_is_culled_by_conservative() {
+    // Box A (4..8 at y 2..3) covers box B (5..7 at y 0.5..1) from a light
+    // straight down, over flat terrain; 0.7 m texels so texel edges cut
+    // across both and A's top diagonal crosses texels over B. Every beam
+    // over B meets A's top face (two triangles whose union covers B's part
+    // of the beam) 2 m nearer: B is hidden in every beam. A is front with
+    // terrain behind: kept.
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let a = one(
+        &mut world,
+        cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)),
+        OPAQUE,
+    );
+    let b = one(
+        &mut world,
+        cube(Vec3::new(5.0, 0.5, 5.0), Vec3::new(7.0, 1.0, 7.0)),
+        OPAQUE,
+    );
+    let a = world.place((0, 0), &[a], DMat4::IDENTITY, true);
+    let b = world.place((0, 0), &[b], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 0.7)]);
+    settings.grid_mode = GridMode::Conservative;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, a), vec![1]);
+    assert_eq!(instance_masks(&result, &world, b), vec![0]);
+    // An alpha-tested occluder hides nothing in the Opaque pass: B kept.
+    let mut world2 = World::new(1, 1);
+    world2.terrain((0, 0), |_, _| 0.0);
+    let canopy = one(
+        &mut world2,
+        cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)),
+        Flags {
+            alpha_tested: true,
+            double_sided: false,
+        },
+    );
+    let b2 = one(
+        &mut world2,
+        cube(Vec3::new(5.0, 0.5, 5.0), Vec3::new(7.0, 1.0, 7.0)),
+        OPAQUE,
+    );
+    world2.place((0, 0), &[canopy], DMat4::IDENTITY, true);
+    let b2 = world2.place((0, 0), &[b2], DMat4::IDENTITY, true);
+    assert_eq!(
+        instance_masks(&run(&world2, &settings), &world2, b2),
+        vec![1]
+    );
+    // A receiver-only occluder is not in the shadow map: B kept.
+    let mut world3 = World::new(1, 1);
+    world3.terrain((0, 0), |_, _| 0.0);
+    let roof = one(
+        &mut world3,
+        cube(Vec3::new(4.0, 2.0, 4.0), Vec3::new(8.0, 3.0, 8.0)),
+        OPAQUE,
+    );
+    let b3 = one(
+        &mut world3,
+        cube(Vec3::new(5.0, 0.5, 5.0), Vec3::new(7.0, 1.0, 7.0)),
+        OPAQUE,
+    );
+    world3.place((0, 0), &[roof], DMat4::IDENTITY, false);
+    let b3 = world3.place((0, 0), &[b3], DMat4::IDENTITY, true);
+    assert_eq!(
+        instance_masks(&run(&world3, &settings), &world3, b3),
+        vec![1]
+    );
+}
+
+/// `light` with its grid `k` times denser per side.
+fn denser(light: &LightSettings, k: f64) -> LightSettings {
+    shadowcull::sweep::scale_light(light, k)
+}
+
+#[test]
+fn conservative_keeps_a_superset_of_randomly_offset_dense_bakes() {
+    // Seeded random worlds (terrain, boxes and cards with random flags,
+    // receiver-only and sunk placements) under random lights of every kind;
+    // the union of ×3 bakes at 6 random sub-texel grid offsets must be kept
+    // by the conservative ×1 bake, light by light.
+    let mut kinds = [false; 3];
+    // (caster, light) pairs the offset bakes need beyond the centre rays:
+    // the test has teeth only if some exist.
+    let mut beyond_centres = 0;
+    for seed in 0..6u64 {
+        let world = random_world(seed);
+        let mut rng = Rng::new(2000 + seed);
+        let centre = DVec3::new(CHUNK, 0.0, CHUNK);
+        let lights: Vec<LightSettings> = (0..3).map(|_| random_light(&mut rng, centre)).collect();
+        for light in &lights {
+            kinds[match light.kind {
+                LightKind::Directional { .. } => 0,
+                LightKind::Spot { .. } => 1,
+                LightKind::Point { .. } => 2,
+            }] = true;
+        }
+        let mut settings = config(lights.clone());
+        settings.face_culling =
+            [FaceCulling::Back, FaceCulling::Front, FaceCulling::None][seed as usize % 3];
+        let conservative = bake::bake(
+            &world.scene,
+            &BakeConfig {
+                grid_mode: GridMode::Conservative,
+                ..settings.clone()
+            },
+            &Silent,
+        )
+        .unwrap();
+        let plain = bake::bake(&world.scene, &settings, &Silent).unwrap();
+        let mut union = vec![0u32; conservative.masks.len()];
+        for _ in 0..6 {
+            let offset = (rng.range(-0.5, 0.5), rng.range(-0.5, 0.5));
+            let dense = bake::bake(
+                &world.scene,
+                &BakeConfig {
+                    lights: lights.iter().map(|l| denser(l, 3.0)).collect(),
+                    grid_offset: offset,
+                    ..settings.clone()
+                },
+                &Silent,
+            )
+            .unwrap();
+            for (u, m) in union.iter_mut().zip(&dense.masks) {
+                *u |= m;
+            }
+        }
+        for (id, (&kept, &needed)) in conservative.masks.iter().zip(&union).enumerate() {
+            assert_eq!(
+                needed & !kept,
+                0,
+                "seed {seed}: caster {id} is useful at some offset (lights {needed:b}) but the conservative bake keeps only {kept:b}"
+            );
+        }
+        beyond_centres += union
+            .iter()
+            .zip(&plain.masks)
+            .map(|(u, p)| (u & !p).count_ones())
+            .sum::<u32>();
+        for (&kept, &centre) in conservative.masks.iter().zip(&plain.masks) {
+            assert_eq!(
+                centre & !kept,
+                0,
+                "seed {seed}: conservative lost a centre-ray caster"
+            );
+        }
+        // Not "keep everything": some caster in reach is still culled.
+        let real = conservative.casters.real_casters() as u32 * lights.len() as u32;
+        let kept: u32 = conservative.masks.iter().map(|m| m.count_ones()).sum();
+        assert!(
+            kept < real,
+            "seed {seed}: conservative kept all {real} pairs"
+        );
+    }
+    assert_eq!(kinds, [true; 3], "every light kind was drawn");
+    assert!(
+        beyond_centres > 0,
+        "no offset bake found anything beyond the centre rays"
+    );
+    eprintln!("offset bakes needed {beyond_centres} pairs beyond the centre rays");
+}
+
+#[test]
+fn a_grid_offset_moves_sample_points_within_their_texels() {
+    // The sliver box (0.80..0.95) lies in texel 0 of the 1 m grid: the
+    // centre ray (0.5) misses it, an offset of +0.4 (0.9) lands on it, and
+    // −0.4 (0.1) misses again.
+    let (world, small) = sliver_world();
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    settings.grid_offset = (0.4, 0.4);
+    let hit = run(&world, &settings);
+    settings.grid_offset = (-0.4, -0.4);
+    let miss = run(&world, &settings);
+    // Which way the grid's u axis runs decides which offset lands on it.
+    let masks = (
+        instance_masks(&hit, &world, small),
+        instance_masks(&miss, &world, small),
+    );
+    assert!(
+        masks == (vec![1], vec![0]) || masks == (vec![0], vec![1]),
+        "{masks:?}"
+    );
+}
+
+#[test]
+fn conservative_culls_what_the_terrain_covers() {
+    // Box B (5..7, y −2..−1) and below it box C (y −4..−3) are buried under
+    // flat terrain. The plain bake drops their hits (below ground). In
+    // every beam over B, C could lie behind B, but the terrain (never
+    // dropped by the below-ground rule, so a sure occluder) covers B's
+    // fragment 1 m nearer: B is culled; C has nothing behind it: culled.
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let b = one(
+        &mut world,
+        cube(Vec3::new(5.0, -2.0, 5.0), Vec3::new(7.0, -1.0, 7.0)),
+        OPAQUE,
+    );
+    let c = one(
+        &mut world,
+        cube(Vec3::new(5.0, -4.0, 5.0), Vec3::new(7.0, -3.0, 7.0)),
+        OPAQUE,
+    );
+    let b = world.place((0, 0), &[b], DMat4::IDENTITY, true);
+    let c = world.place((0, 0), &[c], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 0.7)]);
+    let plain = run(&world, &settings);
+    assert_eq!(instance_masks(&plain, &world, b), vec![0]);
+    settings.grid_mode = GridMode::Conservative;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, b), vec![0]);
+    assert_eq!(instance_masks(&result, &world, c), vec![0]);
+}
