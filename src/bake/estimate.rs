@@ -372,7 +372,7 @@ mod tests {
             let passes = if name == "small" {
                 &passes[..]
             } else {
-                &passes[..2]
+                &passes[..1]
             };
             for config in passes.iter().cloned() {
                 let plan = plan(&world, &config, Baseline::default(), &Silent).unwrap();
