@@ -566,11 +566,7 @@ impl TexelGrid {
                 cube,
                 ..
             } => {
-                let (forward, u, v) = if *cube {
-                    CUBE_FACES[face % CUBE_FACES.len()]
-                } else {
-                    *frame
-                };
+                let (forward, u, v) = face_axes(*frame, *cube, face);
                 let s = half_extent * (cx / self.width as f64 * 2.0 - 1.0);
                 let t = half_extent * (cy / self.height as f64 * 2.0 - 1.0);
                 forward + u * s + v * t
@@ -639,11 +635,7 @@ impl TexelGrid {
                 cube,
                 ..
             } => {
-                let (forward, u, v) = if *cube {
-                    CUBE_FACES[face % CUBE_FACES.len()]
-                } else {
-                    *frame
-                };
+                let (forward, u, v) = face_axes(*frame, *cube, face);
                 let min_depth = near / (1.0 + 2.0 * half_extent * half_extent).sqrt();
                 let rel = triangle.map(|p| p - *position);
                 let depth = |p: DVec3| p.dot(forward);
@@ -788,11 +780,7 @@ impl TexelGrid {
                     cube,
                     ..
                 } => {
-                    let (forward, u, v) = if *cube {
-                        CUBE_FACES[face % CUBE_FACES.len()]
-                    } else {
-                        *frame
-                    };
+                    let (forward, u, v) = face_axes(*frame, *cube, face);
                     let rel = corner - *position;
                     let depth = rel.dot(forward);
                     if depth <= 1e-9 * (1.0 + rel.length()) {
@@ -820,6 +808,16 @@ impl TexelGrid {
 }
 
 /// `d` normalised, or `None` when it has no usable length.
+/// `(forward, u, v)` of a perspective light's face `face`: a point
+/// light's cube face, else the spot light's one frame.
+fn face_axes(frame: (DVec3, DVec3, DVec3), cube: bool, face: usize) -> (DVec3, DVec3, DVec3) {
+    if cube {
+        CUBE_FACES[face % CUBE_FACES.len()]
+    } else {
+        frame
+    }
+}
+
 fn unit(d: DVec3) -> Option<DVec3> {
     let length = d.length();
     (d.is_finite() && length.is_finite() && length > 0.0).then(|| d / length)
