@@ -20,26 +20,22 @@ pub fn trace_tiles(
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
     let samples = config.supersample.max(1);
-    let tiles: Vec<u64> = tiles.into_par_iter().collect();
-    let tiles_again = tiles.clone();
-    let centres = if config.filter_radius > 0 {
-        filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
-    } else {
-        rays.trace_tiles(tiles, samples, rays_done)
+    let centres = |tiles: Vec<u64>| {
+        if config.filter_radius > 0 {
+            filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
+        } else {
+            rays.trace_tiles(tiles, samples, rays_done)
+        }
     };
+    let tiles: Vec<u64> = tiles.into_par_iter().collect();
     match config.grid_mode {
-        GridMode::Centres => centres,
+        GridMode::Centres => centres(tiles),
         GridMode::Conservative => {
-            let beams = conservative::trace_tiles(
-                world,
-                setup,
-                rays,
-                config,
-                tiles_again,
-                &centres,
-                &NoCount,
-            );
-            centres.union(&beams)
+            // The beams run over the same tiles after the centres.
+            let known = centres(tiles.clone());
+            let beams =
+                conservative::trace_tiles(world, setup, rays, config, tiles, &known, &NoCount);
+            known.union(&beams)
         }
     }
 }
