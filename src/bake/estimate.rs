@@ -8,8 +8,9 @@
 //! traced; the light's rays divided by the sample's ray rate is its
 //! tracing time. A bake that follows its plan ([`Plan`] is a
 //! [`GridSource`]) keeps what the sample proved and traces only the other
-//! tiles, so calibrating costs a bake nothing but the top levels' second
-//! build. Memory is what the process holds once the world is
+//! tiles, and it takes over the first light's setup (its top level), which
+//! the plan builds last, so calibrating costs a bake only the other lights'
+//! second top-level build. Memory is what the process holds once the world is
 //! loaded (the caller measures it) plus, for the largest light, its top
 //! level and the tracing threads' working sets, plus the masks and every
 //! chunk file's old and new bytes held for the write.
@@ -19,6 +20,7 @@ use super::trace_light::{CasterSet, LightRays, RayCounter};
 use super::{grid_pass, BakeConfig, BakeError, GridMode, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 /// Tiles (32×32 texels) of each light traced to measure the ray rate.
@@ -147,6 +149,13 @@ impl GridSource for Plan {
             .filter(|light| light.sample.is_some())
             .map_or(0.0, |light| light.sample_seconds)
     }
+
+    fn take_setup(&self, index: usize, config: &BakeConfig) -> Option<LightSetup> {
+        let mut kept = self.kept.0.lock().unwrap_or_else(|e| e.into_inner());
+        let planned = self.lights.get(index)?;
+        let same_grid = planned.sample.as_ref()?.pass == GridPassSettings::of(config);
+        kept.take_if(|setup| setup.index == index && same_grid)
+    }
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -158,6 +167,23 @@ pub struct Plan {
     pub calibration_seconds: f64,
     pub estimated_seconds: f64,
     pub estimated_peak_bytes: u64,
+    /// The setup of the first light the bake traces (built last, so no
+    /// other light's top level is built while it is held), handed to the
+    /// bake by [`GridSource::take_setup`] instead of being built again.
+    #[serde(skip)]
+    kept: KeptSetup,
+}
+
+/// The setup a [`Plan`] keeps for the bake (shared by its clones: the
+/// first bake to ask takes it).
+#[derive(Clone, Default)]
+struct KeptSetup(Arc<Mutex<Option<LightSetup>>>);
+
+impl std::fmt::Debug for KeptSetup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let kept = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        write!(f, "KeptSetup({:?})", kept.as_ref().map(|s| s.index))
+    }
 }
 
 /// Plans `config`'s lights over a built world. Traces only samples.
@@ -169,15 +195,14 @@ pub fn plan(
 ) -> Result<Plan, BakeError> {
     let started = Instant::now();
     let mut lights = Vec::new();
-    for index in 0..config.lights.len() {
-        lights.push(plan_light(
-            world,
-            config,
-            index,
-            baseline.threads,
-            progress,
-        )?);
+    let mut kept = None;
+    // Last light first: the first light's setup, built last, is kept.
+    for index in (0..config.lights.len()).rev() {
+        let (light, setup) = plan_light(world, config, index, baseline.threads, progress)?;
+        lights.push(light);
+        kept = setup;
     }
+    lights.reverse();
     let calibration_seconds = started.elapsed().as_secs_f64();
     let casters = world.casters.len();
     let masks = casters as u64 * 4;
@@ -197,16 +222,18 @@ pub fn plan(
         calibration_seconds,
         estimated_seconds,
         estimated_peak_bytes,
+        kept: KeptSetup(Arc::new(Mutex::new(kept))),
     })
 }
 
+/// One light's plan, and its setup when the light has something to trace.
 fn plan_light(
     world: &BakeWorld,
     config: &BakeConfig,
     index: usize,
     threads: usize,
     progress: &dyn Progress,
-) -> Result<LightPlan, BakeError> {
+) -> Result<(LightPlan, Option<LightSetup>), BakeError> {
     let light = &config.lights[index];
     let mut plan = LightPlan {
         index,
@@ -235,7 +262,7 @@ fn plan_light(
         Err(nothing) if nothing.is_nothing_to_trace() => {
             counter.finish();
             plan.nothing_to_trace = Some(nothing.to_string());
-            return Ok(plan);
+            return Ok((plan, None));
         }
         Err(super::setup::NoSetup::Grid(err)) => return Err(err.into()),
         Err(super::setup::NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
@@ -262,7 +289,7 @@ fn plan_light(
     if setup.top.is_empty() {
         plan.nothing_to_trace = Some("its frustum holds no geometry".into());
         plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
-        return Ok(plan);
+        return Ok((plan, None));
     }
     let rays = setup.rays(world, config);
     let tiles = rays.tile_count();
@@ -292,7 +319,7 @@ fn plan_light(
     let left = plan.rays.saturating_sub(plan.sample_rays);
     plan.estimated_seconds =
         setup.reach_seconds + setup.top_seconds + left as f64 / plan.rays_per_second;
-    Ok(plan)
+    Ok((plan, Some(setup)))
 }
 
 /// Every how many tiles the calibration traces one: about

@@ -329,6 +329,12 @@ pub trait GridSource: Sync {
     fn seconds_before(&self, _index: usize) -> f64 {
         0.0
     }
+
+    /// Light `index`'s setup, when the source already built it for
+    /// `config` (the plan's last-built light); `None`: the bake builds it.
+    fn take_setup(&self, _index: usize, _config: &BakeConfig) -> Option<LightSetup> {
+        None
+    }
 }
 
 /// Traces every texel of the grid.
@@ -392,7 +398,8 @@ pub fn bake_from(
     let mut skipped = world_skipped(world);
     let mut lights = Vec::new();
     for index in 0..config.lights.len() {
-        let setup = match LightSetup::new(world, config, index) {
+        let prepared = source.take_setup(index, config).map(Ok);
+        let setup = match prepared.unwrap_or_else(|| LightSetup::new(world, config, index)) {
             Ok(setup) => setup,
             Err(nothing) if nothing.is_nothing_to_trace() => {
                 skipped.push(Skipped::info(

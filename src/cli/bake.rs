@@ -190,6 +190,8 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     // The plan's calibration tiles are not traced twice.
     let result = bake::bake_from(&world, config, &reporter, &plan)
         .with_context(|| file.display().to_string())?;
+    // The output needs the scene and the masks only: the trees go first.
+    drop((plan, world));
     let results = Results {
         scene: &scene,
         res_paths: &settings.res_paths,

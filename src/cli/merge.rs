@@ -58,6 +58,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
             plan.shards
         );
         let result = bake::bake_from(&world, &config, &reporter, &merged)?;
+        drop((merged, world));
         let results = Results {
             scene: &scene,
             res_paths: &settings.res_paths,
