@@ -9,17 +9,20 @@
 
 use crate::scene::Scene;
 
+/// What a caster is. Indices are u32 (the caster ids themselves are):
+/// a table entry is 20 bytes, held for every group of every placed
+/// instance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Owner {
     /// Group `group` of part `part` (its `<resource>` position) of
     /// `Scene::instances[instance]`.
     Group {
-        instance: usize,
-        part: usize,
-        group: usize,
+        instance: u32,
+        part: u32,
+        group: u32,
     },
     Terrain {
-        block: usize,
+        block: u32,
     },
 }
 
@@ -64,6 +67,18 @@ pub struct CasterTable {
 impl CasterTable {
     pub fn new(scene: &Scene) -> CasterTable {
         let mut table = CasterTable::default();
+        // Exact sizes: the table is held for the whole bake, and growing
+        // by doubling left up to half of it unused.
+        let groups = |instance: &crate::scene::Instance| -> usize {
+            let models = instance.parts.iter().flatten();
+            models.map(|&m| scene.models[m].groups.len()).sum()
+        };
+        let complete = scene.instances.iter().filter(|i| i.is_complete());
+        table
+            .casters
+            .reserve_exact(complete.map(groups).sum::<usize>() + scene.terrain.len());
+        table.first_of_instance.reserve_exact(scene.instances.len());
+        table.of_block.reserve_exact(scene.terrain.len());
         for (index, instance) in scene.instances.iter().enumerate() {
             if !instance.is_complete() {
                 table.first_of_instance.push(None);
@@ -76,9 +91,9 @@ impl CasterTable {
                 for (group, flags) in scene.models[*model].groups.iter().enumerate() {
                     table.casters.push(Caster {
                         owner: Owner::Group {
-                            instance: index,
-                            part,
-                            group,
+                            instance: index as u32,
+                            part: part as u32,
+                            group: group as u32,
                         },
                         alpha_tested: flags.alpha_tested,
                         double_sided: flags.double_sided,
@@ -90,7 +105,9 @@ impl CasterTable {
         for block in 0..scene.terrain.len() {
             table.of_block.push(table.casters.len() as u32);
             table.casters.push(Caster {
-                owner: Owner::Terrain { block },
+                owner: Owner::Terrain {
+                    block: block as u32,
+                },
                 alpha_tested: false,
                 double_sided: false,
                 receiver_only: false,
@@ -164,9 +181,9 @@ mod tests {
                 assert_eq!(
                     caster.owner,
                     Owner::Group {
-                        instance: part.instance,
-                        part: part.part,
-                        group
+                        instance: part.instance as u32,
+                        part: part.part as u32,
+                        group: group as u32
                     }
                 );
             }

@@ -154,11 +154,15 @@ pub fn caster_triangles(world: &BakeWorld, id: u32, reference: DVec3) -> Vec<Tra
             part,
             group,
         }) => {
-            if let Some(&model) = scene.instances[instance].parts.iter().flatten().nth(part) {
+            let (instance, group) = (instance as usize, group as usize);
+            let parts = scene.instances[instance].parts.iter().flatten();
+            if let Some(&model) = parts.clone().nth(part as usize) {
                 push_group(scene, instance, model, group, id, reference, &mut out);
             }
         }
-        Some(Owner::Terrain { block }) => push_block(scene, block, id, reference, &mut out),
+        Some(Owner::Terrain { block }) => {
+            push_block(scene, block as usize, id, reference, &mut out)
+        }
         None => {}
     }
     out.triangles

@@ -17,10 +17,26 @@ pub struct PhaseNamingAllocator;
 /// yet).
 static CURRENT: AtomicU8 = AtomicU8::new(0);
 
-/// Records the phase that has begun, for the out-of-memory message.
+/// Records the phase that has begun, for the out-of-memory message, and
+/// hands the pages the last phase freed back to the system.
 pub fn entering(phase: Phase) {
     if let Some(i) = Phase::ALL.iter().position(|p| *p == phase) {
         CURRENT.store(i as u8 + 1, Ordering::Relaxed);
+    }
+    release_free_pages();
+}
+
+/// glibc keeps freed memory mapped: the parse trees and decode buffers of
+/// loading, a top level's build temporaries. Their pages sit between live
+/// allocations, so they stay resident until `malloc_trim` gives back every
+/// whole free page (measured on `gen --chunks 20`: the bake's peak RSS
+/// fell from 172 to 143 MB, `bench`'s from 42.5 to 37.8 MB).
+fn release_free_pages() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages to the system; every
+    // live allocation stays where it is.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 

@@ -545,19 +545,19 @@ fn describe(
         Owner::Group {
             instance, group, ..
         } => {
-            let inst = &scene.instances[instance];
+            let inst = &scene.instances[instance as usize];
             (
                 scene.chunks[inst.chunk].name.clone(),
                 "model",
                 Some(inst.index),
-                Some(group),
+                Some(group as usize),
             )
         }
         Owner::Terrain { block } => {
             let chunk = scene
                 .chunks
                 .iter()
-                .find(|c| c.terrain == Some(block))
+                .find(|c| c.terrain == Some(block as usize))
                 .map_or_else(|| format!("terrain block {block}"), |c| c.name.clone());
             (chunk, "terrain", None, None)
         }

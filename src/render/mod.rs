@@ -310,20 +310,24 @@ fn describe(world: &BakeWorld, caster: &Caster) -> String {
             part,
             group,
         } => {
-            let placed = &scene.instances[instance];
+            let placed = &scene.instances[instance as usize];
             format!(
                 "{} {} {} {} group {group}",
                 scene.chunks[placed.chunk].name,
                 placed.kind.tag(),
                 placed.index,
-                placed.resources.get(part).map(|r| r.trim()).unwrap_or("?")
+                placed
+                    .resources
+                    .get(part as usize)
+                    .map(|r| r.trim())
+                    .unwrap_or("?")
             )
         }
         crate::bake::casters::Owner::Terrain { block } => {
             let chunk = scene
                 .chunks
                 .iter()
-                .find(|c| c.terrain == Some(block))
+                .find(|c| c.terrain == Some(block as usize))
                 .map_or("?", |c| c.name.as_str());
             format!("{chunk} terrain")
         }

@@ -216,6 +216,8 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
     let mut chunks = Vec::new();
     let mut instances = Vec::new();
     let mut terrain = Vec::new();
+    // Held for the whole bake: sized exactly rather than grown by doubling.
+    instances.reserve_exact(by_name.values().map(|(_, f)| f.instances.len()).sum());
     let terrain_jobs: Vec<(usize, PathBuf, String, DMat4)> = {
         let mut jobs = Vec::new();
         for (name, (path, file)) in &by_name {

@@ -173,12 +173,75 @@ pub(crate) enum Step {
 /// `side` tiles (a power of two covering the block); each level above
 /// halves the side. Heights are chunk-local; tiles outside the block are
 /// empty (min > max).
+///
+/// A range is stored as two u16 steps of `(high − low) / 65535` above the
+/// block's lowest height, rounded outward ([`Quantizer`]): 4 bytes a tile
+/// instead of 8, the pyramid being a third of a big world's terrain
+/// memory. The walk's boxes are as conservative as with exact ranges (a
+/// box only grows), slightly looser.
 #[derive(Clone, Debug, Default)]
 pub struct HeightField {
     side: usize,
     /// Per level, its first entry in `ranges`.
     level_start: Vec<usize>,
-    ranges: Vec<(f32, f32)>,
+    ranges: Vec<[u16; 2]>,
+    quantizer: Quantizer,
+    /// The block's exact lowest and highest chunk-local heights.
+    low: f32,
+    high: f32,
+}
+
+/// Chunk-local heights as u16 steps above `low`.
+#[derive(Clone, Copy, Debug, Default)]
+struct Quantizer {
+    low: f64,
+    step: f64,
+}
+
+/// The stored range of a tile outside the block (low > high).
+const EMPTY: [u16; 2] = [u16::MAX, 0];
+
+impl Quantizer {
+    fn new(low: f32, high: f32) -> Quantizer {
+        let (low, high) = (f64::from(low), f64::from(high));
+        let step = if high > low {
+            (high - low) / f64::from(u16::MAX)
+        } else {
+            1.0
+        };
+        Quantizer { low, step }
+    }
+
+    fn height(&self, q: u16) -> f64 {
+        self.low + f64::from(q) * self.step
+    }
+
+    /// Steps whose heights hold `[lo, hi]` (heights of this block).
+    fn range(&self, lo: f32, hi: f32) -> [u16; 2] {
+        if lo > hi {
+            return EMPTY;
+        }
+        let (lo, hi) = (f64::from(lo), f64::from(hi));
+        let max = f64::from(u16::MAX);
+        let mut q_lo = ((lo - self.low) / self.step).floor().clamp(0.0, max) as u16;
+        let mut q_hi = ((hi - self.low) / self.step).ceil().clamp(0.0, max) as u16;
+        // The division rounds: step once more outward where it rounded in.
+        if self.height(q_lo) > lo {
+            q_lo = q_lo.saturating_sub(1);
+        }
+        if self.height(q_hi) < hi {
+            q_hi = q_hi.saturating_add(1);
+        }
+        [q_lo, q_hi]
+    }
+
+    /// The heights a stored range stands for (low > high: empty).
+    fn heights(&self, [q_lo, q_hi]: [u16; 2]) -> (f64, f64) {
+        if q_lo > q_hi {
+            return (f64::INFINITY, f64::NEG_INFINITY);
+        }
+        (self.height(q_lo), self.height(q_hi))
+    }
 }
 
 impl HeightField {
@@ -190,8 +253,13 @@ impl HeightField {
         // pushes would double the allocation, a third of a big world's
         // terrain memory.
         let entries = (4 * side * side - 1) / 3;
+        let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
+        for &h in grid.heights {
+            (low, high) = (low.min(h), high.max(h));
+        }
+        let quantizer = Quantizer::new(low, high);
         let mut ranges = Vec::with_capacity(entries);
-        ranges.resize(side * side, (f32::INFINITY, f32::NEG_INFINITY));
+        ranges.resize(side * side, EMPTY);
         for tz in 0..tiles_z {
             for tx in 0..tiles_x {
                 let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
@@ -204,7 +272,7 @@ impl HeightField {
                         hi = hi.max(h);
                     }
                 }
-                ranges[tz * side + tx] = (lo, hi);
+                ranges[tz * side + tx] = quantizer.range(lo, hi);
             }
         }
         let mut level_start = vec![0];
@@ -215,10 +283,10 @@ impl HeightField {
             let half = n / 2;
             for j in 0..half {
                 for i in 0..half {
-                    let mut range = (f32::INFINITY, f32::NEG_INFINITY);
+                    let mut range = EMPTY;
                     for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                        let (lo, hi) = ranges[below + (2 * j + dj) * n + 2 * i + di];
-                        range = (range.0.min(lo), range.1.max(hi));
+                        let [lo, hi] = ranges[below + (2 * j + dj) * n + 2 * i + di];
+                        range = [range[0].min(lo), range[1].max(hi)];
                     }
                     ranges.push(range);
                 }
@@ -230,16 +298,22 @@ impl HeightField {
             side,
             level_start,
             ranges,
+            quantizer,
+            low,
+            high,
         }
     }
 
     /// Lowest and highest chunk-local height of the block (holes included).
     pub fn height_range(&self) -> (f32, f32) {
-        self.ranges.last().copied().unwrap_or((0.0, 0.0))
+        if self.low > self.high {
+            return (0.0, 0.0);
+        }
+        (self.low, self.high)
     }
 
     pub fn heap_bytes(&self) -> usize {
-        self.ranges.len() * std::mem::size_of::<(f32, f32)>() + self.level_start.len() * 8
+        self.ranges.len() * std::mem::size_of::<[u16; 2]>() + self.level_start.len() * 8
     }
 
     /// Every hit of the ray on the block's surface within `[t_min, t_max]`,
@@ -299,7 +373,8 @@ impl HeightField {
         let step_z = grid.chunk_size / grid.cells_z as f64;
         let x_at = |cx: usize| (offset.x + cx as f64 * step_x) as f32;
         let z_at = |cz: usize| (offset.z + cz as f64 * step_z) as f32;
-        let y_at = |h: f32| (offset.y + f64::from(h)) as f32;
+        let y_at = |h: f64| (offset.y + h) as f32;
+        let quantizer = self.quantizer;
         let flip_x = usize::from(direction.x >= 0.0);
         let flip_z = usize::from(direction.z >= 0.0);
         let top = self.level_start.len() - 1;
@@ -321,7 +396,8 @@ impl HeightField {
                 ((entry >> 29) & mask) as usize,
                 (entry & mask) as usize,
             );
-            let (lo, hi) = self.ranges[self.level_start[level] + j * (self.side >> level) + i];
+            let stored = self.ranges[self.level_start[level] + j * (self.side >> level) + i];
+            let (lo, hi) = quantizer.heights(stored);
             if lo > hi {
                 continue;
             }
@@ -350,8 +426,8 @@ impl HeightField {
                     let (lo, hi) =
                         corners
                             .iter()
-                            .fold((f32::INFINITY, f32::NEG_INFINITY), |r, &(x, z)| {
-                                let h = grid.height(x, z) as f32;
+                            .fold((f64::INFINITY, f64::NEG_INFINITY), |r, &(x, z)| {
+                                let h = grid.height(x, z);
                                 (r.0.min(h), r.1.max(h))
                             });
                     let min = Vec3::new(x_at(cx), y_at(lo), z_at(cz));
