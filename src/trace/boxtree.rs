@@ -192,6 +192,16 @@ impl BoxTree {
     }
 }
 
+/// Where a ray segment lies in a padded box ([`BoxRay::span`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Span {
+    Miss,
+    /// Every point of the segment inside the box has t in this range.
+    Within(f32, f32),
+    /// A slab is NaN: the box bounds nothing.
+    Unbounded,
+}
+
 /// The ray as the node test sees it: two origins shifted by ∓m along each
 /// axis, so that near planes are moved towards the ray and far planes away,
 /// i.e. every box is grown by m on every side.
@@ -258,6 +268,40 @@ impl BoxRay {
             }
         }
         t_near <= t_far || t_near.is_nan() || t_far.is_nan()
+    }
+
+    /// The part of the segment `[t_lo, t_hi]` inside the box grown by the
+    /// padding ([`Self::touches`]'s arithmetic), so a hit on anything
+    /// inside the box has its t within it.
+    #[inline(always)]
+    pub(crate) fn span(&self, min: Vec3, max: Vec3, t_lo: f32, t_hi: f32) -> Span {
+        let (mut t_near, mut t_far) = (t_lo, t_hi);
+        for i in 0..3 {
+            let (n, f) = if self.negative[i] {
+                (max[i], min[i])
+            } else {
+                (min[i], max[i])
+            };
+            let a = (n - self.origin_near[i]) * self.inv[i];
+            let b = (f - self.origin_far[i]) * self.inv[i];
+            if a.is_nan() || b.is_nan() {
+                return Span::Unbounded;
+            }
+            t_near = t_near.max(a);
+            t_far = t_far.min(b);
+        }
+        if t_near.is_nan() || t_far.is_nan() {
+            Span::Unbounded
+        } else if t_near <= t_far {
+            Span::Within(t_near, t_far)
+        } else {
+            Span::Miss
+        }
+    }
+
+    /// The padding every box is grown by (metres of the frame).
+    pub(crate) fn pad(&self) -> f32 {
+        self.pad
     }
 
     /// The t bound used for culling: t_max plus slack, so that a hit whose

@@ -12,7 +12,7 @@
 //! boxes hold every vertex of their cells (rounded the same way) and are
 //! padded like tree nodes, so the hits are those of testing every cell.
 
-use super::boxtree::BoxRay;
+use super::boxtree::{BoxRay, Span};
 use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};
 use glam::{DVec3, Vec3};
@@ -317,9 +317,10 @@ impl HeightField {
     }
 
     /// Every hit of the ray on the block's surface within `[t_min, t_max]`,
-    /// as [`HeightGrid::brute_force_hits`] finds them, visiting only the
-    /// tiles (and, in a leaf tile, the cells) whose padded box the ray
-    /// touches, nearer tiles first. `boxes` is the top level's box test of
+    /// as [`HeightGrid::brute_force_hits`] finds them, visiting only cells
+    /// whose padded box the ray touches: along the ray's path row by row
+    /// ([`Self::row_walk`]) when that path is short, else through the
+    /// pyramid, nearer tiles first. `boxes` is the top level's box test of
     /// this ray: its padding (hundreds of ulps of the whole world's
     /// magnitude) covers the rounding of tile corners computed here.
     #[allow(clippy::too_many_arguments)]
@@ -334,10 +335,21 @@ impl HeightField {
         on_hit: &mut impl FnMut(Hit) -> f32,
     ) -> f32 {
         let prepared = PreparedRay::new(ray);
-        let mut t_max = t_max;
         if !prepared.is_valid() {
             return t_max;
         }
+        let frame = CellFrame::new(grid, reference);
+        let walked = self.row_walk(grid, &frame, boxes, ray, t_max, |cell, t_max| {
+            let (min, max) = frame.cell_box(grid, cell);
+            if boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+                return grid.cell_hits(cell, reference, &prepared, caster, t_max, on_hit);
+            }
+            t_max
+        });
+        if let Some(t_max) = walked {
+            return t_max;
+        }
+        let mut t_max = t_max;
         self.walk(grid, reference, ray.direction, |step| match step {
             Step::Tile(min, max) => boxes.touches(min, max, ray.t_min, boxes.node_t_max(t_max)),
             Step::Cell(cell, min, max) => {
@@ -348,6 +360,80 @@ impl HeightField {
             }
         });
         t_max
+    }
+
+    /// The cells along a single ray's path through the block, near first:
+    /// the part of the ray inside the block's padded box, cut into the rows
+    /// of cells it crosses, and in each row the cells its path (padded by
+    /// the box padding) crosses. Every cell whose padded box the ray
+    /// touches is among them, so `visit(cell, t_max)` (which tests the cell
+    /// and returns the new t_max) sees every cell the pyramid would let
+    /// through. A steep ray (any light from above) crosses a handful of
+    /// cells of a block this way, where the pyramid tests a box per level
+    /// and four per tile. `None` (nothing visited): the path crosses more
+    /// than [`MAX_ROW_WALK_CELLS`] rows and columns (a grazing ray, where
+    /// the pyramid skips empty space), or a slab is NaN.
+    fn row_walk(
+        &self,
+        grid: &HeightGrid,
+        frame: &CellFrame,
+        boxes: &BoxRay,
+        ray: &TraceRay,
+        t_max: f32,
+        mut visit: impl FnMut((usize, usize), f32) -> f32,
+    ) -> Option<f32> {
+        if self.low > self.high {
+            return Some(t_max);
+        }
+        let (min, max) = frame.block_box(grid, self.low, self.high);
+        let (t0, t1) = match boxes.span(min, max, ray.t_min, boxes.node_t_max(t_max)) {
+            Span::Miss => return Some(t_max),
+            Span::Unbounded => return None,
+            Span::Within(t0, t1) => (f64::from(t0), f64::from(t1)),
+        };
+        let origin = ray.origin.as_dvec3();
+        let direction = ray.direction.as_dvec3();
+        // Beyond the padding the boxes are grown by, twice over: the
+        // positions below are computed in f64 from the f32 ray.
+        let pad = 2.0 * f64::from(boxes.pad());
+        let along = |o: f64, d: f64, t0: f64, t1: f64| {
+            let (a, b) = (o + d * t0, o + d * t1);
+            (a.min(b) - pad, a.max(b) + pad)
+        };
+        let columns = frame.cells_x(grid, along(origin.x, direction.x, t0, t1));
+        let rows = frame.cells_z(grid, along(origin.z, direction.z, t0, t1));
+        if columns.len() + rows.len() > MAX_ROW_WALK_CELLS {
+            return None;
+        }
+        let mut t_max = t_max;
+        for cz in near_first(rows, direction.z) {
+            let (mut ta, mut tb) = (t0, t1);
+            if direction.z != 0.0 {
+                let (za, zb) = (
+                    f64::from(frame.z_at(cz)) - pad,
+                    f64::from(frame.z_at(cz + 1)) + pad,
+                );
+                let (a, b) = ((za - origin.z) / direction.z, (zb - origin.z) / direction.z);
+                (ta, tb) = (ta.max(a.min(b)), tb.min(a.max(b)));
+            }
+            if ta > f64::from(boxes.node_t_max(t_max)) {
+                break;
+            }
+            if ta > tb {
+                continue;
+            }
+            let span = frame.cells_x(grid, along(origin.x, direction.x, ta, tb));
+            for cx in near_first(
+                span.start.max(columns.start)..span.end.min(columns.end),
+                direction.x,
+            ) {
+                t_max = visit((cx, cz), t_max);
+                if t_max < ray.t_min {
+                    return Some(t_max);
+                }
+            }
+        }
+        Some(t_max)
     }
 
     /// The pyramid walk shared by the single-ray and the packet traversal:
@@ -366,14 +452,7 @@ impl HeightField {
         if self.ranges.is_empty() {
             return;
         }
-        // Light-relative corners, from the block's offset (f64): within a
-        // rounding or two of the vertices' own, far inside the padding.
-        let offset = grid.origin - reference;
-        let step_x = grid.chunk_size / grid.cells_x as f64;
-        let step_z = grid.chunk_size / grid.cells_z as f64;
-        let x_at = |cx: usize| (offset.x + cx as f64 * step_x) as f32;
-        let z_at = |cz: usize| (offset.z + cz as f64 * step_z) as f32;
-        let y_at = |h: f64| (offset.y + h) as f32;
+        let frame = CellFrame::new(grid, reference);
         let quantizer = self.quantizer;
         let flip_x = usize::from(direction.x >= 0.0);
         let flip_z = usize::from(direction.z >= 0.0);
@@ -405,8 +484,8 @@ impl HeightField {
             let (cx0, cz0) = (i * span, j * span);
             let cx1 = (cx0 + span).min(grid.cells_x);
             let cz1 = (cz0 + span).min(grid.cells_z);
-            let min = Vec3::new(x_at(cx0), y_at(lo), z_at(cz0));
-            let max = Vec3::new(x_at(cx1), y_at(hi), z_at(cz1));
+            let min = Vec3::new(frame.x_at(cx0), frame.y_at(lo), frame.z_at(cz0));
+            let max = Vec3::new(frame.x_at(cx1), frame.y_at(hi), frame.z_at(cz1));
             if !step(Step::Tile(min, max)) {
                 continue;
             }
@@ -422,21 +501,240 @@ impl HeightField {
             }
             for cz in cz0..cz1 {
                 for cx in cx0..cx1 {
-                    let corners = [(cx, cz), (cx + 1, cz), (cx, cz + 1), (cx + 1, cz + 1)];
-                    let (lo, hi) =
-                        corners
-                            .iter()
-                            .fold((f64::INFINITY, f64::NEG_INFINITY), |r, &(x, z)| {
-                                let h = grid.height(x, z);
-                                (r.0.min(h), r.1.max(h))
-                            });
-                    let min = Vec3::new(x_at(cx), y_at(lo), z_at(cz));
-                    let max = Vec3::new(x_at(cx + 1), y_at(hi), z_at(cz + 1));
+                    let (min, max) = frame.cell_box(grid, (cx, cz));
                     if !step(Step::Cell((cx, cz), min, max)) {
                         return;
                     }
                 }
             }
         }
+    }
+}
+
+/// Single rays walk a block's cells along their path when it crosses at
+/// most this many rows plus columns (else the pyramid).
+const MAX_ROW_WALK_CELLS: usize = 24;
+
+/// The `range` of cell indices in the order a ray with this direction
+/// component meets them.
+fn near_first(range: std::ops::Range<usize>, direction: f64) -> impl Iterator<Item = usize> {
+    let backwards = direction < 0.0;
+    let (forward, reverse) = if backwards {
+        (None, Some(range.rev()))
+    } else {
+        (Some(range), None)
+    };
+    forward
+        .into_iter()
+        .flatten()
+        .chain(reverse.into_iter().flatten())
+}
+
+/// A block's cells in the light-relative frame: corners from the block's
+/// offset (f64), within a rounding or two of the vertices' own
+/// ([`HeightGrid::vertex`]), far inside the padding of the box tests.
+struct CellFrame {
+    offset: DVec3,
+    step_x: f64,
+    step_z: f64,
+}
+
+impl CellFrame {
+    fn new(grid: &HeightGrid, reference: DVec3) -> CellFrame {
+        CellFrame {
+            offset: grid.origin - reference,
+            step_x: grid.chunk_size / grid.cells_x as f64,
+            step_z: grid.chunk_size / grid.cells_z as f64,
+        }
+    }
+
+    fn x_at(&self, cx: usize) -> f32 {
+        (self.offset.x + cx as f64 * self.step_x) as f32
+    }
+
+    fn z_at(&self, cz: usize) -> f32 {
+        (self.offset.z + cz as f64 * self.step_z) as f32
+    }
+
+    fn y_at(&self, h: f64) -> f32 {
+        (self.offset.y + h) as f32
+    }
+
+    /// The box of the whole block between chunk-local heights `low` and
+    /// `high`.
+    fn block_box(&self, grid: &HeightGrid, low: f32, high: f32) -> (Vec3, Vec3) {
+        (
+            Vec3::new(self.x_at(0), self.y_at(f64::from(low)), self.z_at(0)),
+            Vec3::new(
+                self.x_at(grid.cells_x),
+                self.y_at(f64::from(high)),
+                self.z_at(grid.cells_z),
+            ),
+        )
+    }
+
+    /// Cell (cx, cz)'s box: its four corners' heights.
+    #[inline]
+    fn cell_box(&self, grid: &HeightGrid, (cx, cz): (usize, usize)) -> (Vec3, Vec3) {
+        let corners = [(cx, cz), (cx + 1, cz), (cx, cz + 1), (cx + 1, cz + 1)];
+        let (lo, hi) = corners
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |r, &(x, z)| {
+                let h = grid.height(x, z);
+                (r.0.min(h), r.1.max(h))
+            });
+        (
+            Vec3::new(self.x_at(cx), self.y_at(lo), self.z_at(cz)),
+            Vec3::new(self.x_at(cx + 1), self.y_at(hi), self.z_at(cz + 1)),
+        )
+    }
+
+    /// The columns of cells whose x range meets `[lo, hi]` (light-relative
+    /// metres), clipped to the block.
+    fn cells_x(&self, grid: &HeightGrid, (lo, hi): (f64, f64)) -> std::ops::Range<usize> {
+        cell_range(
+            lo - self.offset.x,
+            hi - self.offset.x,
+            self.step_x,
+            grid.cells_x,
+        )
+    }
+
+    /// The rows of cells whose z range meets `[lo, hi]`.
+    fn cells_z(&self, grid: &HeightGrid, (lo, hi): (f64, f64)) -> std::ops::Range<usize> {
+        cell_range(
+            lo - self.offset.z,
+            hi - self.offset.z,
+            self.step_z,
+            grid.cells_z,
+        )
+    }
+}
+
+/// Cells `i` of size `step` (cell i spans `[i·step, (i+1)·step]`) that
+/// meet `[lo, hi]`, clipped to `0..cells`; empty when `[lo, hi]` is.
+fn cell_range(lo: f64, hi: f64, step: f64, cells: usize) -> std::ops::Range<usize> {
+    // NaN bounds meet nothing (the caller's span was finite).
+    if lo.partial_cmp(&hi).is_none_or(|o| o.is_gt()) {
+        return 0..0;
+    }
+    let last = cells as f64 - 1.0;
+    // A coordinate exactly on a line between cells meets both.
+    let first = (lo / step).ceil() - 1.0;
+    let end = (hi / step).floor();
+    if end < 0.0 || first > last {
+        return 0..0;
+    }
+    first.clamp(0.0, last) as usize..end.clamp(0.0, last) as usize + 1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// Hits as comparable tuples, sorted.
+    fn sorted(hits: Vec<Hit>) -> Vec<(u32, u32, bool)> {
+        let mut out: Vec<_> = hits
+            .iter()
+            .map(|h| (h.t.to_bits(), h.triangle, h.back_facing))
+            .collect();
+        out.sort();
+        out
+    }
+
+    /// A bumpy 32 × 32-cell block of 100 m (cells of 3.125 m) with holes,
+    /// far from the origin.
+    fn block() -> (Vec<f32>, Vec<bool>, DVec3) {
+        let cells = 32;
+        let mut heights = Vec::new();
+        for z in 0..=cells {
+            for x in 0..=cells {
+                let (x, z) = (x as f64, z as f64);
+                heights.push(((x * 0.9).sin() * 6.0 + (z * 0.45).cos() * 9.0 + x * 0.3) as f32);
+            }
+        }
+        let mut holes = vec![false; cells * cells];
+        holes[5 * cells + 7] = true;
+        holes[20 * cells + 31] = true;
+        (heights, holes, DVec3::new(1.0e5, 12.0, -3.0e4))
+    }
+
+    /// Single rays along the cells' path ([`HeightField::row_walk`]) and
+    /// through the pyramid find exactly the hits of testing every cell, for
+    /// rays from every kind of direction — straight down, slanted, along an
+    /// axis, grazing — aimed at random points, cell corners, edges and
+    /// diagonals; and both ways of walking are used.
+    #[test]
+    fn single_rays_find_every_cell_hit_whichever_walk_they_take() {
+        let (heights, holes, origin) = block();
+        let grid = HeightGrid {
+            origin,
+            chunk_size: 100.0,
+            cells_x: 32,
+            cells_z: 32,
+            heights: &heights,
+            holes: &holes,
+            alternating: true,
+        };
+        let field = HeightField::build(&grid);
+        let reference = origin + DVec3::new(37.0, 0.0, 51.0);
+        let frame = CellFrame::new(&grid, reference);
+        let mut rng = Rng::new(11);
+        let (mut along_rows, mut through_pyramid, mut rays) = (0, 0, 0);
+        for i in 0..6000 {
+            let direction = match i % 6 {
+                0 => Vec3::NEG_Y,
+                1 => Vec3::new(0.3, -1.0, -0.2),
+                2 => Vec3::new(1.0, -0.05, 0.0),
+                3 => Vec3::new(0.0, -0.4, -1.0),
+                4 => Vec3::new(-1.0, -0.02, 0.7),
+                _ => rng.unit_vector().as_vec3() * Vec3::new(1.0, -1.0, 1.0).abs(),
+            }
+            .normalize();
+            // A target on the surface: a random point, or a lattice point,
+            // edge midpoint or cell centre (diagonals) exactly.
+            let (cx, cz) = ((rng.unit() * 32.0) as usize, (rng.unit() * 32.0) as usize);
+            let (fx, fz) = match i % 4 {
+                0 => (rng.unit(), rng.unit()),
+                1 => (0.0, 0.0),
+                2 => (0.5, 0.0),
+                _ => (0.5, 0.5),
+            };
+            let x = grid.origin.x + (cx as f64 + fx) * 100.0 / 32.0;
+            let z = grid.origin.z + (cz as f64 + fz) * 100.0 / 32.0;
+            let y = grid.origin.y + f64::from(heights[cz * 33 + cx]);
+            let target = (DVec3::new(x, y, z) - reference).as_vec3();
+            let ray = TraceRay {
+                origin: target - direction * 150.0,
+                direction,
+                t_min: 0.0,
+                t_max: 400.0,
+            };
+            let prepared = PreparedRay::new(&ray);
+            let boxes = BoxRay::new(&ray, 2.0e5);
+            let mut walked = Vec::new();
+            field.hits(&grid, reference, &boxes, &ray, 0, ray.t_max, &mut |h| {
+                walked.push(h);
+                f32::INFINITY
+            });
+            let mut every = Vec::new();
+            grid.brute_force_hits(reference, &ray, 0, ray.t_max, &mut |h| {
+                every.push(h);
+                f32::INFINITY
+            });
+            assert_eq!(sorted(walked), sorted(every), "ray {i}: {ray:?}");
+            let took_rows = field.row_walk(&grid, &frame, &boxes, &ray, ray.t_max, |_, t| t);
+            match took_rows {
+                Some(_) => along_rows += 1,
+                None => through_pyramid += 1,
+            }
+            rays += usize::from(prepared.is_valid());
+        }
+        assert_eq!(rays, 6000);
+        assert!(
+            along_rows > 1000 && through_pyramid > 1000,
+            "{along_rows} {through_pyramid}"
+        );
     }
 }
