@@ -27,7 +27,7 @@
 //!   whole lattice for terrain cost 3.6× the plain bake on `village`.
 
 use super::setup::{BakeWorld, LightSetup};
-use super::trace_light::{CasterSet, LightRays};
+use super::trace_light::{CasterSet, LightRays, PacketState};
 use super::BakeConfig;
 use crate::classify::{self, RayHit};
 use crate::formats::bake_settings::FaceCulling;
@@ -74,30 +74,53 @@ pub fn refine(
     candidates
         .par_iter()
         .fold(
-            || (CasterSet::new(casters.len()), Vec::new(), 0u64),
-            |(mut useful, mut hits, mut rays), &caster| {
+            || Scratch::new(casters.len()),
+            |mut scratch, &caster| {
                 let run = setup.caster_triangles(world, caster);
                 let mut sampler = Sampler {
                     rays: rays_of_light,
                     caster,
-                    useful: &mut useful,
-                    hits: &mut hits,
+                    useful: &mut scratch.useful,
+                    hits: &mut scratch.hits,
+                    packet: &mut scratch.packet,
                     traced: 0,
                 };
                 surface_points(&mut sampler, &run, setup.index, config.refine_samples);
                 if config.refine_density > 0 && !sampler.useful.contains(caster) {
                     footprint_lattice(&mut sampler, &run, config, config.refine_density);
                 }
-                rays += sampler.traced;
-                (useful, hits, rays)
+                scratch.rays += sampler.traced;
+                scratch
             },
         )
-        .map(|(useful, _, rays)| (useful, rays))
+        .map(|scratch| (scratch.useful, scratch.rays))
         .reduce(
             || (CasterSet::new(casters.len()), 0),
             |(a, ra), (b, rb)| (a.union(&b), ra + rb),
         )
 }
+
+/// One refining thread's answer so far and its reused buffers.
+struct Scratch {
+    useful: CasterSet,
+    hits: Vec<RayHit>,
+    packet: PacketState,
+    rays: u64,
+}
+
+impl Scratch {
+    fn new(casters: usize) -> Scratch {
+        Scratch {
+            useful: CasterSet::new(casters),
+            hits: Vec::new(),
+            packet: PacketState::default(),
+            rays: 0,
+        }
+    }
+}
+
+/// Rays traced together ([`Sampler::trace_batch`]): a packet's worth.
+const BATCH: usize = 64;
 
 /// Traces refinement rays for one caster, recording what they prove.
 struct Sampler<'r, 'a> {
@@ -105,10 +128,28 @@ struct Sampler<'r, 'a> {
     caster: u32,
     useful: &'r mut CasterSet,
     hits: &'r mut Vec<RayHit>,
+    packet: &'r mut PacketState,
     traced: u64,
 }
 
 impl Sampler<'_, '_> {
+    /// Traces `rays` (at most a packet's worth, near each other: one
+    /// caster's surface points or a patch of its footprint) together, each
+    /// with the answer it gets alone; returns whether any proves the caster
+    /// useful.
+    fn trace_batch(&mut self, rays: &[TexelRay]) -> bool {
+        self.traced += rays.len() as u64;
+        self.packet.rays.clear();
+        self.packet.rays.extend_from_slice(rays);
+        let mut proven = false;
+        let (caster, useful) = (self.caster, &mut *self.useful);
+        self.rays.trace_packet(self.packet, |c| {
+            proven |= c == caster;
+            useful.insert(c);
+        });
+        proven
+    }
+
     /// Traces `ray`; returns whether it proves the caster useful and, per
     /// pass, whether the caster is in the ray's front set (bit 0: All,
     /// bit 1: Opaque).
@@ -148,6 +189,7 @@ fn surface_points(
     let grid = sampler.rays.grid;
     let reference = grid.reference_point();
     let mut rng = Rng::new(mix(((light as u64) << 32) | sampler.caster as u64));
+    let mut batch = Vec::with_capacity(BATCH);
     for _ in 0..samples {
         let pick = rng.unit() * total;
         let mut chosen = run.len() - 1;
@@ -160,10 +202,13 @@ fn surface_points(
             }
         }
         let p = reference + sample_point(&run[chosen], &mut rng);
-        if let Some(ray) = grid.ray_toward(p) {
-            sampler.trace(&ray);
+        batch.extend(grid.ray_toward(p));
+        if batch.len() == BATCH {
+            sampler.trace_batch(&batch);
+            batch.clear();
         }
     }
+    sampler.trace_batch(&batch);
 }
 
 /// Texels per side of the footprint's first cells.
@@ -350,6 +395,31 @@ impl Footprint {
         false
     }
 
+    /// Every lattice point of a small cell on one of `polygons`, traced as
+    /// one batch (whole-lattice mode: a model under a directional light,
+    /// whose lattice rays are parallel and a fraction of a texel apart);
+    /// true if any proves the caster useful.
+    fn whole_cell(
+        &self,
+        sampler: &mut Sampler<'_, '_>,
+        polygons: &[u32],
+        (i0, j0, ni, nj): (i64, i64, i64, i64),
+    ) -> bool {
+        let d = self.density as f64;
+        let grid = sampler.rays.grid;
+        let mut batch = Vec::with_capacity(BATCH);
+        for j in j0..j0 + nj {
+            for i in i0..i0 + ni {
+                let p = ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
+                let on = |&k: &u32| beam::inside_convex(&self.polygons[k as usize], p, TOUCH);
+                if polygons.iter().any(on) {
+                    batch.push(grid.ray_through(self.face, p.0, p.1));
+                }
+            }
+        }
+        sampler.trace_batch(&batch)
+    }
+
     /// Lattice points `i0..i0+ni × j0..j0+nj`; true once proven useful.
     fn cell(
         &self,
@@ -384,6 +454,9 @@ impl Footprint {
             .collect();
         if polygons.is_empty() {
             return false;
+        }
+        if self.outline.is_none() && ni * nj <= BATCH as i64 {
+            return self.whole_cell(sampler, &polygons, (i0, j0, ni, nj));
         }
         let edges: Vec<u32> = match &self.outline {
             None => Vec::new(),
