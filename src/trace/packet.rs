@@ -16,8 +16,8 @@ use super::beam::Beam;
 use super::blas::BottomLevels;
 use super::heightfield::Step;
 use super::tlas::{Entry, TopLevel};
-use super::triangle::{report_hit, Lanes, PreparedRay, LANES};
-use super::{Bvh, Hit, TraceRay, TraceTriangle};
+use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
+use super::{Bvh, Hit, ToModel, TraceRay, TraceTriangle};
 use glam::Vec3;
 
 /// Rays of one packet at most (lane numbers are u8).
@@ -38,22 +38,156 @@ struct Frame {
     members: Vec<[u8; LANES]>,
     masks: Vec<u32>,
     order: Vec<u8>,
+    /// The shear every live ray shares (parallel rays: a directional
+    /// light's packet, in any frame), when they share one, and per group
+    /// the box of its rays' points in the shear plane ([`ShearPlane`]).
+    plane: Option<ShearPlane>,
+    group_boxes: Vec<[f32; 4]>,
+    /// Largest absolute coordinate of the geometry the frame's rays meet
+    /// (its tree's), and of a live ray's origin.
+    magnitude: f32,
+    origin_max: f32,
+    /// [`ShearPlane::pad`] for both.
+    plane_pad: f32,
+}
+
+/// The plane perpendicular to rays that share a direction, in the
+/// coordinates of the watertight test's shear: a point p maps to
+/// `(p[kx] − sx·p[kz], p[ky] − sy·p[kz])`. The test of ray o against a
+/// triangle works on `v − o` sheared, which is the difference of the two
+/// points' images up to rounding, so a ray can hit a triangle only if its
+/// origin's image lies in the box of the vertices' images grown by that
+/// rounding ([`ShearPlane::pad`]): groups of rays whose box misses it are
+/// not tested at all (a triangle of a packet of 8 × 8 texels meets two or
+/// three of its eight rows).
+#[derive(Clone, Copy, Debug)]
+struct ShearPlane {
+    axes: [usize; 3],
+    sx: f32,
+    sy: f32,
+}
+
+impl ShearPlane {
+    #[inline(always)]
+    fn point(&self, p: Vec3) -> (f32, f32) {
+        let a = p.to_array();
+        let [kx, ky, kz] = self.axes;
+        (a[kx] - self.sx * a[kz], a[ky] - self.sy * a[kz])
+    }
+
+    /// A bound on the difference between the test's sheared `v − o` and
+    /// `point(v) − point(o)` for coordinates up to `magnitude`: each side
+    /// rounds a few times (a subtraction, a product, a subtraction) at most
+    /// one ulp of `(1 + |sx| + |sy|)·magnitude` each; thirty-two of those
+    /// (also covering a vertex a rounding beyond its tree's magnitude).
+    fn pad(&self, magnitude: f32) -> f32 {
+        32.0 * f32::EPSILON * (1.0 + self.sx.abs() + self.sy.abs()) * magnitude
+    }
+
+    /// The box `[x0, y0, x1, y1]` holding the image of every light-frame
+    /// ray (origin within `origin_max` of 0, t up to `reach`) that the
+    /// model-space test can find a hit of inside the instance's model box
+    /// `bounds`; `None` when it cannot be bounded (not finite). The model
+    /// box's corners are mapped back in f64; the padding bounds what the
+    /// mapping into model space and the model-space test round, grown by
+    /// the conditioning of the instance's transform, four times over.
+    fn instance_image(
+        &self,
+        to_model: &ToModel,
+        (min, max): (Vec3, Vec3),
+        origin_max: f32,
+        reach: f32,
+    ) -> Option<[f32; 4]> {
+        let (linear, offset) = to_model.parts();
+        let world = linear.inverse();
+        let norm = |m: &glam::DMat3| {
+            let rows = m.transpose();
+            [rows.x_axis, rows.y_axis, rows.z_axis]
+                .iter()
+                .fold(0.0f64, |n, r| n.max(r.abs().element_sum()))
+        };
+        let (to_norm, back_norm) = (norm(&linear), norm(&world));
+        let (sx, sy) = (f64::from(self.sx), f64::from(self.sy));
+        let [kx, ky, kz] = self.axes;
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for corner in 0..8 {
+            let pick =
+                |bit: usize, i: usize| f64::from(if corner & bit == 0 { min[i] } else { max[i] });
+            let c = glam::DVec3::new(pick(1, 0), pick(2, 1), pick(4, 2));
+            let p = (world * (c - offset)).to_array();
+            let (x, y) = (p[kx] - sx * p[kz], p[ky] - sy * p[kz]);
+            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+        }
+        let eps = f64::from(f32::EPSILON);
+        let origin_model = to_norm * f64::from(origin_max) + offset.abs().max_element();
+        let model_magnitude = origin_model.max(f64::from(min.abs().max(max.abs()).max_element()));
+        let drift = back_norm
+            * eps
+            * (64.0 * model_magnitude + 2.0 * origin_model + f64::from(reach) * to_norm);
+        let shear = 1.0 + sx.abs() + sy.abs();
+        let pad = 4.0 * shear * (drift + 4.0 * eps * f64::from(origin_max));
+        let image = [x0 - pad, y0 - pad, x1 + pad, y1 + pad];
+        let outward = |v: f64, down: bool| {
+            let f = v as f32;
+            match down {
+                true if f64::from(f) > v => f.next_down(),
+                false if f64::from(f) < v => f.next_up(),
+                _ => f,
+            }
+        };
+        let image = [
+            outward(image[0], true),
+            outward(image[1], true),
+            outward(image[2], false),
+            outward(image[3], false),
+        ];
+        image.iter().all(|v| v.is_finite()).then_some(image)
+    }
+
+    /// The groups (bits) whose box meets `tri`'s image grown by `pad`;
+    /// every group when the image is not finite.
+    #[inline]
+    fn groups_near(&self, tri: &TraceTriangle, boxes: &[[f32; 4]], pad: f32) -> u64 {
+        let a = self.point(tri.vertices[0]);
+        let b = self.point(tri.vertices[1]);
+        let c = self.point(tri.vertices[2]);
+        let (x0, x1) = (a.0.min(b.0).min(c.0) - pad, a.0.max(b.0).max(c.0) + pad);
+        let (y0, y1) = (a.1.min(b.1).min(c.1) - pad, a.1.max(b.1).max(c.1) + pad);
+        let finite = x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite();
+        if !finite || boxes.len() > 64 {
+            return ALL_GROUPS;
+        }
+        let mut near = 0;
+        for (g, &[bx0, by0, bx1, by1]) in boxes.iter().enumerate() {
+            if bx0 <= x1 && bx1 >= x0 && by0 <= y1 && by1 >= y0 {
+                near |= 1 << g;
+            }
+        }
+        near
+    }
 }
 
 impl Frame {
     /// Refills the frame with `rays` (lane, ray in this frame), keeping
     /// those the triangle test can hit with.
-    fn fill(&mut self, rays: impl Iterator<Item = (u8, TraceRay)>) {
+    /// `magnitude`: the largest absolute coordinate of the geometry the
+    /// rays will be tested against in this frame.
+    fn fill(&mut self, rays: impl Iterator<Item = (u8, TraceRay)>, magnitude: f32) {
+        self.magnitude = magnitude;
         self.rays.clear();
         self.prepared.clear();
         self.lanes.clear();
         let mut last: Option<(Vec3, PreparedRay)> = None;
+        let mut shared = true;
         for (lane, ray) in rays {
             let prepared = match last {
                 Some((direction, like)) if same_bits(direction, ray.direction) => {
                     like.with_direction_of(&ray)
                 }
-                _ => PreparedRay::new(&ray),
+                _ => {
+                    shared &= last.is_none();
+                    PreparedRay::new(&ray)
+                }
             };
             last = Some((ray.direction, prepared));
             if prepared.is_valid() {
@@ -62,6 +196,14 @@ impl Frame {
                 self.lanes.push(lane);
             }
         }
+        self.plane = match self.prepared.first() {
+            Some(first) if shared => Some(ShearPlane {
+                axes: Lanes::axes_of(first),
+                sx: first.sx(),
+                sy: first.sy(),
+            }),
+            _ => None,
+        };
         self.group();
     }
 
@@ -90,6 +232,7 @@ impl Frame {
 
     fn group(&mut self) {
         self.groups.clear();
+        self.group_boxes.clear();
         self.members.clear();
         self.order.clear();
         self.order.extend((0..self.rays.len()).map(|i| i as u8));
@@ -109,12 +252,32 @@ impl Frame {
             let members = &self.order[start..end];
             self.groups
                 .push(Lanes::new(members.iter().map(|&i| &prepared[i as usize])));
+            if let Some(plane) = self.plane {
+                let mut b = [
+                    f32::INFINITY,
+                    f32::INFINITY,
+                    f32::NEG_INFINITY,
+                    f32::NEG_INFINITY,
+                ];
+                for &i in members {
+                    let (x, y) = plane.point(self.rays[i as usize].origin);
+                    b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
+                }
+                self.group_boxes.push(b);
+            }
             let mut slots = [0u8; LANES];
             slots[..members.len()].copy_from_slice(members);
             self.members.push(slots);
             start = end;
         }
         self.masks.resize(self.groups.len(), 0);
+        self.origin_max = self
+            .rays
+            .iter()
+            .fold(0.0, |m, r| m.max(r.origin.abs().max_element()));
+        if let Some(plane) = self.plane {
+            self.plane_pad = plane.pad(self.magnitude.max(self.origin_max));
+        }
     }
 
     fn is_empty(&self) -> bool {
@@ -145,7 +308,11 @@ impl Frame {
         t_max: &mut [f32],
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
-        Lanes::candidates(&self.groups, tri, &mut self.masks);
+        let selected = match &self.plane {
+            Some(plane) => plane.groups_near(tri, &self.group_boxes, self.plane_pad),
+            None => ALL_GROUPS,
+        };
+        Lanes::candidates(&self.groups, tri, &mut self.masks, selected);
         for (g, &mask) in self.masks.iter().enumerate() {
             let mut mask = mask;
             while mask != 0 {
@@ -192,7 +359,10 @@ impl TopLevel {
         } = scratch;
         t_max.clear();
         t_max.extend(rays.iter().map(|r| r.t_max));
-        light.fill(live(rays.iter().copied().enumerate(), t_max));
+        light.fill(
+            live(rays.iter().copied().enumerate(), t_max),
+            self.tree.magnitude,
+        );
         if light.is_empty() {
             return;
         }
@@ -253,24 +423,43 @@ impl TopLevel {
                 to_model,
             } => {
                 let bvh = &bottom.models[index as usize];
-                let mut last: Option<(Vec3, Vec3)> = None;
-                model.fill(light.rays.iter().zip(&light.lanes).map(|(r, &l)| {
-                    let direction = match last {
-                        Some((light_direction, mapped))
-                            if same_bits(light_direction, r.direction) =>
-                        {
-                            mapped
-                        }
-                        _ => to_model.direction(r.direction),
+                // Parallel rays: only those whose origin lies in the image
+                // of the instance's box in the shear plane can hit it.
+                let image = light.plane.zip(bvh.bounds()).and_then(|(plane, bounds)| {
+                    // The longest stretch of a ray from its origin.
+                    let behind = light.rays.iter().fold(0.0f32, |m, r| m.max(-r.t_min));
+                    let reach = reach_of(light, t_max).max(behind);
+                    plane.instance_image(&to_model, bounds, light.origin_max, reach)
+                });
+                let inside = |r: &TraceRay| {
+                    let Some(([x0, y0, x1, y1], plane)) = image.zip(light.plane) else {
+                        return true;
                     };
-                    last = Some((r.direction, direction));
-                    (l, to_model.ray_with(r, direction))
-                }));
-                let origin_max = model
+                    let (x, y) = plane.point(r.origin);
+                    x >= x0 && x <= x1 && y >= y0 && y <= y1
+                };
+                let mut last: Option<(Vec3, Vec3)> = None;
+                let rays = light
                     .rays
                     .iter()
-                    .fold(0.0f32, |m, r| m.max(r.origin.abs().max_element()));
-                let model_beam = beam.to_model(&to_model, bvh.tree.magnitude, origin_max);
+                    .zip(&light.lanes)
+                    .filter(|(r, _)| inside(r));
+                model.fill(
+                    rays.map(|(r, &l)| {
+                        let direction = match last {
+                            Some((light_direction, mapped))
+                                if same_bits(light_direction, r.direction) =>
+                            {
+                                mapped
+                            }
+                            _ => to_model.direction(r.direction),
+                        };
+                        last = Some((r.direction, direction));
+                        (l, to_model.ray_with(r, direction))
+                    }),
+                    bvh.tree.magnitude,
+                );
+                let model_beam = beam.to_model(&to_model, bvh.tree.magnitude, model.origin_max);
                 let mut relay = |lane: usize, hit: Hit| {
                     on_hit(
                         lane,

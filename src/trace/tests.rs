@@ -1366,6 +1366,43 @@ mod two_level {
     }
 
     #[test]
+    fn tiles_at_the_silhouettes_of_rotated_scaled_instances_match_single_rays() {
+        // Rays of parallel tiles aimed at the corners of the rotated,
+        // scaled, mirrored cubes and cards 1e5 m from the origin, and
+        // around them by a few ulps: the rays that decide the culling of a
+        // packet's rays by the instance's image and of its groups by a
+        // triangle's image (`packet::ShearPlane`).
+        instanced_tracer_check(|tracer, world| {
+            let mut seen = 0;
+            let directions = [
+                Vec3::NEG_Y,
+                Vec3::new(0.3, -1.0, 0.2).normalize(),
+                Vec3::new(1.0, -0.05, -0.4).normalize(),
+            ];
+            for (k, part) in world.parts.iter().enumerate().take(120) {
+                let half = if part.model == 0 { 0.75 } else { 1.0 };
+                let flat = part.model == 1;
+                for corner in 0..8 {
+                    if flat && corner & 2 != 0 {
+                        continue;
+                    }
+                    let pick = |bit: usize| if corner & bit == 0 { -half } else { half };
+                    let y = if flat { 0.0 } else { pick(2) };
+                    let c = part.world.transform_point3(DVec3::new(pick(1), y, pick(4)));
+                    let p = (c - world.reference).as_vec3();
+                    let d = directions[(k + corner) % 3];
+                    // Spacings of a few ulps up to a centimetre.
+                    let ulp = p.abs().max_element() * f32::EPSILON;
+                    let spacing = [ulp, 3.0 * ulp, 1e-3, 1e-2][corner % 4];
+                    let rays = parallel_tile(p - d * 30.0, d, 8, spacing, 80.0);
+                    seen += assert_packets_agree(tracer, &rays, 64);
+                }
+            }
+            assert!(seen > 2000, "{seen}");
+        });
+    }
+
+    #[test]
     fn segments_reaching_behind_their_origins_match_single_rays() {
         instanced_tracer_check(|tracer, _| {
             let mut seen = 0;

@@ -124,6 +124,15 @@ impl PreparedRay {
         self.valid
     }
 
+    /// The shear along the first two axes of the test's permutation.
+    pub(crate) fn sx(&self) -> f32 {
+        self.sx
+    }
+
+    pub(crate) fn sy(&self) -> f32 {
+        self.sy
+    }
+
     /// The vertex in the sheared frame: 2D position and scaled depth.
     #[inline(always)]
     fn shear(&self, v: Vec3) -> (f32, f32, f32) {
@@ -323,31 +332,57 @@ impl Lanes {
         mask & self.live
     }
 
-    /// [`Self::candidates_inline`] for every group, into `masks`; with AVX2
-    /// when the processor has it (the same operations, eight lanes wide).
-    pub(crate) fn candidates(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
+    /// [`Self::candidates_inline`] for the groups whose bit is set in
+    /// `selected` (the others get an empty mask: the caller knows none of
+    /// their rays can hit `tri`), into `masks`; with AVX2 when the processor
+    /// has it (the same operations, eight lanes wide).
+    pub(crate) fn candidates(
+        groups: &[Lanes],
+        tri: &TraceTriangle,
+        masks: &mut [u32],
+        selected: u64,
+    ) {
+        masks.fill(0);
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the processor has AVX2 (checked just above).
-            unsafe { candidates_avx2(groups, tri, masks) };
+            unsafe { candidates_avx2(groups, tri, masks, selected) };
             return;
         }
-        candidates_portable(groups, tri, masks);
+        candidates_portable(groups, tri, masks, selected);
     }
 }
 
-fn candidates_portable(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
-    for (g, m) in groups.iter().zip(masks) {
-        *m = g.candidates_inline(tri);
+/// Every group of a frame (at most 64: a packet's 256 rays in groups of 8,
+/// plus a partial group per permutation).
+pub(crate) const ALL_GROUPS: u64 = u64::MAX;
+
+#[inline(always)]
+fn each_selected(
+    groups: &[Lanes],
+    masks: &mut [u32],
+    selected: u64,
+    mut f: impl FnMut(&Lanes) -> u32,
+) {
+    let mut bits = selected;
+    while bits != 0 {
+        let g = bits.trailing_zeros() as usize;
+        bits &= bits - 1;
+        let (Some(group), Some(mask)) = (groups.get(g), masks.get_mut(g)) else {
+            return;
+        };
+        *mask = f(group);
     }
+}
+
+fn candidates_portable(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32], selected: u64) {
+    each_selected(groups, masks, selected, |g| g.candidates_inline(tri));
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn candidates_avx2(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32]) {
-    for (g, m) in groups.iter().zip(masks) {
-        *m = g.candidates_inline(tri);
-    }
+unsafe fn candidates_avx2(groups: &[Lanes], tri: &TraceTriangle, masks: &mut [u32], selected: u64) {
+    each_selected(groups, masks, selected, |g| g.candidates_inline(tri));
 }
 
 #[cfg(test)]
@@ -555,9 +590,9 @@ mod tests {
                 let c = p(1.5);
                 let t = tri(c + p(1.0), c + p(1.0), c + p(1.0));
                 let mut portable = [0u32];
-                candidates_portable(&[lanes], &t, &mut portable);
+                candidates_portable(&[lanes], &t, &mut portable, ALL_GROUPS);
                 let mut best = [0u32];
-                Lanes::candidates(&[lanes], &t, &mut best);
+                Lanes::candidates(&[lanes], &t, &mut best, ALL_GROUPS);
                 assert_eq!(portable, best);
                 for (l, r) in same.iter().enumerate() {
                     let keep = portable[0] & (1 << l) != 0;
