@@ -362,6 +362,104 @@ fn a_stray_placement_is_a_problem_and_the_sun_grid_stays_the_space() {
     }
 }
 
+/// The rays of the report's first light (the sun).
+fn sun_rays(report: &Path) -> u64 {
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report).unwrap()).unwrap();
+    assert_eq!(report["lights"][0]["name"], "sun");
+    report["lights"][0]["rays"].as_u64().unwrap()
+}
+
+#[test]
+fn a_placement_kilometres_above_the_terrain_is_a_stray_and_fails_the_bake() {
+    // Inside the old ±10 km, one house lifted to 9 km gave "no problems"
+    // and a sun grid 351× larger (its slant moves the box kilometres
+    // sideways). The space's terrain lies within a few metres of 0.
+    let clean = small_world();
+    let clean_settings = coarse_settings(clean.path());
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    replace_text(
+        dir.path(),
+        CHUNK,
+        "16.000000 -0.371000 4.000000",
+        "0 9000 0",
+    );
+    let scene = load(dir.path());
+    let stray = problem(&scene, "00000000o.chunk <model[1]/transform>");
+    assert!(
+        stray
+            .why
+            .starts_with("far outside the space: its world box")
+            && stray.why.contains("the terrain's")
+            && stray.why.contains("± 2000 m"),
+        "{stray:?}"
+    );
+    assert_eq!(scene.problems.len(), 1, "{:#?}", scene.problems);
+    assert_eq!(
+        scene.instances.len() + 1,
+        load(clean.path()).instances.len()
+    );
+    for (index, chunk) in scene.chunks.iter().enumerate() {
+        assert!(scene.instances[chunk.instances.clone()]
+            .iter()
+            .all(|i| i.chunk == index));
+    }
+
+    let before = snapshot(dir.path());
+    let failed = bake_in_place(&settings);
+    let stderr = text(&failed.stderr);
+    assert_eq!(failed.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("00000000o.chunk <model[1]/transform>")
+            && stderr.contains("far outside the space"),
+        "{stderr}"
+    );
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+
+    let report = dir.path().join("report.json");
+    let kept = run_bounded(
+        &[
+            "bake",
+            settings.to_str().unwrap(),
+            "--keep-going",
+            "--report",
+            report.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(kept.status.success(), "{}", text(&kept.stderr));
+    let clean_report = clean.path().join("report.json");
+    let output = run_bounded(
+        &[
+            "bake",
+            clean_settings.to_str().unwrap(),
+            "--dry-run",
+            "--report",
+            clean_report.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert_eq!(sun_rays(&report), sun_rays(&clean_report));
+}
+
+#[test]
+fn a_tall_placement_within_the_height_margin_is_no_problem() {
+    // A 300 m tower (the house scaled 60× in height) is real content.
+    let dir = small_world();
+    replace_text(
+        dir.path(),
+        CHUNK,
+        "0.000000 1.000000 0.000000\t</row1>\n\t\t\t<row2>\t0.410424",
+        "0 60 0\t</row1>\n\t\t\t<row2>\t0.410424",
+    );
+    let scene = load(dir.path());
+    assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
+    let (_, max) = bake::geometry::world_bounds(&scene).unwrap();
+    assert!(max.y > 250.0, "the tower reaches {} m", max.y);
+}
+
 // ---------------------------------------------------------------------------
 // 4. Paths out of the res roots.
 
