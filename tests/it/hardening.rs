@@ -4,7 +4,7 @@
 
 use shadowcull::bake::{self, output, BakeConfig, Silent};
 use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::formats::resources::{host_name, write_tree, ResPaths, STALE_TEMPORARY_AGE};
 use shadowcull::gen::{generate, stack_first_model, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Problem, Scene};
 use std::collections::BTreeMap;
@@ -708,7 +708,7 @@ fn a_rerun_removes_stale_temporaries_and_completes_an_interrupted_bake() {
         let temp = dir
             .path()
             .join(SPACE)
-            .join(format!(".{chunk}.shadowcull-{dead}.tmp"));
+            .join(format!(".{chunk}.shadowcull-{}-{dead}.tmp", host_name()));
         std::fs::write(temp, &baked[..baked.len() / 2]).unwrap();
     }
     assert_eq!(temporaries(dir.path()).len(), 2);
@@ -731,6 +731,99 @@ fn a_rerun_removes_stale_temporaries_and_completes_an_interrupted_bake() {
             .collect::<BTreeMap<_, _>>()
     };
     assert_eq!(chunks(dir.path()), chunks(whole.path()));
+}
+
+/// A temporary file named as host `host`'s process `pid` names it, last
+/// written `age` ago.
+fn temporary_of(folder: &Path, chunk: &str, host: &str, pid: u32, age: Duration) -> PathBuf {
+    let path = folder.join(format!(".{chunk}.shadowcull-{host}-{pid}.tmp"));
+    std::fs::write(&path, b"half a chunk").unwrap();
+    let file = std::fs::File::options().write(true).open(&path).unwrap();
+    file.set_modified(SystemTime::now() - age).unwrap();
+    path
+}
+
+#[test]
+fn a_rerun_that_changes_nothing_still_removes_stale_temporaries() {
+    // The sweep used to cover only the folders a run wrote: a re-run
+    // finding every chunk baked ("wrote 0 of 4") left them. And a
+    // temporary of another machine sharing the volume is judged by its
+    // age, not by a process id this machine cannot look up.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let out = tempfile::tempdir().unwrap();
+    let bake_out = || {
+        run_bounded(
+            &[
+                "bake",
+                settings.to_str().unwrap(),
+                "--out",
+                out.path().to_str().unwrap(),
+            ],
+            Duration::from_secs(120),
+        )
+    };
+    for output in [bake_in_place(&settings), bake_out()] {
+        assert!(output.status.success(), "{}", text(&output.stderr));
+    }
+    let old = STALE_TEMPORARY_AGE + Duration::from_secs(60);
+    let mut stale = Vec::new();
+    let mut live = Vec::new();
+    for folder in [dir.path().join(SPACE), out.path().join(SPACE)] {
+        // This host, no process has the id (above Linux's pid_max, 2^22).
+        stale.push(temporary_of(
+            &folder,
+            "ffff0000o.chunk",
+            host_name(),
+            4_194_305,
+            Duration::ZERO,
+        ));
+        stale.push(temporary_of(
+            &folder,
+            "ffffffffo.chunk",
+            "elsewhere",
+            1,
+            old,
+        ));
+        live.push(temporary_of(
+            &folder,
+            "0000ffffo.chunk",
+            "elsewhere",
+            1,
+            Duration::ZERO,
+        ));
+    }
+    for output in [bake_in_place(&settings), bake_out()] {
+        let stdout = text(&output.stdout);
+        assert!(output.status.success(), "{}", text(&output.stderr));
+        assert!(stdout.contains("wrote 0 of 4 chunk files"), "{stdout}");
+    }
+    for path in &stale {
+        assert!(!path.exists(), "{} is stale", path.display());
+    }
+    for path in &live {
+        assert!(
+            path.exists(),
+            "{} may be another machine's live bake",
+            path.display()
+        );
+    }
+    // --dry-run and --check write nothing, temporaries included.
+    let kept = temporary_of(
+        &dir.path().join(SPACE),
+        "ffff0000o.chunk",
+        host_name(),
+        4_194_305,
+        Duration::ZERO,
+    );
+    for flag in ["--dry-run", "--check"] {
+        let output = run_bounded(
+            &["bake", settings.to_str().unwrap(), flag, "--quiet"],
+            Duration::from_secs(120),
+        );
+        assert!(output.status.success(), "{}", text(&output.stderr));
+    }
+    assert!(kept.exists());
 }
 
 // ---------------------------------------------------------------------------
