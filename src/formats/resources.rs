@@ -579,6 +579,25 @@ fn temporary_folder(target: &Path) -> PathBuf {
     }
 }
 
+/// Refuses, before any work, a batch whose targets must not be replaced
+/// ([`Error::Refused`], every such file named); the checks of
+/// [`write_files`], which makes them again when it writes.
+pub fn check_replaceable<'a>(targets: impl IntoIterator<Item = &'a Path>) -> Result<()> {
+    let refused: Vec<(PathBuf, String)> = targets
+        .into_iter()
+        .filter_map(|target| {
+            plan_target(target)
+                .err()
+                .map(|why| (target.to_path_buf(), why))
+        })
+        .collect();
+    if refused.is_empty() {
+        Ok(())
+    } else {
+        Err(Error::Refused { files: refused })
+    }
+}
+
 /// Writes one temporary file: a new file (never through an existing link),
 /// the mode and owner of the file it replaces, synced to disk.
 fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Result<()> {
@@ -1028,6 +1047,31 @@ mod tests {
         );
         write_files_beside(&[], &[&kept]).unwrap();
         assert!(!stale.exists());
+    }
+
+    #[test]
+    fn check_replaceable_names_every_locked_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b, new) = (
+            dir.path().join("a.chunk"),
+            dir.path().join("b.chunk"),
+            dir.path().join("new.chunk"),
+        );
+        for path in [&a, &b] {
+            std::fs::write(path, b"old").unwrap();
+        }
+        check_replaceable([a.as_path(), b.as_path(), new.as_path()]).unwrap();
+        let mut permissions = std::fs::metadata(&b).unwrap().permissions();
+        permissions.set_readonly(true);
+        std::fs::set_permissions(&b, permissions).unwrap();
+        let message = check_replaceable([a.as_path(), b.as_path(), new.as_path()])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("nothing was written: 1 file(s)")
+                && message.contains("b.chunk: is read-only"),
+            "{message}"
+        );
     }
 
     #[test]

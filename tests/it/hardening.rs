@@ -558,6 +558,47 @@ fn read_only_chunks_are_refused_and_nothing_is_written() {
     assert_eq!(snapshot(dir.path()), before, "nothing is written");
 }
 
+#[test]
+fn locked_chunks_are_refused_before_tracing() {
+    // The refusal used to come after the whole trace (hours on a big
+    // world); the targets are checked right after loading.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let locked = dir.path().join(SPACE).join("0000ffffo.chunk");
+    let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
+    permissions.set_readonly(true);
+    std::fs::set_permissions(&locked, permissions).unwrap();
+    let before = snapshot(dir.path());
+    let output = run_bounded(
+        &["bake", settings.to_str().unwrap(), "--progress", "json"],
+        Duration::from_secs(120),
+    );
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("nothing was written: 1 file(s) cannot be replaced")
+            && stderr.contains("0000ffffo.chunk: is read-only (mode 0444)"),
+        "{stderr}"
+    );
+    let phases: Vec<serde_json::Value> = stderr
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    assert!(phases.iter().any(|p| p["phase"] == "chunks"), "{stderr}");
+    assert!(
+        !phases.iter().any(|p| p["phase"] == "tracing"),
+        "refused before tracing: {stderr}"
+    );
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+    // Writing elsewhere, or not at all, does not need the chunks writable.
+    let output = run_bounded(
+        &["bake", settings.to_str().unwrap(), "--dry-run", "--quiet"],
+        Duration::from_secs(120),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+}
+
 /// The effective user is root (who can chown and drop privileges).
 #[cfg(unix)]
 fn running_as_root() -> bool {
