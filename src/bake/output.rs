@@ -243,17 +243,23 @@ fn chunk_output(
 }
 
 /// Writes the outputs that change something, as one batch
-/// ([`resources::write_files`]): every target is checked before anything is
-/// written (a read-only chunk fails the batch, naming every such file), all
-/// temporary files are written and synced before the first rename. Returns
-/// how many files were written.
+/// ([`resources::write_files_beside`]): every target is checked before
+/// anything is written (a read-only chunk fails the batch, naming every such
+/// file), all temporary files are written and synced before the first
+/// rename, and stale temporary files of killed runs are removed beside every
+/// output, unchanged ones too. Returns how many files were written.
 pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
     let batch: Vec<(&Path, &[u8])> = outputs
         .iter()
         .filter(|o| o.changed)
         .map(|o| (o.target.as_path(), o.bytes.as_slice()))
         .collect();
-    resources::write_files(&batch)?;
+    let unchanged: Vec<&Path> = outputs
+        .iter()
+        .filter(|o| !o.changed)
+        .map(|o| o.target.as_path())
+        .collect();
+    resources::write_files_beside(&batch, &unchanged)?;
     Ok(batch.len())
 }
 

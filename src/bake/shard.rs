@@ -441,6 +441,10 @@ pub fn bake_shard(
 /// The grid answers of every light, OR-ed from checked partials.
 pub struct Merged {
     per_light: Vec<Option<CasterSet>>,
+    /// Per light, the seconds the shards spent tracing its units (one copy
+    /// of a retried shard): its report's trace time and ray rate are the
+    /// shards', not the merge's.
+    seconds: Vec<f64>,
     casters: usize,
 }
 
@@ -458,6 +462,10 @@ impl GridSource for Merged {
             .cloned()
             .flatten()
             .unwrap_or_else(|| CasterSet::new(self.casters))
+    }
+
+    fn seconds_before(&self, index: usize) -> f64 {
+        self.seconds.get(index).copied().unwrap_or(0.0)
     }
 }
 
@@ -547,6 +555,7 @@ pub fn merge(
         return Err(ShardError::Refused(problems));
     }
     let mut per_light: Vec<Option<CasterSet>> = vec![None; config.lights.len()];
+    let mut seconds = vec![0.0; config.lights.len()];
     for (path, partial) in seen.values() {
         for unit in &partial.units {
             let set = CasterSet::from_words(casters, unit.words.clone()).ok_or_else(|| {
@@ -567,9 +576,18 @@ pub fn merge(
                 Some(acc) => acc.union(&set),
                 None => set,
             });
+            // A time is information, not an answer: a nonsense one counts 0.
+            if unit.seconds.is_finite() && unit.seconds > 0.0 {
+                seconds[unit.light as usize] += unit.seconds;
+            }
         }
     }
-    Ok((Merged { per_light, casters }, plan))
+    let merged = Merged {
+        per_light,
+        seconds,
+        casters,
+    };
+    Ok((merged, plan))
 }
 
 /// Why two fingerprints differ, in a sentence, or `None` when they agree.

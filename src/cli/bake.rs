@@ -175,11 +175,29 @@ pub(super) fn load_scene_told(
     Ok(scene)
 }
 
+/// Refuses an in-place bake that could not replace some chunk of the space
+/// (read-only, another user's, not a regular file) before any ray is
+/// traced, with the refusal the write would make after the whole trace
+/// (which still checks again). Which chunks change is known only after
+/// tracing, so every chunk of the space counts.
+pub(super) fn refuse_locked_chunks(
+    scene: &Scene,
+    output_args: &OutputArgs,
+    options: &BakeOptions,
+) -> Result<()> {
+    if output_args.out.is_some() || options.pipeline.writes_nothing() {
+        return Ok(());
+    }
+    resources::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()))?;
+    Ok(())
+}
+
 fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> Result<()> {
     let file = &args.settings.settings;
     let started = Instant::now();
     let reporter = Reporter::new(&args.options.progress);
     let scene = load_scene_told(settings, &args.options, &reporter)?;
+    refuse_locked_chunks(&scene, &args.output, &args.options)?;
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
     let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;

@@ -9,6 +9,8 @@ use std::collections::BTreeMap;
 use std::fs::{self, File, Metadata};
 use std::io::{Read, Write};
 use std::path::{Component, Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::{Duration, SystemTime};
 
 const MIB: u64 = 1 << 20;
 const GIB: u64 = 1 << 30;
@@ -436,23 +438,93 @@ fn plan_target(target: &Path) -> std::result::Result<(PathBuf, Option<Metadata>)
     Ok((real, Some(meta)))
 }
 
-/// `.NAME.shadowcull-PID.tmp`, beside `real`.
+/// How old a temporary file of another host must be before it counts as
+/// stale. Its process cannot be looked up from here (a live bake on another
+/// machine sharing the volume has a process id this machine does not know),
+/// and a live bake keeps a temporary file only while it writes its batch:
+/// seconds to minutes.
+pub const STALE_TEMPORARY_AGE: Duration = Duration::from_secs(3600);
+
+/// This machine's name as it appears in temporary file names: the host
+/// name with anything but letters, digits, `.`, `-` and `_` replaced by
+/// `_` (`unknown` when it cannot be read).
+pub fn host_name() -> &'static str {
+    static NAME: OnceLock<String> = OnceLock::new();
+    NAME.get_or_init(|| {
+        let name: String = raw_host_name()
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        if name.is_empty() {
+            "unknown".into()
+        } else {
+            name
+        }
+    })
+}
+
+#[cfg(unix)]
+fn raw_host_name() -> String {
+    let mut buffer = [0u8; 256];
+    // SAFETY: the buffer is writable for its whole length; gethostname
+    // writes at most that many bytes.
+    let status = unsafe { libc::gethostname(buffer.as_mut_ptr().cast(), buffer.len()) };
+    if status != 0 {
+        return String::new();
+    }
+    let end = buffer.iter().position(|&b| b == 0).unwrap_or(buffer.len());
+    String::from_utf8_lossy(&buffer[..end]).into_owned()
+}
+
+#[cfg(not(unix))]
+fn raw_host_name() -> String {
+    std::env::var("COMPUTERNAME").unwrap_or_default()
+}
+
+/// `.NAME.shadowcull-HOST-PID.tmp`, beside `real`.
 fn temporary_path(real: &Path) -> PathBuf {
     let name = real
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    folder_of(real).join(format!(".{name}.shadowcull-{}.tmp", std::process::id()))
+    folder_of(real).join(format!(
+        ".{name}.shadowcull-{}-{}.tmp",
+        host_name(),
+        std::process::id()
+    ))
 }
 
-/// The process id in a temporary file name of [`temporary_path`]'s form.
-fn temporary_pid(name: &str) -> Option<u32> {
+/// Who wrote a temporary file of [`temporary_path`]'s form.
+#[derive(Debug, PartialEq, Eq)]
+struct TemporaryOwner<'a> {
+    /// `None` in the names of versions before the host was recorded.
+    host: Option<&'a str>,
+    pid: u32,
+}
+
+/// The host and process in a temporary file name, or `None` for any other
+/// name.
+fn temporary_owner(name: &str) -> Option<TemporaryOwner<'_>> {
     let rest = name.strip_prefix('.')?.strip_suffix(".tmp")?;
-    let (_, pid) = rest.rsplit_once(".shadowcull-")?;
+    let (_, owner) = rest.rsplit_once(".shadowcull-")?;
+    let (host, pid) = match owner.rsplit_once('-') {
+        Some((host, pid)) if !host.is_empty() => (Some(host), pid),
+        Some(_) => return None,
+        None => (None, owner),
+    };
     if pid.is_empty() || !pid.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
-    pid.parse().ok()
+    Some(TemporaryOwner {
+        host,
+        pid: pid.parse().ok()?,
+    })
 }
 
 /// Whether process `pid` still runs (Linux: `/proc`; elsewhere assumed
@@ -461,24 +533,68 @@ fn process_alive(pid: u32) -> bool {
     cfg!(target_os = "linux") && Path::new("/proc").join(pid.to_string()).exists()
 }
 
+/// Whether a temporary file is left over from a run that will never finish
+/// it: this host's, of a process no longer running; or another host's (or
+/// of an unknown host) last written [`STALE_TEMPORARY_AGE`] ago or more.
+fn is_stale(owner: &TemporaryOwner, modified: SystemTime) -> bool {
+    match owner.host {
+        Some(host) if host == host_name() => {
+            owner.pid != std::process::id() && !process_alive(owner.pid)
+        }
+        _ => SystemTime::now()
+            .duration_since(modified)
+            .is_ok_and(|age| age >= STALE_TEMPORARY_AGE),
+    }
+}
+
 /// Removes the temporary files that earlier runs, killed while writing,
-/// left in `dir`: those of processes no longer running. One that cannot be
-/// removed does not stop the write.
+/// left in `dir` (see [`is_stale`]). One that cannot be removed does not
+/// stop the write.
 fn remove_stale_temporaries(dir: &Path) {
     let Ok(entries) = fs::read_dir(dir) else {
         return;
     };
     for entry in entries.flatten() {
         let name = entry.file_name();
-        let Some(pid) = name.to_str().and_then(temporary_pid) else {
+        let Some(owner) = name.to_str().and_then(temporary_owner) else {
             continue;
         };
-        if pid == std::process::id() || process_alive(pid) {
+        let Ok(meta) = entry.metadata() else {
             continue;
-        }
-        if entry.file_type().is_ok_and(|t| !t.is_dir()) {
+        };
+        let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+        if !meta.is_dir() && is_stale(&owner, modified) {
             let _ = fs::remove_file(entry.path());
         }
+    }
+}
+
+/// The folder a write of `target` puts its temporary file in: beside the
+/// file a symbolic link leads to, else beside `target`.
+fn temporary_folder(target: &Path) -> PathBuf {
+    let is_link = fs::symlink_metadata(target).is_ok_and(|m| m.file_type().is_symlink());
+    match is_link.then(|| fs::canonicalize(target)) {
+        Some(Ok(real)) => folder_of(&real),
+        _ => folder_of(target),
+    }
+}
+
+/// Refuses, before any work, a batch whose targets must not be replaced
+/// ([`Error::Refused`], every such file named); the checks of
+/// [`write_files`], which makes them again when it writes.
+pub fn check_replaceable<'a>(targets: impl IntoIterator<Item = &'a Path>) -> Result<()> {
+    let refused: Vec<(PathBuf, String)> = targets
+        .into_iter()
+        .filter_map(|target| {
+            plan_target(target)
+                .err()
+                .map(|why| (target.to_path_buf(), why))
+        })
+        .collect();
+    if refused.is_empty() {
+        Ok(())
+    } else {
+        Err(Error::Refused { files: refused })
     }
 }
 
@@ -512,7 +628,8 @@ fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Re
 /// 1. every target is checked first (a regular file or new, writable, not
 ///    read-only; symbolic links resolved to their target); any refusal
 ///    fails the batch with every refused file named and nothing written;
-/// 2. stale temporary files of earlier runs are removed from the folders;
+/// 2. stale temporary files of earlier runs are removed from the folders
+///    ([`is_stale`]);
 /// 3. each file's bytes go to a temporary file beside its target, keeping
 ///    the target's mode (and owner where possible), synced to disk; a
 ///    failure removes them all, so nothing was replaced;
@@ -523,6 +640,14 @@ fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Re
 /// a kill during 4 leaves some targets replaced, each whole, and the rest
 /// as they were: running again completes the batch.
 pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
+    write_files_beside(files, &[])
+}
+
+/// [`write_files`], also removing stale temporary files beside `unchanged`:
+/// the other targets of the same output, whose bytes stay as they are. A
+/// re-run that completes a killed bake may change no file at all, and must
+/// still remove what the killed run left.
+pub fn write_files_beside(files: &[(&Path, &[u8])], unchanged: &[&Path]) -> Result<()> {
     let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
     let mut refused = Vec::new();
     let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
@@ -559,6 +684,12 @@ pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
     folders.dedup();
     for folder in &folders {
         fs::create_dir_all(folder).map_err(|e| Error::io(*folder, "create folder", e))?;
+    }
+    let mut swept: Vec<PathBuf> = unchanged.iter().map(|t| temporary_folder(t)).collect();
+    swept.extend(folders.iter().map(|f| f.to_path_buf()));
+    swept.sort();
+    swept.dedup();
+    for folder in &swept {
         remove_stale_temporaries(folder);
     }
 
@@ -719,18 +850,45 @@ mod tests {
     }
 
     #[test]
-    fn temporary_names_give_their_process() {
-        assert_eq!(temporary_pid(".a.chunk.shadowcull-123.tmp"), Some(123));
+    fn temporary_names_give_their_host_and_process() {
+        let owner = |host, pid| Some(TemporaryOwner { host, pid });
         assert_eq!(
-            temporary_pid(".a.shadowcull-x.chunk.shadowcull-9.tmp"),
-            Some(9)
+            temporary_owner(".a.chunk.shadowcull-box-7.example-123.tmp"),
+            owner(Some("box-7.example"), 123)
         );
-        assert_eq!(temporary_pid("a.chunk.shadowcull-123.tmp"), None);
-        assert_eq!(temporary_pid(".a.chunk.shadowcull-.tmp"), None);
-        assert_eq!(temporary_pid(".a.chunk.shadowcull-1x.tmp"), None);
+        assert_eq!(
+            temporary_owner(".a.shadowcull-x.chunk.shadowcull-h-9.tmp"),
+            owner(Some("h"), 9)
+        );
+        // The names of versions before the host was recorded.
+        assert_eq!(
+            temporary_owner(".a.chunk.shadowcull-123.tmp"),
+            owner(None, 123)
+        );
+        for name in [
+            "a.chunk.shadowcull-h-123.tmp",
+            ".a.chunk.shadowcull-.tmp",
+            ".a.chunk.shadowcull-h-.tmp",
+            ".a.chunk.shadowcull--12.tmp",
+            ".a.chunk.shadowcull-h-1x.tmp",
+        ] {
+            assert_eq!(temporary_owner(name), None, "{name}");
+        }
         let temp = temporary_path(Path::new("d/x.chunk"));
         let name = temp.file_name().unwrap().to_str().unwrap();
-        assert_eq!(temporary_pid(name), Some(std::process::id()));
+        assert_eq!(
+            temporary_owner(name),
+            owner(Some(host_name()), std::process::id())
+        );
+    }
+
+    #[test]
+    fn host_names_are_file_name_safe() {
+        let host = host_name();
+        assert!(!host.is_empty());
+        assert!(host
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_')));
     }
 
     /// Names in `dir`, sorted.
@@ -826,20 +984,93 @@ mod tests {
         );
     }
 
+    /// A file in `dir` last written `age` ago.
+    fn written_ago(dir: &Path, name: &str, age: Duration) -> PathBuf {
+        let path = dir.join(name);
+        std::fs::write(&path, b"half").unwrap();
+        let file = File::options().write(true).open(&path).unwrap();
+        file.set_modified(SystemTime::now() - age).unwrap();
+        path
+    }
+
     #[test]
     fn stale_temporary_files_of_dead_runs_are_removed() {
         let dir = tempfile::tempdir().unwrap();
+        let host = host_name();
+        let fresh = Duration::ZERO;
+        let old = STALE_TEMPORARY_AGE + Duration::from_secs(60);
         // No process has this id (above Linux's pid_max, 2^22).
-        let stale = dir.path().join(".x.chunk.shadowcull-4194305.tmp");
-        let other = dir.path().join(".x.chunk.shadowcull-4194305.keep");
-        std::fs::write(&stale, b"half").unwrap();
-        std::fs::write(&other, b"not ours").unwrap();
+        let dead = written_ago(
+            dir.path(),
+            &format!(".x.chunk.shadowcull-{host}-4194305.tmp"),
+            fresh,
+        );
+        let other = written_ago(dir.path(), ".x.chunk.shadowcull-4194305.keep", old);
+        // Another machine's live bake on a shared volume: its process id
+        // means nothing here, so only its age tells.
+        let elsewhere = written_ago(dir.path(), ".x.chunk.shadowcull-elsewhere-1.tmp", fresh);
+        let abandoned = written_ago(dir.path(), ".y.chunk.shadowcull-elsewhere-1.tmp", old);
+        let unknown = written_ago(dir.path(), ".y.chunk.shadowcull-1.tmp", old);
+        // This host's live process (this test's) keeps its files.
+        let live = written_ago(
+            dir.path(),
+            &format!(".z.chunk.shadowcull-{host}-{}.tmp", std::process::id()),
+            old,
+        );
         write_atomic(&dir.path().join("x.chunk"), b"new").unwrap();
+        for removed in [&dead, &abandoned, &unknown] {
+            assert!(!removed.exists(), "{}", removed.display());
+        }
+        for kept in [&other, &elsewhere, &live] {
+            assert!(kept.exists(), "{}", kept.display());
+        }
+    }
+
+    #[test]
+    fn unchanged_targets_have_their_folders_swept_too() {
+        let (written, untouched) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let kept = untouched.path().join("k.chunk");
+        std::fs::write(&kept, b"same").unwrap();
+        let stale = written_ago(
+            untouched.path(),
+            &format!(".k.chunk.shadowcull-{}-4194305.tmp", host_name()),
+            Duration::ZERO,
+        );
+        write_files_beside(&[(&written.path().join("w.chunk"), b"new")], &[&kept]).unwrap();
         assert!(!stale.exists());
-        assert!(other.exists());
-        assert_eq!(
-            names(dir.path()),
-            [".x.chunk.shadowcull-4194305.keep", "x.chunk"]
+        assert_eq!(names(untouched.path()), ["k.chunk"]);
+        // Nothing to write at all: still swept.
+        let stale = written_ago(
+            untouched.path(),
+            ".k.chunk.shadowcull-elsewhere-1.tmp",
+            STALE_TEMPORARY_AGE,
+        );
+        write_files_beside(&[], &[&kept]).unwrap();
+        assert!(!stale.exists());
+    }
+
+    #[test]
+    fn check_replaceable_names_every_locked_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b, new) = (
+            dir.path().join("a.chunk"),
+            dir.path().join("b.chunk"),
+            dir.path().join("new.chunk"),
+        );
+        for path in [&a, &b] {
+            std::fs::write(path, b"old").unwrap();
+        }
+        check_replaceable([a.as_path(), b.as_path(), new.as_path()]).unwrap();
+        let mut permissions = std::fs::metadata(&b).unwrap().permissions();
+        permissions.set_readonly(true);
+        std::fs::set_permissions(&b, permissions).unwrap();
+        let message = check_replaceable([a.as_path(), b.as_path(), new.as_path()])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("nothing was written: 1 file(s)")
+                && message.contains("b.chunk: is read-only"),
+            "{message}"
         );
     }
 

@@ -2,7 +2,9 @@
 //! distinct model once, reads the terrain blocks. Bad parts of a world are
 //! left out and listed in `Scene::problems` (so `inspect` can list every
 //! missing resource, not just the first); only a world that cannot be read
-//! at all (no settings, no chunks) is an error.
+//! at all (no settings, no chunks) is an error. Stray placements (world
+//! boxes outside the space's `SpaceRegion`) are found after the terrain is
+//! read, since how high an instance may reach follows the terrain.
 
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::digest::Digest;
@@ -208,10 +210,6 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
     }
 
     let region = SpaceRegion::of(&settings);
-    let model_bounds: Vec<Option<(DVec3, DVec3)>> = models
-        .iter()
-        .map(|m| m.bounds().map(|(a, b)| (a.as_dvec3(), b.as_dvec3())))
-        .collect();
 
     let mut chunks = Vec::new();
     let mut instances = Vec::new();
@@ -271,27 +269,6 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
                     .iter()
                     .map(|r| model_names.get(&resources::normalise(r)).copied())
                     .collect();
-                // The box of the parts that loaded, or the placement's
-                // origin when none did.
-                let (min, max) = parts
-                    .iter()
-                    .flatten()
-                    .filter_map(|&m| model_bounds[m])
-                    .map(|(min, max)| world_box(&world, min, max))
-                    .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
-                    .unwrap_or((world.w_axis.truncate(), world.w_axis.truncate()));
-                if !region.contains(min, max) {
-                    problems.push(Problem {
-                        what: format!(
-                            "{} <{}[{}]/transform>",
-                            path.display(),
-                            element.kind.tag(),
-                            element.index
-                        ),
-                        why: region.stray_reason(min, max),
-                    });
-                    continue;
-                }
                 instances.push(Instance {
                     chunk: chunk_index,
                     index: element.index,
@@ -360,6 +337,9 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
             }),
         }
     }
+    // Instances are held to the terrain's heights, known only now.
+    let region = region.around_terrain(&terrain);
+    drop_strays(&mut chunks, &mut instances, &models, &region, &mut problems);
     problems.sort();
     Ok(Scene {
         space_dir,
@@ -424,6 +404,67 @@ fn read_resource(
     let (path, bytes) = res_paths.read(name, referenced_by)?;
     log.record(&path, &bytes);
     Ok((path, bytes))
+}
+
+/// Leaves out the instances whose world box is not inside `region` (stray
+/// placements), each a problem naming its chunk and element. `instances`
+/// stays chunk by chunk in document order and every chunk's range follows.
+fn drop_strays(
+    chunks: &mut [Chunk],
+    instances: &mut Vec<Instance>,
+    models: &[Model],
+    region: &SpaceRegion,
+    problems: &mut Vec<Problem>,
+) {
+    let model_bounds: Vec<Option<(DVec3, DVec3)>> = models
+        .iter()
+        .map(|m| m.bounds().map(|(a, b)| (a.as_dvec3(), b.as_dvec3())))
+        .collect();
+    let stray: Vec<bool> = instances
+        .par_iter()
+        .map(|instance| {
+            let (min, max) = instance_box(instance, &model_bounds);
+            !region.contains(min, max)
+        })
+        .collect();
+    if !stray.contains(&true) {
+        return;
+    }
+    for (instance, _) in instances.iter().zip(&stray).filter(|(_, s)| **s) {
+        let (min, max) = instance_box(instance, &model_bounds);
+        problems.push(Problem {
+            what: format!(
+                "{} <{}[{}]/transform>",
+                chunks[instance.chunk].file.display(),
+                instance.kind.tag(),
+                instance.index
+            ),
+            why: region.stray_reason(min, max),
+        });
+    }
+    let mut removed = 0;
+    for chunk in chunks.iter_mut() {
+        let range = chunk.instances.clone();
+        let before = removed;
+        removed += stray[range.clone()].iter().filter(|s| **s).count();
+        chunk.instances = range.start - before..range.end - removed;
+    }
+    let mut flags = stray.into_iter();
+    instances.retain(|_| !flags.next().unwrap_or(false));
+}
+
+/// The world box of an instance's parts that loaded, or the placement's
+/// origin when none did.
+fn instance_box(instance: &Instance, model_bounds: &[Option<(DVec3, DVec3)>]) -> (DVec3, DVec3) {
+    let world = &instance.world;
+    instance
+        .parts
+        .iter()
+        .flatten()
+        .filter_map(|&m| model_bounds[m])
+        .map(|(min, max)| world_box(world, min, max))
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+        .unwrap_or((world.w_axis.truncate(), world.w_axis.truncate()))
 }
 
 /// The box around a model-space box placed by `m`.

@@ -45,21 +45,36 @@ pub struct InputFile {
 pub const STRAY_MARGIN_CHUNKS: f64 = 1.0;
 
 /// How far above or below height 0 geometry may reach, in metres, before it
-/// is a stray placement (real terrain spans a few kilometres).
+/// is a stray placement, in a space without terrain (real terrain spans a
+/// few kilometres).
 pub const STRAY_HEIGHT_LIMIT: f64 = 10_000.0;
+
+/// How far above the highest and below the lowest terrain of a space
+/// geometry may reach, in metres, before it is a stray placement. Real
+/// content (towers, masts, cliffs and mountains placed as models) stays well
+/// within it; a sun's grid grows with the height of what it covers (its
+/// slant moves a box kilometres sideways at kilometres up), so the margin
+/// is what one stray transform may cost at most.
+pub const STRAY_HEIGHT_MARGIN: f64 = 2_000.0;
 
 /// Where the geometry of a space may lie: its chunk grid (the space.settings
 /// bounds × the chunk size) grown by [`STRAY_MARGIN_CHUNKS`] on every side,
-/// and heights within ±[`STRAY_HEIGHT_LIMIT`]. A placement whose world box
-/// is not inside is *far outside the space*: a problem, left out (one bad
+/// and heights within [`STRAY_HEIGHT_MARGIN`] of its terrain (within
+/// ±[`STRAY_HEIGHT_LIMIT`] without terrain). A placement whose world box is
+/// not inside is *far outside the space*: a problem, left out (one bad
 /// transform must not stretch a light's grid to the size of its error).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SpaceRegion {
     pub min: DVec3,
     pub max: DVec3,
+    /// The lowest and highest terrain the heights follow, or `None` (no
+    /// terrain: ±[`STRAY_HEIGHT_LIMIT`]).
+    pub terrain_heights: Option<(f64, f64)>,
 }
 
 impl SpaceRegion {
+    /// The region of a space's chunk grid, heights ±[`STRAY_HEIGHT_LIMIT`]
+    /// (what terrain blocks themselves must lie in).
     pub fn of(settings: &SpaceSettings) -> SpaceRegion {
         let size = settings.chunk_size;
         let margin = STRAY_MARGIN_CHUNKS * size;
@@ -74,7 +89,29 @@ impl SpaceRegion {
                 STRAY_HEIGHT_LIMIT,
                 f64::from(settings.max_z + 1) * size + margin,
             ),
+            terrain_heights: None,
         }
+    }
+
+    /// This region with its heights from [`STRAY_HEIGHT_MARGIN`] below the
+    /// lowest to that much above the highest of `blocks` (unchanged when
+    /// there is none): what placed instances must lie in.
+    pub fn around_terrain(self, blocks: &[TerrainBlock]) -> SpaceRegion {
+        let heights = blocks
+            .iter()
+            .map(|block| {
+                let (min, max) = block.bounds();
+                (min.y, max.y)
+            })
+            .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
+        let Some((lowest, highest)) = heights else {
+            return self;
+        };
+        let mut region = self;
+        region.min.y = lowest - STRAY_HEIGHT_MARGIN;
+        region.max.y = highest + STRAY_HEIGHT_MARGIN;
+        region.terrain_heights = Some((lowest, highest));
+        region
     }
 
     /// The box `min`–`max` lies inside (and is finite).
@@ -90,9 +127,21 @@ impl SpaceRegion {
     /// Why a box that is not inside is a stray placement, for the problem.
     pub fn stray_reason(&self, min: DVec3, max: DVec3) -> String {
         format!(
-            "far outside the space: its world box ({:.1}, {:.1}, {:.1})–({:.1}, {:.1}, {:.1}) m leaves the region geometry may occupy (the space's chunks grown by {STRAY_MARGIN_CHUNKS} chunk: x {:.1}..{:.1}, z {:.1}..{:.1}; heights ±{STRAY_HEIGHT_LIMIT} m); a stray transform? left out",
-            min.x, min.y, min.z, max.x, max.y, max.z, self.min.x, self.max.x, self.min.z, self.max.z
+            "far outside the space: its world box ({:.1}, {:.1}, {:.1})–({:.1}, {:.1}, {:.1}) m leaves the region geometry may occupy (the space's chunks grown by {STRAY_MARGIN_CHUNKS} chunk: x {:.1}..{:.1}, z {:.1}..{:.1}; {}); a stray transform? left out",
+            min.x, min.y, min.z, max.x, max.y, max.z, self.min.x, self.max.x, self.min.z, self.max.z,
+            self.heights_text()
         )
+    }
+
+    /// The vertical limit in words.
+    fn heights_text(&self) -> String {
+        match self.terrain_heights {
+            None => format!("heights ±{STRAY_HEIGHT_LIMIT} m"),
+            Some((lowest, highest)) => format!(
+                "heights {:.1}..{:.1} m: the terrain's {lowest:.1}..{highest:.1} m ± {STRAY_HEIGHT_MARGIN} m",
+                self.min.y, self.max.y
+            ),
+        }
     }
 }
 
@@ -213,9 +262,9 @@ pub struct Stats {
 }
 
 impl Scene {
-    /// Where the space's geometry may lie (see [`SpaceRegion`]).
+    /// Where the space's instances may lie (see [`SpaceRegion`]).
     pub fn region(&self) -> SpaceRegion {
-        SpaceRegion::of(&self.settings)
+        SpaceRegion::of(&self.settings).around_terrain(&self.terrain)
     }
 
     /// Counts over placed instances: a model placed twice counts its groups

@@ -4,7 +4,7 @@
 
 use shadowcull::bake::{self, output, BakeConfig, Silent};
 use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::formats::resources::{host_name, write_tree, ResPaths, STALE_TEMPORARY_AGE};
 use shadowcull::gen::{generate, stack_first_model, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Problem, Scene};
 use std::collections::BTreeMap;
@@ -362,6 +362,104 @@ fn a_stray_placement_is_a_problem_and_the_sun_grid_stays_the_space() {
     }
 }
 
+/// The rays of the report's first light (the sun).
+fn sun_rays(report: &Path) -> u64 {
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report).unwrap()).unwrap();
+    assert_eq!(report["lights"][0]["name"], "sun");
+    report["lights"][0]["rays"].as_u64().unwrap()
+}
+
+#[test]
+fn a_placement_kilometres_above_the_terrain_is_a_stray_and_fails_the_bake() {
+    // Inside the old ±10 km, one house lifted to 9 km gave "no problems"
+    // and a sun grid 351× larger (its slant moves the box kilometres
+    // sideways). The space's terrain lies within a few metres of 0.
+    let clean = small_world();
+    let clean_settings = coarse_settings(clean.path());
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    replace_text(
+        dir.path(),
+        CHUNK,
+        "16.000000 -0.371000 4.000000",
+        "0 9000 0",
+    );
+    let scene = load(dir.path());
+    let stray = problem(&scene, "00000000o.chunk <model[1]/transform>");
+    assert!(
+        stray
+            .why
+            .starts_with("far outside the space: its world box")
+            && stray.why.contains("the terrain's")
+            && stray.why.contains("± 2000 m"),
+        "{stray:?}"
+    );
+    assert_eq!(scene.problems.len(), 1, "{:#?}", scene.problems);
+    assert_eq!(
+        scene.instances.len() + 1,
+        load(clean.path()).instances.len()
+    );
+    for (index, chunk) in scene.chunks.iter().enumerate() {
+        assert!(scene.instances[chunk.instances.clone()]
+            .iter()
+            .all(|i| i.chunk == index));
+    }
+
+    let before = snapshot(dir.path());
+    let failed = bake_in_place(&settings);
+    let stderr = text(&failed.stderr);
+    assert_eq!(failed.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("00000000o.chunk <model[1]/transform>")
+            && stderr.contains("far outside the space"),
+        "{stderr}"
+    );
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+
+    let report = dir.path().join("report.json");
+    let kept = run_bounded(
+        &[
+            "bake",
+            settings.to_str().unwrap(),
+            "--keep-going",
+            "--report",
+            report.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(kept.status.success(), "{}", text(&kept.stderr));
+    let clean_report = clean.path().join("report.json");
+    let output = run_bounded(
+        &[
+            "bake",
+            clean_settings.to_str().unwrap(),
+            "--dry-run",
+            "--report",
+            clean_report.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert_eq!(sun_rays(&report), sun_rays(&clean_report));
+}
+
+#[test]
+fn a_tall_placement_within_the_height_margin_is_no_problem() {
+    // A 300 m tower (the house scaled 60× in height) is real content.
+    let dir = small_world();
+    replace_text(
+        dir.path(),
+        CHUNK,
+        "0.000000 1.000000 0.000000\t</row1>\n\t\t\t<row2>\t0.410424",
+        "0 60 0\t</row1>\n\t\t\t<row2>\t0.410424",
+    );
+    let scene = load(dir.path());
+    assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
+    let (_, max) = bake::geometry::world_bounds(&scene).unwrap();
+    assert!(max.y > 250.0, "the tower reaches {} m", max.y);
+}
+
 // ---------------------------------------------------------------------------
 // 4. Paths out of the res roots.
 
@@ -458,6 +556,47 @@ fn read_only_chunks_are_refused_and_nothing_is_written() {
         );
     }
     assert_eq!(snapshot(dir.path()), before, "nothing is written");
+}
+
+#[test]
+fn locked_chunks_are_refused_before_tracing() {
+    // The refusal used to come after the whole trace (hours on a big
+    // world); the targets are checked right after loading.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let locked = dir.path().join(SPACE).join("0000ffffo.chunk");
+    let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
+    permissions.set_readonly(true);
+    std::fs::set_permissions(&locked, permissions).unwrap();
+    let before = snapshot(dir.path());
+    let output = run_bounded(
+        &["bake", settings.to_str().unwrap(), "--progress", "json"],
+        Duration::from_secs(120),
+    );
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("nothing was written: 1 file(s) cannot be replaced")
+            && stderr.contains("0000ffffo.chunk: is read-only (mode 0444)"),
+        "{stderr}"
+    );
+    let phases: Vec<serde_json::Value> = stderr
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    assert!(phases.iter().any(|p| p["phase"] == "chunks"), "{stderr}");
+    assert!(
+        !phases.iter().any(|p| p["phase"] == "tracing"),
+        "refused before tracing: {stderr}"
+    );
+    assert_eq!(snapshot(dir.path()), before, "nothing is written");
+    // Writing elsewhere, or not at all, does not need the chunks writable.
+    let output = run_bounded(
+        &["bake", settings.to_str().unwrap(), "--dry-run", "--quiet"],
+        Duration::from_secs(120),
+    );
+    assert!(output.status.success(), "{}", text(&output.stderr));
 }
 
 /// The effective user is root (who can chown and drop privileges).
@@ -610,7 +749,7 @@ fn a_rerun_removes_stale_temporaries_and_completes_an_interrupted_bake() {
         let temp = dir
             .path()
             .join(SPACE)
-            .join(format!(".{chunk}.shadowcull-{dead}.tmp"));
+            .join(format!(".{chunk}.shadowcull-{}-{dead}.tmp", host_name()));
         std::fs::write(temp, &baked[..baked.len() / 2]).unwrap();
     }
     assert_eq!(temporaries(dir.path()).len(), 2);
@@ -633,6 +772,99 @@ fn a_rerun_removes_stale_temporaries_and_completes_an_interrupted_bake() {
             .collect::<BTreeMap<_, _>>()
     };
     assert_eq!(chunks(dir.path()), chunks(whole.path()));
+}
+
+/// A temporary file named as host `host`'s process `pid` names it, last
+/// written `age` ago.
+fn temporary_of(folder: &Path, chunk: &str, host: &str, pid: u32, age: Duration) -> PathBuf {
+    let path = folder.join(format!(".{chunk}.shadowcull-{host}-{pid}.tmp"));
+    std::fs::write(&path, b"half a chunk").unwrap();
+    let file = std::fs::File::options().write(true).open(&path).unwrap();
+    file.set_modified(SystemTime::now() - age).unwrap();
+    path
+}
+
+#[test]
+fn a_rerun_that_changes_nothing_still_removes_stale_temporaries() {
+    // The sweep used to cover only the folders a run wrote: a re-run
+    // finding every chunk baked ("wrote 0 of 4") left them. And a
+    // temporary of another machine sharing the volume is judged by its
+    // age, not by a process id this machine cannot look up.
+    let dir = small_world();
+    let settings = coarse_settings(dir.path());
+    let out = tempfile::tempdir().unwrap();
+    let bake_out = || {
+        run_bounded(
+            &[
+                "bake",
+                settings.to_str().unwrap(),
+                "--out",
+                out.path().to_str().unwrap(),
+            ],
+            Duration::from_secs(120),
+        )
+    };
+    for output in [bake_in_place(&settings), bake_out()] {
+        assert!(output.status.success(), "{}", text(&output.stderr));
+    }
+    let old = STALE_TEMPORARY_AGE + Duration::from_secs(60);
+    let mut stale = Vec::new();
+    let mut live = Vec::new();
+    for folder in [dir.path().join(SPACE), out.path().join(SPACE)] {
+        // This host, no process has the id (above Linux's pid_max, 2^22).
+        stale.push(temporary_of(
+            &folder,
+            "ffff0000o.chunk",
+            host_name(),
+            4_194_305,
+            Duration::ZERO,
+        ));
+        stale.push(temporary_of(
+            &folder,
+            "ffffffffo.chunk",
+            "elsewhere",
+            1,
+            old,
+        ));
+        live.push(temporary_of(
+            &folder,
+            "0000ffffo.chunk",
+            "elsewhere",
+            1,
+            Duration::ZERO,
+        ));
+    }
+    for output in [bake_in_place(&settings), bake_out()] {
+        let stdout = text(&output.stdout);
+        assert!(output.status.success(), "{}", text(&output.stderr));
+        assert!(stdout.contains("wrote 0 of 4 chunk files"), "{stdout}");
+    }
+    for path in &stale {
+        assert!(!path.exists(), "{} is stale", path.display());
+    }
+    for path in &live {
+        assert!(
+            path.exists(),
+            "{} may be another machine's live bake",
+            path.display()
+        );
+    }
+    // --dry-run and --check write nothing, temporaries included.
+    let kept = temporary_of(
+        &dir.path().join(SPACE),
+        "ffff0000o.chunk",
+        host_name(),
+        4_194_305,
+        Duration::ZERO,
+    );
+    for flag in ["--dry-run", "--check"] {
+        let output = run_bounded(
+            &["bake", settings.to_str().unwrap(), flag, "--quiet"],
+            Duration::from_secs(120),
+        );
+        assert!(output.status.success(), "{}", text(&output.stderr));
+    }
+    assert!(kept.exists());
 }
 
 // ---------------------------------------------------------------------------

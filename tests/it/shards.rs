@@ -532,3 +532,50 @@ fn merging_in_place_twice_works_because_written_masks_are_not_inputs() {
     std::fs::write(&chunk, edited).unwrap();
     refused(merge_in_place(), &["other inputs", "other content"]);
 }
+
+#[test]
+fn the_merge_table_gives_the_shards_trace_time_and_rate() {
+    // The merge traces no grid ray: its table once divided the shards' rays
+    // by the merge's own seconds (e.g. 36 798 Mrays/s).
+    let dir = tempfile::tempdir().unwrap();
+    let settings = world(Preset::Small, &dir.path().join("world"));
+    let parts = three_shards(&settings, dir.path(), "p");
+    let report = dir.path().join("merge.json");
+    let mut args = vec!["merge", s(&settings)];
+    args.extend(parts.iter().map(|p| s(p)));
+    args.extend(["--dry-run", "--report", s(&report)]);
+    let output = ok(shadowcull(&args), "the merge");
+    let table = String::from_utf8_lossy(&output.stdout).to_string();
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let units: Vec<partial::PartialUnit> = parts
+        .iter()
+        .flat_map(|p| partial::read(p).unwrap().units)
+        .collect();
+    for light in json["lights"].as_array().unwrap() {
+        let index = light["index"].as_u64().unwrap() as u32;
+        let shard_seconds: f64 = units
+            .iter()
+            .filter(|u| u.light == index)
+            .map(|u| u.seconds)
+            .sum();
+        let seconds = light["trace_seconds"].as_f64().unwrap();
+        assert!(shard_seconds > 0.0);
+        assert!(
+            seconds >= shard_seconds,
+            "{light}: the shards traced for {shard_seconds} s"
+        );
+        let name = light["name"].as_str().unwrap();
+        let row: Vec<&str> = table
+            .lines()
+            .find(|l| l.split_whitespace().nth(1) == Some(name))
+            .unwrap_or_else(|| panic!("no row for {name}: {table}"))
+            .split_whitespace()
+            .collect();
+        let rate: f64 = row[7].parse().unwrap();
+        let expected = light["rays"].as_f64().unwrap() / seconds / 1e6;
+        assert!(
+            (rate - expected).abs() <= 0.01 + expected * 0.01,
+            "{name}: {rate} Mrays/s printed, {expected} from the report: {table}"
+        );
+    }
+}
