@@ -175,21 +175,27 @@ pub(super) fn load_scene_told(
     Ok(scene)
 }
 
-/// Refuses an in-place bake that could not replace some chunk of the space
-/// (read-only, another user's, not a regular file) before any ray is
-/// traced, with the refusal the write would make after the whole trace
-/// (which still checks again). Which chunks change is known only after
-/// tracing, so every chunk of the space counts.
-pub(super) fn refuse_locked_chunks(
-    scene: &Scene,
-    output_args: &OutputArgs,
-    options: &BakeOptions,
-) -> Result<()> {
+/// Warns, before any ray is traced, about every chunk of the space an
+/// in-place bake could not replace (read-only as version control leaves
+/// files not checked out, another user's, not a regular file). Which chunks
+/// change is known only after tracing: a locked chunk whose bytes stay the
+/// same is no problem, one that must change makes the write refuse the
+/// whole batch (nothing written, every such file named), so a build
+/// engineer can stop here instead of after hours of tracing.
+pub(super) fn warn_locked_chunks(scene: &Scene, output_args: &OutputArgs, options: &BakeOptions) {
     if output_args.out.is_some() || options.pipeline.writes_nothing() {
-        return Ok(());
+        return;
     }
-    resources::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()))?;
-    Ok(())
+    let checked = resources::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()));
+    if let Err(shadowcull::error::Error::Refused { files }) = checked {
+        eprintln!(
+            "warning: {} chunk file(s) cannot be replaced; if the bake changes any of them it writes nothing and fails at the end (make them writable, e.g. check them out, or bake with --out DIR):",
+            files.len()
+        );
+        for (file, why) in &files {
+            eprintln!("  {}: {why}", file.display());
+        }
+    }
 }
 
 fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> Result<()> {
@@ -197,7 +203,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     let started = Instant::now();
     let reporter = Reporter::new(&args.options.progress);
     let scene = load_scene_told(settings, &args.options, &reporter)?;
-    refuse_locked_chunks(&scene, &args.output, &args.options)?;
+    warn_locked_chunks(&scene, &args.output, &args.options);
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
     let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;

@@ -3,7 +3,7 @@
 //! asked, and writes the chunks and report exactly as `bake` does.
 
 use super::bake::{
-    load_scene_told, refuse_locked_chunks, write_results, BakeOptions, OutputArgs, Results,
+    load_scene_told, warn_locked_chunks, write_results, BakeOptions, OutputArgs, Results,
 };
 use super::progress::Reporter;
 use super::{load_settings, SettingsArgs};
@@ -47,7 +47,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
         }
         let reporter = Reporter::new(&args.options.progress);
         let scene = load_scene_told(&settings, &args.options, &reporter)?;
-        refuse_locked_chunks(&scene, &args.output, &args.options)?;
+        warn_locked_chunks(&scene, &args.output, &args.options);
         bake::validate_lights(&scene, &config)?;
         let world = BakeWorld::build(&scene, &reporter);
         let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));

@@ -579,9 +579,9 @@ fn temporary_folder(target: &Path) -> PathBuf {
     }
 }
 
-/// Refuses, before any work, a batch whose targets must not be replaced
-/// ([`Error::Refused`], every such file named); the checks of
-/// [`write_files`], which makes them again when it writes.
+/// The targets that must not be replaced ([`Error::Refused`], every such
+/// file named): the checks [`write_files`] makes before it writes, for a
+/// caller that wants to know before any work.
 pub fn check_replaceable<'a>(targets: impl IntoIterator<Item = &'a Path>) -> Result<()> {
     let refused: Vec<(PathBuf, String)> = targets
         .into_iter()
