@@ -12,7 +12,6 @@ use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, output, BakeConfig, BakeResult, GridMode};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::formats::resources::{self, ResPaths};
-use shadowcull::progress::{Counter, Phase};
 use shadowcull::scene::{self, Scene};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -221,16 +220,18 @@ pub(super) fn write_results(
 ) -> Result<()> {
     let scene = results.scene;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
-    let outputs =
-        output::chunk_outputs(scene, &mut result, &res_paths, output_args.out.as_deref())?;
+    let outputs = output::chunk_outputs(
+        scene,
+        &mut result,
+        &res_paths,
+        output_args.out.as_deref(),
+        reporter,
+    )?;
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
     let written = if options.pipeline.writes_nothing() {
         Vec::new()
     } else {
-        let counter = Counter::begin(reporter, Phase::Writing, None, changed.len() as u64);
-        output::write_outputs(&outputs)?;
-        counter.add(changed.len() as u64);
-        counter.finish();
+        output::write_outputs(&outputs, reporter)?;
         changed
             .iter()
             .map(|o| o.target.display().to_string())

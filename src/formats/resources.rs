@@ -523,6 +523,14 @@ fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Re
 /// a kill during 4 leaves some targets replaced, each whole, and the rest
 /// as they were: running again completes the batch.
 pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
+    write_files_counted(files, &mut || {})
+}
+
+/// [`write_files`], calling `written` as each file's temporary is written
+/// and synced: step 3, the one that takes time (a sync per file; minutes
+/// for thousands of chunks), so a caller can show progress while this
+/// module keeps the file system to itself.
+pub fn write_files_counted(files: &[(&Path, &[u8])], written: &mut dyn FnMut()) -> Result<()> {
     let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
     let mut refused = Vec::new();
     let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
@@ -565,14 +573,15 @@ pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
     let mut temporaries: Vec<PathBuf> = Vec::with_capacity(planned.len());
     for file in &planned {
         let temp = temporary_path(&file.real);
-        let written = write_temporary(&temp, file.bytes, file.existing.as_ref());
+        let outcome = write_temporary(&temp, file.bytes, file.existing.as_ref());
         temporaries.push(temp);
-        if let Err(err) = written {
+        if let Err(err) = outcome {
             for temp in &temporaries {
                 let _ = fs::remove_file(temp);
             }
             return Err(err);
         }
+        written();
     }
 
     for (index, (file, temp)) in planned.iter().zip(&temporaries).enumerate() {

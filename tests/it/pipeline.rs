@@ -620,6 +620,40 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
             "{line}"
         );
     }
+    // Preparing the output and writing it advance chunk by chunk, file by
+    // file: a long write has an ETA (it used to jump from 0 to the total).
+    let out = dir.path().join("out");
+    let written = run(&[
+        "bake",
+        &settings(&dir),
+        "--out",
+        out.to_str().unwrap(),
+        "--progress",
+        "json",
+        "--progress-interval",
+        "0",
+    ]);
+    let stderr = text(&written.stderr);
+    assert!(written.status.success(), "{stderr}");
+    let objects: Vec<Value> = stderr
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    for phase in ["output", "writing"] {
+        let of: Vec<&Value> = objects.iter().filter(|o| o["phase"] == phase).collect();
+        assert!(
+            of.iter().any(|o| o["total"] == 4 && o["done"] == 4),
+            "{phase}: {stderr}"
+        );
+        assert!(
+            of.iter().any(|o| o["done"].as_u64() > Some(0)
+                && o["done"] != o["total"]
+                && o["eta_s"].is_number()),
+            "{phase}: {stderr}"
+        );
+    }
+
     let quiet = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
     assert!(quiet.status.success());
     assert_eq!(text(&quiet.stderr), "", "--quiet prints nothing on stderr");
