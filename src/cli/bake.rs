@@ -97,9 +97,8 @@ pub struct BakeOptions {
 
 impl BakeOptions {
     /// The settings file's values with these overrides and the `--light`
-    /// selection; warns about unknown settings elements.
+    /// selection.
     pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
-        pipeline::warn_unknown(settings, settings_file);
         let mut config = BakeConfig {
             brute_force: self.brute_force,
             supersample: self.supersample,

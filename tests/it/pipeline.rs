@@ -229,16 +229,23 @@ fn unknown_settings_elements_are_warned_with_line_and_column() {
     .unwrap();
     let line = original[..at].matches('\n').count() + 1;
     let column = at - original[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
-    let out = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
-    let stderr = text(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
-    assert!(
-        stderr.contains(&format!(
-            "warning: {}:{line}:{column}: unknown element <heightBais>",
-            path.display()
-        )),
-        "{stderr}"
+    let warning = format!(
+        "warning: {}:{line}:{column}: unknown element <heightBais>",
+        path.display()
     );
+    let picture = dir.path().join("sun.png");
+    let picture = picture.to_str().unwrap();
+    // Every subcommand reads its settings alike (`xcheck` and `sweep` too).
+    for args in [
+        &["bake", &settings(&dir), "--dry-run", "--quiet"][..],
+        &["inspect", &settings(&dir)],
+        &["render", &settings(&dir), "--light", "sun", "-o", picture],
+    ] {
+        let out = run(args);
+        let stderr = text(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        assert_eq!(stderr.matches(&warning).count(), 1, "{args:?}: {stderr}");
+    }
 }
 
 #[test]
