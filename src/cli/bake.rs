@@ -168,8 +168,19 @@ pub(super) fn load_scene_told(
 ) -> Result<Scene> {
     let started = Instant::now();
     let scene = scene::load_scene_with(&load_config(settings), reporter)?;
-    reporter.say(&loaded_line(&scene, started));
-    pipeline::refuse_problems(&scene, options.pipeline.keep_going)?;
+    let keep_going = options.pipeline.keep_going;
+    // `refuse_problems` lists them either way; no report is written when
+    // they fail the bake.
+    let problems = match (scene.problems.len(), keep_going) {
+        (0, _) => String::new(),
+        (n, false) => format!("; {} (listed below)", count(n, "problem", "problems")),
+        (n, true) => format!(
+            "; {} (listed below), left out by --keep-going",
+            count(n, "problem", "problems")
+        ),
+    };
+    reporter.say(&format!("{}{problems}", loaded_line(&scene, started)));
+    pipeline::refuse_problems(&scene, keep_going)?;
     Ok(scene)
 }
 
@@ -276,23 +287,16 @@ pub(super) fn write_results(
     Ok(())
 }
 
+/// What loading found and how long it took.
 fn loaded_line(scene: &Scene, started: Instant) -> String {
     let stats = scene.stats();
     format!(
-        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s{}",
+        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s",
         stats.chunks,
         stats.instances,
         stats.triangles,
         stats.terrain_blocks,
         started.elapsed().as_secs_f64(),
-        if scene.problems.is_empty() {
-            String::new()
-        } else {
-            format!(
-                "; {} (see the report's `skipped`)",
-                count(scene.problems.len(), "problem", "problems")
-            )
-        }
     )
 }
 

@@ -684,12 +684,30 @@ fn small_things() {
         stderr.contains("--height-bias must be a number ≥ 0, got -1"),
         "{stderr}"
     );
-    // "1 problem", not "1 problems".
+    // "1 problem", not "1 problems"; where the problems are is true
+    // whether or not a report is written.
     std::fs::write(dir.path().join(CHUNK), b"<root><model>").unwrap();
-    let out = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
-    let stderr = text(&out.stderr);
-    assert!(stderr.contains("; 1 problem (see"), "{stderr}");
-    assert!(!stderr.contains("1 problems"), "{stderr}");
+    let report = dir.path().join("report.json");
+    let kept = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
+    let refused = run(&[
+        "bake",
+        &settings(&dir),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert!(!report.exists(), "a refused bake writes no report");
+    for (out, said) in [
+        (kept, "; 1 problem (listed below), left out by --keep-going"),
+        (refused, "; 1 problem (listed below)\n"),
+    ] {
+        let stderr = text(&out.stderr);
+        assert!(stderr.contains(said), "{stderr}");
+        assert!(!stderr.contains("1 problems"), "{stderr}");
+        assert!(!stderr.contains("the report's"), "{stderr}");
+        let listed = stderr.split(said).nth(1).unwrap_or_default();
+        assert!(listed.contains("00000000o.chunk"), "{stderr}");
+    }
 }
 
 #[test]
