@@ -261,10 +261,12 @@ fn errors_give_line_and_column() {
     )
     .unwrap();
     let line = original[..at].matches('\n').count() + 1;
+    let line_start = original[..at].rfind('\n').map_or(0, |i| i + 1);
+    let column = original[line_start..at].chars().count() + 1;
     let out = run(&["inspect", &settings(&dir)]);
     let stdout = text(&out.stdout);
     assert!(
-        stdout.contains(&format!("{}:{line}:", chunk.display())),
+        stdout.contains(&format!("{}:{line}:{column} at byte", chunk.display())),
         "{stdout}"
     );
 }
@@ -500,6 +502,27 @@ fn plan_lists_every_light_and_max_memory_refuses_before_tracing() {
             .status
             .code(),
         Some(2)
+    );
+}
+
+#[test]
+fn plan_max_memory_exits_1_naming_the_estimate_and_the_limit() {
+    let dir = small();
+    let within = run(&["plan", &settings(&dir), "--max-memory", "64G", "--quiet"]);
+    assert!(within.status.success(), "{}", text(&within.stderr));
+    let out = run(&["plan", &settings(&dir), "--max-memory", "1k", "--json"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let estimate = plan["estimated_peak_bytes"].as_f64().unwrap();
+    assert!(estimate > 1e6, "{estimate}");
+    // The message names both, in the units `plan` prints.
+    let named = format!("{:.1} MB", estimate / 1e6);
+    assert!(
+        stderr.contains(&format!(
+            "the plan's peak memory estimate {named} is above --max-memory 1.0 kB"
+        )),
+        "{stderr}"
     );
 }
 
