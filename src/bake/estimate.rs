@@ -256,19 +256,15 @@ fn plan_light(
         nothing_to_trace: None,
         sample: None,
     };
-    let counter = Counter::begin(progress, Phase::TopLevel, Some(&light.name), 1);
-    let setup = match LightSetup::new(world, config, index) {
+    let setup = match LightSetup::new_with_progress(world, config, index, progress) {
         Ok(setup) => setup,
         Err(nothing) if nothing.is_nothing_to_trace() => {
-            counter.finish();
             plan.nothing_to_trace = Some(nothing.to_string());
             return Ok((plan, None));
         }
         Err(super::setup::NoSetup::Grid(err)) => return Err(err.into()),
         Err(super::setup::NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
-    counter.add(1);
-    counter.finish();
     let supersample = config.supersample.max(1) as u64;
     plan.faces = setup.grid.faces();
     plan.width = setup.grid.width();

@@ -399,7 +399,8 @@ pub fn bake_from(
     let mut lights = Vec::new();
     for index in 0..config.lights.len() {
         let prepared = source.take_setup(index, config).map(Ok);
-        let setup = match prepared.unwrap_or_else(|| LightSetup::new(world, config, index)) {
+        let built = || LightSetup::new_with_progress(world, config, index, progress);
+        let setup = match prepared.unwrap_or_else(built) {
             Ok(setup) => setup,
             Err(nothing) if nothing.is_nothing_to_trace() => {
                 skipped.push(Skipped::info(
@@ -537,7 +538,8 @@ fn bake_light_from(
         let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
         counter.finish();
         if config.refine_samples > 0 || config.refine_density > 0 {
-            let (refined, traced) = refine::refine(world, setup, &rays_of_light, &useful, config);
+            let (refined, traced) =
+                refine::refine(world, setup, &rays_of_light, &useful, config, progress);
             useful = useful.union(&refined);
             refine_rays = traced;
             rays += traced;
@@ -588,6 +590,137 @@ impl trace_light::RayCounter for Counter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::formats::bake_settings::{BakeSettings, LightKind};
+    use crate::formats::resources::ResPaths;
+    use crate::progress::{Call, Recorded};
+
+    /// The `small` fixture and its settings, every light coarse (these
+    /// tests are about phases, not rays).
+    fn small_fixture() -> (BakeSettings, Scene) {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small");
+        let mut settings = crate::formats::read_bake_settings(&root.join("bake.xml")).unwrap();
+        for light in &mut settings.lights {
+            match &mut light.kind {
+                LightKind::Directional { texel_size, .. } => *texel_size = 2.0,
+                LightKind::Spot { resolution, .. } | LightKind::Point { resolution, .. } => {
+                    *resolution = 16
+                }
+            }
+        }
+        let scene = crate::scene::load_scene(&crate::scene::LoadConfig {
+            res_paths: ResPaths::new(settings.res_paths.clone()),
+            space: settings.space.clone(),
+        })
+        .unwrap();
+        (settings, scene)
+    }
+
+    /// The phases begun, in order, with their light and total.
+    fn begun(recorded: &Recorded) -> Vec<(Phase, Option<String>, u64)> {
+        recorded
+            .calls()
+            .into_iter()
+            .filter_map(|call| match call {
+                Call::Begin(phase, light, total) => Some((phase, light, total)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Each time `phase` was begun: its total and the counts heard until
+    /// its end.
+    fn counts_of(recorded: &Recorded, phase: Phase) -> Vec<(u64, Vec<u64>)> {
+        let calls = recorded.calls();
+        let mut phases = Vec::new();
+        for (at, call) in calls.iter().enumerate() {
+            let Call::Begin(p, _, total) = call else {
+                continue;
+            };
+            if *p != phase {
+                continue;
+            }
+            let counts = calls[at + 1..].iter().map_while(|c| match c {
+                Call::Advance(done) => Some(*done),
+                _ => None,
+            });
+            phases.push((*total, counts.collect()));
+        }
+        phases
+    }
+
+    #[test]
+    fn every_light_builds_its_top_level_in_a_phase() {
+        // A bake with no plan before it builds every light's top level
+        // itself: each is a phase (progress, and the out-of-memory message).
+        let (settings, scene) = small_fixture();
+        let config = BakeConfig::from_settings(&settings);
+        let world = BakeWorld::build(&scene, &Silent);
+        let recorded = Recorded::default();
+        bake_world(&world, &config, &recorded).unwrap();
+        let begun = begun(&recorded);
+        for light in &config.lights {
+            let of = |phase| {
+                begun
+                    .iter()
+                    .position(|(p, l, _)| *p == phase && l.as_deref() == Some(&light.name))
+            };
+            let (top, tracing) = (of(Phase::TopLevel), of(Phase::Tracing));
+            assert!(top.is_some() && top < tracing, "{}: {begun:?}", light.name);
+        }
+    }
+
+    #[test]
+    fn refinement_counts_every_caster_it_refines() {
+        let (settings, scene) = small_fixture();
+        let config = BakeConfig {
+            refine_samples: 4,
+            refine_density: 2,
+            ..BakeConfig::from_settings(&settings)
+        };
+        let world = BakeWorld::build(&scene, &Silent);
+        let recorded = Recorded::default();
+        bake_world(&world, &config, &recorded).unwrap();
+        let refining = counts_of(&recorded, Phase::Refining);
+        assert_eq!(refining.len(), config.lights.len(), "{refining:?}");
+        assert!(refining.iter().any(|(total, _)| *total > 0));
+        for (total, counts) in &refining {
+            assert_eq!(counts.iter().max().unwrap_or(&0), total, "{refining:?}");
+        }
+    }
+
+    #[test]
+    fn preparing_and_writing_the_output_count_every_chunk_and_file() {
+        let (settings, scene) = small_fixture();
+        let mut config = BakeConfig::from_settings(&settings);
+        config.lights.truncate(1);
+        let mut result = bake(&scene, &config, &Silent).unwrap();
+        let out = tempfile::tempdir().unwrap();
+        let recorded = Recorded::default();
+        let res_paths = ResPaths::new(settings.res_paths.clone());
+        let outputs =
+            output::chunk_outputs(&scene, &mut result, &res_paths, Some(out.path()), &recorded)
+                .unwrap();
+        let written = output::write_outputs(&outputs, &recorded).unwrap();
+        let chunks = scene.chunks.len() as u64;
+        assert!(
+            chunks >= 4 && written as u64 == chunks,
+            "{written} of {chunks}"
+        );
+        assert_eq!(
+            begun(&recorded),
+            [
+                (Phase::Output, None, chunks),
+                (Phase::Writing, None, chunks)
+            ]
+        );
+        let every = (1..=chunks).collect::<Vec<_>>();
+        // Chunks in parallel: every one counted, in some order of arrival.
+        let (_, mut prepared) = counts_of(&recorded, Phase::Output).remove(0);
+        prepared.sort_unstable();
+        assert_eq!(prepared, every);
+        // Files one by one, as each is written.
+        assert_eq!(counts_of(&recorded, Phase::Writing), [(chunks, every)]);
+    }
 
     #[test]
     fn a_failed_allocation_is_an_error_naming_the_phase() {

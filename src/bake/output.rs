@@ -7,6 +7,7 @@ use crate::formats::chunk::InstanceKind;
 use crate::formats::resources::{self, ResPaths};
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
 use crate::formats::Section;
+use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -156,13 +157,16 @@ pub struct ChunkOutput {
 /// Puts back, in `result` too, the bits this bake did not decide (lights
 /// of other settings files, or left out by `--light`) from the chunk files'
 /// existing `<shadow>`s, so a bake of some lights never clobbers the
-/// others. Each chunk file is read and parsed once for both.
+/// others. Each chunk file is read and parsed once for both, as
+/// [`Phase::Output`] of `progress` (seconds on a large world).
 pub fn chunk_outputs(
     scene: &Scene,
     result: &mut BakeResult,
     res_paths: &ResPaths,
     out_dir: Option<&Path>,
+    progress: &dyn Progress,
 ) -> Result<Vec<ChunkOutput>> {
+    let counter = Counter::begin(progress, Phase::Output, None, scene.chunks.len() as u64);
     let made: Vec<(ChunkOutput, Vec<(u32, u32)>)> = {
         let result = &*result;
         // Chunks are independent; collecting keeps their order, and the
@@ -171,9 +175,14 @@ pub fn chunk_outputs(
             .chunks
             .par_iter()
             .enumerate()
-            .map(|(index, chunk)| chunk_output(scene, result, res_paths, out_dir, index, chunk))
+            .map(|(index, chunk)| {
+                let made = chunk_output(scene, result, res_paths, out_dir, index, chunk);
+                counter.add(1);
+                made
+            })
             .collect::<Result<_>>()?
     };
+    counter.finish();
     let mut outputs = Vec::with_capacity(made.len());
     for (output, kept) in made {
         for (id, mask) in kept {
@@ -246,9 +255,10 @@ fn chunk_output(
 /// ([`resources::write_files_beside`]): every target is checked before
 /// anything is written (a read-only chunk fails the batch, naming every such
 /// file), all temporary files are written and synced before the first
-/// rename, and stale temporary files of killed runs are removed beside every
-/// output, unchanged ones too. Returns how many files were written.
-pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
+/// rename, each counted in [`Phase::Writing`] of `progress`, and stale
+/// temporary files of killed runs are removed beside every output,
+/// unchanged ones too. Returns how many files were written.
+pub fn write_outputs(outputs: &[ChunkOutput], progress: &dyn Progress) -> Result<usize> {
     let batch: Vec<(&Path, &[u8])> = outputs
         .iter()
         .filter(|o| o.changed)
@@ -259,7 +269,9 @@ pub fn write_outputs(outputs: &[ChunkOutput]) -> Result<usize> {
         .filter(|o| !o.changed)
         .map(|o| o.target.as_path())
         .collect();
-    resources::write_files_beside(&batch, &unchanged)?;
+    let counter = Counter::begin(progress, Phase::Writing, None, batch.len() as u64);
+    resources::write_files_beside(&batch, &unchanged, &mut || counter.add(1))?;
+    counter.finish();
     Ok(batch.len())
 }
 

@@ -32,6 +32,7 @@ use super::BakeConfig;
 use crate::classify::{self, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::TexelRay;
+use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
 use crate::trace::texel_beam::{self as beam, Point, Rect};
 use crate::trace::TraceTriangle;
@@ -47,12 +48,14 @@ const EDGE_MARGIN: f64 = 0.02;
 /// yet nor receiver-only: `config.refine_samples` surface points and the
 /// footprint lattice at `config.refine_density` (see the module docs).
 /// Returns the casters the rays prove useful and how many rays were traced.
+/// Each caster refined is counted in [`Phase::Refining`] of `progress`.
 pub fn refine(
     world: &BakeWorld,
     setup: &LightSetup,
     rays_of_light: &LightRays<'_>,
     already_useful: &CasterSet,
     config: &BakeConfig,
+    progress: &dyn Progress,
 ) -> (CasterSet, u64) {
     let casters = &world.casters;
     let mut candidates: Vec<u32> = Vec::new();
@@ -71,7 +74,9 @@ pub fn refine(
     candidates.retain(|&caster| {
         !already_useful.contains(caster) && !casters.casters[caster as usize].receiver_only
     });
-    candidates
+    let light = Some(config.lights[setup.index].name.as_str());
+    let counter = Counter::begin(progress, Phase::Refining, light, candidates.len() as u64);
+    let refined = candidates
         .par_iter()
         .fold(
             || Scratch::new(casters.len()),
@@ -90,6 +95,7 @@ pub fn refine(
                     footprint_lattice(&mut sampler, &run, config, config.refine_density);
                 }
                 scratch.rays += sampler.traced;
+                counter.add(1);
                 scratch
             },
         )
@@ -97,7 +103,9 @@ pub fn refine(
         .reduce(
             || (CasterSet::new(casters.len()), 0),
             |(a, ra), (b, rb)| (a.union(&b), ra + rb),
-        )
+        );
+    counter.finish();
+    refined
 }
 
 /// One refining thread's answer so far and its reused buffers.

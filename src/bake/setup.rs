@@ -16,6 +16,7 @@ use super::trace_light::{LightRays, RayRules};
 use super::BakeConfig;
 use crate::classify::Passes;
 use crate::light::{GridError, TexelGrid};
+use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;
 use crate::trace::{
     transform_box, BottomLevels, PartsFrom, PlacedBlock, PlacedPart, TopLevel, TraceMode,
@@ -199,6 +200,25 @@ impl LightSetup {
             reach_seconds,
             top_seconds,
         })
+    }
+
+    /// [`LightSetup::new`] as [`Phase::TopLevel`] of `progress`: finding
+    /// the reach and building the top level take seconds on a large world,
+    /// and a phase says whose and names it if memory runs out.
+    pub fn new_with_progress(
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+        progress: &dyn Progress,
+    ) -> Result<LightSetup, NoSetup> {
+        let light = Some(config.lights[index].name.as_str());
+        let counter = Counter::begin(progress, Phase::TopLevel, light, 1);
+        let setup = LightSetup::new(world, config, index);
+        if setup.is_ok() {
+            counter.add(1);
+        }
+        counter.finish();
+        setup
     }
 
     /// The light's rays with `config`'s rules and this setup's passes.

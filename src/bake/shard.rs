@@ -385,7 +385,7 @@ pub fn bake_shard(
     }
     for (light, units) in by_light {
         let index = light as usize;
-        let setup = match LightSetup::new(world, config, index) {
+        let setup = match LightSetup::new_with_progress(world, config, index, progress) {
             Ok(setup) => Some(setup),
             Err(NoSetup::Grid(GridError::EmptyWorld { .. })) | Err(NoSetup::NoGeometry) => None,
             Err(NoSetup::Grid(err)) => return Err(err.into()),

@@ -12,7 +12,6 @@ use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, output, BakeConfig, BakeResult, GridMode};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::formats::resources::{self, ResPaths};
-use shadowcull::progress::{Counter, Phase};
 use shadowcull::scene::{self, Scene};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -98,9 +97,8 @@ pub struct BakeOptions {
 
 impl BakeOptions {
     /// The settings file's values with these overrides and the `--light`
-    /// selection; warns about unknown settings elements.
+    /// selection.
     pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
-        pipeline::warn_unknown(settings, settings_file);
         let mut config = BakeConfig {
             brute_force: self.brute_force,
             supersample: self.supersample,
@@ -170,8 +168,19 @@ pub(super) fn load_scene_told(
 ) -> Result<Scene> {
     let started = Instant::now();
     let scene = scene::load_scene_with(&load_config(settings), reporter)?;
-    reporter.say(&loaded_line(&scene, started));
-    pipeline::refuse_problems(&scene, options.pipeline.keep_going)?;
+    let keep_going = options.pipeline.keep_going;
+    // `refuse_problems` lists them either way; no report is written when
+    // they fail the bake.
+    let problems = match (scene.problems.len(), keep_going) {
+        (0, _) => String::new(),
+        (n, false) => format!("; {} (listed below)", count(n, "problem", "problems")),
+        (n, true) => format!(
+            "; {} (listed below), left out by --keep-going",
+            count(n, "problem", "problems")
+        ),
+    };
+    reporter.say(&format!("{}{problems}", loaded_line(&scene, started)));
+    pipeline::refuse_problems(&scene, keep_going)?;
     Ok(scene)
 }
 
@@ -245,16 +254,18 @@ pub(super) fn write_results(
 ) -> Result<()> {
     let scene = results.scene;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
-    let outputs =
-        output::chunk_outputs(scene, &mut result, &res_paths, output_args.out.as_deref())?;
+    let outputs = output::chunk_outputs(
+        scene,
+        &mut result,
+        &res_paths,
+        output_args.out.as_deref(),
+        reporter,
+    )?;
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
     let written = if options.pipeline.writes_nothing() {
         Vec::new()
     } else {
-        let counter = Counter::begin(reporter, Phase::Writing, None, changed.len() as u64);
-        output::write_outputs(&outputs)?;
-        counter.add(changed.len() as u64);
-        counter.finish();
+        output::write_outputs(&outputs, reporter)?;
         changed
             .iter()
             .map(|o| o.target.display().to_string())
@@ -300,23 +311,16 @@ pub(super) fn write_results(
     Ok(())
 }
 
+/// What loading found and how long it took.
 fn loaded_line(scene: &Scene, started: Instant) -> String {
     let stats = scene.stats();
     format!(
-        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s{}",
+        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s",
         stats.chunks,
         stats.instances,
         stats.triangles,
         stats.terrain_blocks,
         started.elapsed().as_secs_f64(),
-        if scene.problems.is_empty() {
-            String::new()
-        } else {
-            format!(
-                "; {} (see the report's `skipped`)",
-                count(scene.problems.len(), "problem", "problems")
-            )
-        }
     )
 }
 

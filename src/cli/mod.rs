@@ -172,8 +172,15 @@ pub(crate) fn thread_pool(threads: Option<u16>) -> Result<rayon::ThreadPool> {
         .context("cannot start worker threads")
 }
 
+/// Reads the settings file with the command line's overrides, and warns
+/// (`file:line:column`) about the elements in it that no setting reads (a
+/// typo such as `<heightBais>`): every subcommand reads its settings here,
+/// so each warns alike.
 pub(crate) fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
     let mut settings = formats::read_bake_settings(&args.settings)?;
+    for unknown in &settings.unknown {
+        eprintln!("warning: {}:{unknown}", args.settings.display());
+    }
     if !args.res_paths.is_empty() {
         settings.res_paths = args.res_paths.clone();
     }

@@ -4,7 +4,6 @@
 
 use anyhow::{bail, Result};
 use shadowcull::bake::BakeConfig;
-use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::Scene;
 use std::path::Path;
 
@@ -43,13 +42,6 @@ impl PipelineArgs {
 /// "1 problem", "2 problems".
 pub fn count(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
-}
-
-/// Warns about elements of the settings file that nothing reads.
-pub fn warn_unknown(settings: &BakeSettings, file: &Path) {
-    for unknown in &settings.unknown {
-        eprintln!("warning: {}:{unknown}", file.display());
-    }
 }
 
 /// Applies `--light`: the named lights only, each keeping its bit.

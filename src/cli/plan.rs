@@ -38,7 +38,6 @@ pub struct PlanArgs {
 pub fn run(args: PlanArgs) -> Result<()> {
     let file = args.settings.settings.clone();
     let settings = load_settings(&args.settings)?;
-    pipeline::warn_unknown(&settings, &file);
     let config = BakeConfig {
         supersample: args.supersample,
         ..BakeConfig::from_settings(&settings)

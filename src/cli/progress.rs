@@ -4,7 +4,7 @@
 //! with `--quiet`. Everything goes to standard error.
 
 use indicatif::{ProgressBar, ProgressStyle};
-use shadowcull::progress::{Phase, Progress};
+use shadowcull::progress::{LinePace, Phase, Progress};
 use std::io::IsTerminal;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -51,7 +51,8 @@ struct Open {
     light: Option<String>,
     total: u64,
     started: Instant,
-    last_line: Instant,
+    /// When the next line is due (lines and json).
+    pace: LinePace,
     /// The latest count heard.
     done: u64,
     bar: Option<ProgressBar>,
@@ -72,10 +73,6 @@ pub struct Reporter {
     quiet: bool,
 }
 
-/// Lines and JSON: a phase that hears of no progress (a long build) still
-/// gets a line at least this often.
-const HEARTBEAT: Duration = Duration::from_secs(8);
-
 impl Drop for Reporter {
     fn drop(&mut self) {
         self.shared.stop.store(true, Ordering::Relaxed);
@@ -95,7 +92,10 @@ impl Reporter {
         let shared = Arc::new(Shared {
             style,
             started: Instant::now(),
-            interval: Duration::from_secs_f64(args.progress_interval.clamp(0.0, 10.0)),
+            interval: Duration::from_secs_f64(
+                args.progress_interval
+                    .clamp(0.0, LinePace::MAX_SILENCE.as_secs_f64()),
+            ),
             open: Mutex::new(None),
             stop: AtomicBool::new(false),
         });
@@ -134,14 +134,15 @@ impl Reporter {
 
 impl Shared {
     /// Until the reporter is dropped: a line for an open phase that has
-    /// printed none for [`HEARTBEAT`].
+    /// been silent for [`LinePace::HEARTBEAT`] (a long build hears of no
+    /// progress), so a log gets one at least every
+    /// [`LinePace::MAX_SILENCE`].
     fn heartbeat(&self) {
         while !self.stop.load(Ordering::Relaxed) {
-            std::thread::sleep(Duration::from_millis(250));
+            std::thread::sleep(LinePace::POLL);
             if let Ok(mut slot) = self.open.lock() {
                 if let Some(open) = slot.as_mut() {
-                    if open.last_line.elapsed() >= HEARTBEAT {
-                        open.last_line = Instant::now();
+                    if open.pace.on_beat(Instant::now()) {
                         self.line(open, open.done);
                     }
                 }
@@ -218,7 +219,7 @@ impl Progress for Reporter {
             light: light.map(str::to_string),
             total,
             started: now,
-            last_line: now,
+            pace: LinePace::new(self.shared.interval, now),
             done: 0,
             bar,
         };
@@ -241,8 +242,7 @@ impl Progress for Reporter {
             bar.set_position(done.max(bar.position()));
             return;
         }
-        if open.last_line.elapsed() >= self.shared.interval && done < open.total {
-            open.last_line = Instant::now();
+        if done < open.total && open.pace.on_progress(Instant::now()) {
             self.shared.line(open, done);
         }
     }

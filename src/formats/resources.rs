@@ -640,14 +640,21 @@ fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Re
 /// a kill during 4 leaves some targets replaced, each whole, and the rest
 /// as they were: running again completes the batch.
 pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
-    write_files_beside(files, &[])
+    write_files_beside(files, &[], &mut || {})
 }
 
-/// [`write_files`], also removing stale temporary files beside `unchanged`:
-/// the other targets of the same output, whose bytes stay as they are. A
+/// [`write_files`], also removing stale temporary files beside `unchanged`
+/// (the other targets of the same output, whose bytes stay as they are: a
 /// re-run that completes a killed bake may change no file at all, and must
-/// still remove what the killed run left.
-pub fn write_files_beside(files: &[(&Path, &[u8])], unchanged: &[&Path]) -> Result<()> {
+/// still remove what the killed run left), and calling `written` as each
+/// file's temporary is written and synced: step 3, the one that takes time
+/// (a sync per file; minutes for thousands of chunks), so a caller can show
+/// progress while this module keeps the file system to itself.
+pub fn write_files_beside(
+    files: &[(&Path, &[u8])],
+    unchanged: &[&Path],
+    written: &mut dyn FnMut(),
+) -> Result<()> {
     let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
     let mut refused = Vec::new();
     let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
@@ -696,14 +703,15 @@ pub fn write_files_beside(files: &[(&Path, &[u8])], unchanged: &[&Path]) -> Resu
     let mut temporaries: Vec<PathBuf> = Vec::with_capacity(planned.len());
     for file in &planned {
         let temp = temporary_path(&file.real);
-        let written = write_temporary(&temp, file.bytes, file.existing.as_ref());
+        let outcome = write_temporary(&temp, file.bytes, file.existing.as_ref());
         temporaries.push(temp);
-        if let Err(err) = written {
+        if let Err(err) = outcome {
             for temp in &temporaries {
                 let _ = fs::remove_file(temp);
             }
             return Err(err);
         }
+        written();
     }
 
     for (index, (file, temp)) in planned.iter().zip(&temporaries).enumerate() {
@@ -1036,7 +1044,12 @@ mod tests {
             &format!(".k.chunk.shadowcull-{}-4194305.tmp", host_name()),
             Duration::ZERO,
         );
-        write_files_beside(&[(&written.path().join("w.chunk"), b"new")], &[&kept]).unwrap();
+        write_files_beside(
+            &[(&written.path().join("w.chunk"), b"new")],
+            &[&kept],
+            &mut || {},
+        )
+        .unwrap();
         assert!(!stale.exists());
         assert_eq!(names(untouched.path()), ["k.chunk"]);
         // Nothing to write at all: still swept.
@@ -1045,7 +1058,7 @@ mod tests {
             ".k.chunk.shadowcull-elsewhere-1.tmp",
             STALE_TEMPORARY_AGE,
         );
-        write_files_beside(&[], &[&kept]).unwrap();
+        write_files_beside(&[], &[&kept], &mut || {}).unwrap();
         assert!(!stale.exists());
     }
 

@@ -261,8 +261,8 @@ fn run_case(corpus: &Corpus, config: &BakeConfig, limit: Duration) -> Result<Sta
                 return 1;
             };
             let _ = output::report(&scene, &result);
-            match output::chunk_outputs(&scene, &mut result, &res_paths, Some(&out)) {
-                Ok(outputs) if output::write_outputs(&outputs).is_ok() => 3,
+            match output::chunk_outputs(&scene, &mut result, &res_paths, Some(&out), &Silent) {
+                Ok(outputs) if output::write_outputs(&outputs, &Silent).is_ok() => 3,
                 _ => 2,
             }
         }));

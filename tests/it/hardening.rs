@@ -895,7 +895,8 @@ fn bake_out_refuses_a_read_only_target_before_writing_any() {
     config.lights.truncate(1);
     let mut result = bake::bake(&scene, &config, &Silent).unwrap();
     let res_paths = ResPaths::new(settings.res_paths);
-    let outputs = output::chunk_outputs(&scene, &mut result, &res_paths, Some(out.path())).unwrap();
+    let outputs =
+        output::chunk_outputs(&scene, &mut result, &res_paths, Some(out.path()), &Silent).unwrap();
     // An old output, locked.
     let locked = out.path().join(SPACE).join("ffffffffo.chunk");
     std::fs::create_dir_all(locked.parent().unwrap()).unwrap();
@@ -903,7 +904,9 @@ fn bake_out_refuses_a_read_only_target_before_writing_any() {
     let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
     permissions.set_readonly(true);
     std::fs::set_permissions(&locked, permissions).unwrap();
-    let message = output::write_outputs(&outputs).unwrap_err().to_string();
+    let message = output::write_outputs(&outputs, &Silent)
+        .unwrap_err()
+        .to_string();
     assert!(
         message.contains("ffffffffo.chunk: is read-only"),
         "{message}"

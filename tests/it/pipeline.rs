@@ -229,16 +229,23 @@ fn unknown_settings_elements_are_warned_with_line_and_column() {
     .unwrap();
     let line = original[..at].matches('\n').count() + 1;
     let column = at - original[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
-    let out = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
-    let stderr = text(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
-    assert!(
-        stderr.contains(&format!(
-            "warning: {}:{line}:{column}: unknown element <heightBais>",
-            path.display()
-        )),
-        "{stderr}"
+    let warning = format!(
+        "warning: {}:{line}:{column}: unknown element <heightBais>",
+        path.display()
     );
+    let picture = dir.path().join("sun.png");
+    let picture = picture.to_str().unwrap();
+    // Every subcommand reads its settings alike (`xcheck` and `sweep` too).
+    for args in [
+        &["bake", &settings(&dir), "--dry-run", "--quiet"][..],
+        &["inspect", &settings(&dir)],
+        &["render", &settings(&dir), "--light", "sun", "-o", picture],
+    ] {
+        let out = run(args);
+        let stderr = text(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        assert_eq!(stderr.matches(&warning).count(), 1, "{args:?}: {stderr}");
+    }
 }
 
 #[test]
@@ -254,10 +261,12 @@ fn errors_give_line_and_column() {
     )
     .unwrap();
     let line = original[..at].matches('\n').count() + 1;
+    let line_start = original[..at].rfind('\n').map_or(0, |i| i + 1);
+    let column = original[line_start..at].chars().count() + 1;
     let out = run(&["inspect", &settings(&dir)]);
     let stdout = text(&out.stdout);
     assert!(
-        stdout.contains(&format!("{}:{line}:", chunk.display())),
+        stdout.contains(&format!("{}:{line}:{column} at byte", chunk.display())),
         "{stdout}"
     );
 }
@@ -496,6 +505,27 @@ fn plan_lists_every_light_and_max_memory_refuses_before_tracing() {
     );
 }
 
+#[test]
+fn plan_max_memory_exits_1_naming_the_estimate_and_the_limit() {
+    let dir = small();
+    let within = run(&["plan", &settings(&dir), "--max-memory", "64G", "--quiet"]);
+    assert!(within.status.success(), "{}", text(&within.stderr));
+    let out = run(&["plan", &settings(&dir), "--max-memory", "1k", "--json"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let estimate = plan["estimated_peak_bytes"].as_f64().unwrap();
+    assert!(estimate > 1e6, "{estimate}");
+    // The message names both, in the units `plan` prints.
+    let named = format!("{:.1} MB", estimate / 1e6);
+    assert!(
+        stderr.contains(&format!(
+            "the plan's peak memory estimate {named} is above --max-memory 1.0 kB"
+        )),
+        "{stderr}"
+    );
+}
+
 /// `plan`'s estimates against `/usr/bin/time` of the same bake. Tests run
 /// in parallel on a shared machine, and the first run of a fresh binary
 /// pays for cold caches, so one plan against one bake measures the noise
@@ -620,6 +650,40 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
             "{line}"
         );
     }
+    // Preparing the output and writing it advance chunk by chunk, file by
+    // file: a long write has an ETA (it used to jump from 0 to the total).
+    let out = dir.path().join("out");
+    let written = run(&[
+        "bake",
+        &settings(&dir),
+        "--out",
+        out.to_str().unwrap(),
+        "--progress",
+        "json",
+        "--progress-interval",
+        "0",
+    ]);
+    let stderr = text(&written.stderr);
+    assert!(written.status.success(), "{stderr}");
+    let objects: Vec<Value> = stderr
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    for phase in ["output", "writing"] {
+        let of: Vec<&Value> = objects.iter().filter(|o| o["phase"] == phase).collect();
+        assert!(
+            of.iter().any(|o| o["total"] == 4 && o["done"] == 4),
+            "{phase}: {stderr}"
+        );
+        assert!(
+            of.iter().any(|o| o["done"].as_u64() > Some(0)
+                && o["done"] != o["total"]
+                && o["eta_s"].is_number()),
+            "{phase}: {stderr}"
+        );
+    }
+
     let quiet = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
     assert!(quiet.status.success());
     assert_eq!(text(&quiet.stderr), "", "--quiet prints nothing on stderr");
@@ -643,12 +707,30 @@ fn small_things() {
         stderr.contains("--height-bias must be a number ≥ 0, got -1"),
         "{stderr}"
     );
-    // "1 problem", not "1 problems".
+    // "1 problem", not "1 problems"; where the problems are is true
+    // whether or not a report is written.
     std::fs::write(dir.path().join(CHUNK), b"<root><model>").unwrap();
-    let out = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
-    let stderr = text(&out.stderr);
-    assert!(stderr.contains("; 1 problem (see"), "{stderr}");
-    assert!(!stderr.contains("1 problems"), "{stderr}");
+    let report = dir.path().join("report.json");
+    let kept = run(&["bake", &settings(&dir), "--keep-going", "--dry-run"]);
+    let refused = run(&[
+        "bake",
+        &settings(&dir),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert!(!report.exists(), "a refused bake writes no report");
+    for (out, said) in [
+        (kept, "; 1 problem (listed below), left out by --keep-going"),
+        (refused, "; 1 problem (listed below)\n"),
+    ] {
+        let stderr = text(&out.stderr);
+        assert!(stderr.contains(said), "{stderr}");
+        assert!(!stderr.contains("1 problems"), "{stderr}");
+        assert!(!stderr.contains("the report's"), "{stderr}");
+        let listed = stderr.split(said).nth(1).unwrap_or_default();
+        assert!(listed.contains("00000000o.chunk"), "{stderr}");
+    }
 }
 
 #[test]
