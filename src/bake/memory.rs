@@ -17,17 +17,20 @@ pub const PER_DISTINCT_TRIANGLE: u64 = 80;
 /// (f64 transform, chunk, index, flags) and its resource names and parts.
 pub const PER_INSTANCE: u64 = 290;
 /// Heap bytes per caster (primitive group or terrain block): the caster
-/// table and the per-part index.
-pub const PER_CASTER: u64 = 70;
+/// table's 20-byte entry (u32 owner indices, flags) and its share of the
+/// per-part index (34 bytes a part, 1.4 casters a part on `gen --chunks
+/// 20`).
+pub const PER_CASTER: u64 = 45;
 /// Heap bytes per placed part in a light's reach while its top level is
 /// built: the box (32), the obvhs build's temporaries (PLOC, BVH2,
 /// compressed-wide conversion: ~300) and the bake's part record (34).
 /// Once built, an entry holds 141 bytes (f64 inverse transform, node share).
 pub const PER_PART_IN_REACH: u64 = 370;
 /// Heap bytes per terrain height sample: the f32 sample (4) and its share
-/// of the min/max pyramid (2.6); hole flags add one byte per cell, only in
-/// blocks that have holes.
-pub const PER_HEIGHT_SAMPLE: f64 = 6.6;
+/// of the min/max pyramid (1.3: two u16 a 2×2-cell tile, a third more for
+/// the levels above); hole flags add one byte per cell, only in blocks
+/// that have holes.
+pub const PER_HEIGHT_SAMPLE: f64 = 5.3;
 /// Resident bytes per worker thread beyond the heap: its malloc arena's
 /// slack and the touched part of its stack (scratch hit lists and
 /// traversal stacks are a few kilobytes).
@@ -35,9 +38,11 @@ pub const PER_THREAD: u64 = 2 << 20;
 /// Resident bytes of a bake that holds nothing: the binary, its libraries,
 /// the main thread.
 pub const FIXED: u64 = 16 << 20;
-/// Peak resident set over peak heap: allocator slack and fragmentation
-/// (measured 1.25 on `gen --chunks 20`, 1.2 on `bench`).
-pub const RESIDENT_PER_HEAP: f64 = 1.25;
+/// Peak resident set over peak heap: allocator slack and fragmentation.
+/// The binary hands freed pages back at every phase (`malloc_trim`), so
+/// little is left: `gen --chunks 20` peaks at 125 MB of heap and 139–143 MB
+/// resident, of which 20 MB are [`FIXED`] and two threads.
+pub const RESIDENT_PER_HEAP: f64 = 1.05;
 
 /// What a world holds, as the memory model counts it.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
