@@ -12,7 +12,7 @@
 use super::casters::{CasterTable, PartCasters};
 use super::geometry;
 use super::ground::Ground;
-use super::trace_light::{LightRays, RayRules};
+use super::trace_light::{LightRays, RayRules, TileReach};
 use super::BakeConfig;
 use crate::classify::Passes;
 use crate::light::{GridError, TexelGrid};
@@ -146,6 +146,8 @@ pub struct LightSetup {
     pub reach: Reach,
     pub top: TopLevel,
     pub passes: Passes,
+    /// The tiles of the grid whose rays can hit anything in `top`.
+    pub tiles: TileReach,
     /// Wall time of finding the reach and of the top-level build.
     pub reach_seconds: f64,
     pub top_seconds: f64,
@@ -191,8 +193,10 @@ impl LightSetup {
         } else {
             Passes::AllOnly
         };
+        let tiles = TileReach::new(&grid, &top);
         Ok(LightSetup {
             index,
+            tiles,
             grid,
             reach,
             top,
@@ -237,6 +241,7 @@ impl LightSetup {
             casters: &world.casters,
             ground: world.ground.as_ref(),
             rules: RayRules::new(config, self.passes),
+            tiles: &self.tiles,
         }
     }
 

@@ -21,7 +21,9 @@
 //! [`super::bake_from`]), never in a shard.
 
 use super::setup::{BakeWorld, LightSetup, NoSetup};
-use super::trace_light::{tile_count, tile_rect, CasterSet, LightRays, RayCounter, TILE};
+use super::trace_light::{
+    tile_count, tile_rect, CasterSet, LightRays, RayCounter, TileReach, TILE,
+};
 use super::{grid_pass, BakeConfig, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
@@ -30,6 +32,7 @@ use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;
 use crate::trace::transform_box;
+use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -292,9 +295,30 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
         Some(transform_box(placed, min.as_dvec3(), max.as_dvec3()))
     });
     let block_boxes = scene.terrain.par_iter().map(|block| block.bounds());
-    let footprints: Vec<(usize, (f64, f64, f64, f64))> = part_boxes
+    let boxes: Vec<(DVec3, DVec3)> = part_boxes
         .chain(block_boxes)
         .filter(|&(min, max)| grid.reaches(min, max))
+        .collect();
+    // The tiles the bake does not trace (`TileReach`: outside the
+    // projection of the box of everything in reach) cost nothing.
+    let reference = grid.reference_point();
+    let union = boxes
+        .iter()
+        .fold(None, |acc: Option<(DVec3, DVec3)>, &(lo, hi)| {
+            Some(acc.map_or((lo, hi), |(min, max)| (min.min(lo), max.max(hi))))
+        });
+    let reach = TileReach::of_box(
+        grid,
+        union.map(|(min, max)| {
+            let magnitude = (min - reference)
+                .abs()
+                .max((max - reference).abs())
+                .max_element();
+            (min, max, magnitude)
+        }),
+    );
+    let footprints: Vec<(usize, (f64, f64, f64, f64))> = boxes
+        .into_par_iter()
         .flat_map_iter(|(min, max)| {
             (0..grid.faces())
                 .filter_map(move |face| grid.footprint(face, min, max).map(|rect| (face, rect)))
@@ -324,6 +348,9 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
         .enumerate()
         .map(|(t, area)| {
             let (_, x0, y0, x1, y1) = tile_rect(grid, t as u64);
+            if !reach.may_hit((x0, y0, x1, y1)) {
+                return 0;
+            }
             let texels = ((x1 - x0) * (y1 - y0)) as f64;
             let full = (area / texels).min(1.0);
             let per_ray = EMPTY_RAY_COST + (1.0 - EMPTY_RAY_COST) * full;

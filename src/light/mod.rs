@@ -543,6 +543,15 @@ impl TexelGrid {
         }
     }
 
+    /// A directional light's texel size in metres; `None` for spot and
+    /// point lights.
+    pub fn texel_size(&self) -> Option<f64> {
+        match &self.projection {
+            Projection::Orthographic { texel_size, .. } => Some(*texel_size),
+            Projection::Perspective { .. } => None,
+        }
+    }
+
     /// World point `p` on `face` in texel units (see
     /// [`Self::project_triangle`]), or `None` when it lies too near the
     /// light's plane (or behind it) for any ray of the face to reach it.

@@ -101,6 +101,9 @@ pub struct TopLevel {
     /// finite or beyond [`MAX_COORDINATE`], a transform that cannot be
     /// inverted).
     left_out_triangles: usize,
+    /// The box holding every entry's box (light-relative), `None` when
+    /// there is none.
+    bounds: Option<(Vec3, Vec3)>,
 }
 
 /// World box of a model-space box under `world`.
@@ -182,6 +185,10 @@ impl TopLevel {
             boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
             sources.push(Source::Block(placed));
         }
+        let bounds = boxes.iter().fold(None, |acc: Option<(Vec3, Vec3)>, b| {
+            let (lo, hi) = (Vec3::from(b.min), Vec3::from(b.max));
+            Some(acc.map_or((lo, hi), |(min, max)| (min.min(lo), max.max(hi))))
+        });
         let tree = BoxTree::build(&boxes, 1);
         drop(boxes);
         let entries = tree
@@ -200,6 +207,7 @@ impl TopLevel {
             entries,
             reference,
             left_out_triangles,
+            bounds,
         }
     }
 
@@ -213,6 +221,12 @@ impl TopLevel {
     }
 
     /// Triangles of parts and blocks that could not be placed.
+    /// The light-relative box holding everything a ray can hit (every
+    /// entry's box, each rounded outward), `None` when nothing can be hit.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        self.bounds
+    }
+
     pub fn left_out_triangles(&self) -> usize {
         self.left_out_triangles
     }

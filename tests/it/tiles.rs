@@ -80,3 +80,65 @@ fn tiles_give_every_light_the_single_ray_answers() {
         }
     }
 }
+
+#[test]
+fn tiles_outside_the_reach_are_skipped_and_lose_nothing() {
+    // A low sun over the small world: its grid covers the slanted
+    // projection of the world's box, whose corners hold no geometry.
+    use shadowcull::bake::trace_light::{tile_rect, TileReach};
+    let world = generate(Preset::Small, 5);
+    let dir = tempfile::tempdir().unwrap();
+    write_tree(dir.path(), &world.files).unwrap();
+    let settings_file = dir.path().join(SETTINGS_FILE);
+    let scene = load_world(&settings_file);
+    let settings = read_bake_settings(&settings_file).unwrap();
+    let baked = BakeWorld::new(&scene);
+    let mut skipped_somewhere = 0;
+    for (texel, offset, samples) in [
+        (0.3, (0.0, 0.0), 1),
+        (1.1, (0.37, 0.81), 1),
+        (0.45, (0.5, 0.0), 2),
+    ] {
+        let mut config = BakeConfig::from_settings(&settings);
+        config.grid_offset = offset;
+        for light in &mut config.lights {
+            if let LightKind::Directional {
+                texel_size,
+                direction,
+            } = &mut light.kind
+            {
+                *texel_size = texel;
+                *direction = glam::DVec3::new(-1.0, -0.35, 0.6);
+            }
+        }
+        let index = config
+            .lights
+            .iter()
+            .position(|l| matches!(l.kind, LightKind::Directional { .. }))
+            .unwrap();
+        let setup = LightSetup::new(&baked, &config, index).unwrap();
+        let skipping = setup.rays(&baked, &config);
+        let everything = TileReach::default();
+        let mut tracing_all = skipping;
+        tracing_all.tiles = &everything;
+        let tiles = skipping.tile_count();
+        let skipped = (0..tiles)
+            .filter(|&t| {
+                let (_, x0, y0, x1, y1) = tile_rect(&setup.grid, t);
+                !setup.tiles.may_hit((x0, y0, x1, y1))
+            })
+            .count();
+        skipped_somewhere += skipped;
+        let a = skipping.trace_tiles(0..tiles, samples, &NoCount);
+        let b = tracing_all.trace_tiles(0..tiles, samples, &NoCount);
+        assert_eq!(
+            a, b,
+            "{texel} m, offset {offset:?}: {skipped} of {tiles} tiles skipped"
+        );
+        assert!(!a.is_empty());
+    }
+    assert!(
+        skipped_somewhere > 0,
+        "the low sun's grid has empty corners"
+    );
+}
