@@ -62,6 +62,9 @@ pub struct CasterTable {
     pub first_of_instance: Vec<Option<u32>>,
     /// Per terrain block: its id.
     pub of_block: Vec<u32>,
+    /// The double-sided casters as bits of their ids (64 a word): the ones
+    /// face culling never drops (`trace::FaceCull`).
+    pub double_sided: Vec<u64>,
 }
 
 impl CasterTable {
@@ -112,6 +115,12 @@ impl CasterTable {
                 double_sided: false,
                 receiver_only: false,
             });
+        }
+        table.double_sided = vec![0; table.casters.len().div_ceil(64)];
+        for (id, caster) in table.casters.iter().enumerate() {
+            if caster.double_sided {
+                table.double_sided[id / 64] |= 1 << (id % 64);
+            }
         }
         table
     }

@@ -8,7 +8,7 @@ use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::{Hit, PacketScratch, TraceRay, Tracer};
+use crate::trace::{FaceCull, Hit, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -424,7 +424,7 @@ impl LightRays<'_> {
             list.clear();
         }
         self.tracer
-            .for_each_packet_hit(traced, scratch, |lane, hit| {
+            .for_each_packet_hit_culled(traced, scratch, &self.face_cull(), |lane, hit| {
                 self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
             });
         for (list, &limit) in hits.iter_mut().zip(limits.iter()) {
@@ -449,6 +449,19 @@ impl LightRays<'_> {
             *limit = limit.min(classify::cutoff(hits, rules.tie_epsilon, rules.passes));
         }
         *limit
+    }
+
+    /// The hits [`Self::filter_hit`] drops for their facing alone, for the
+    /// tracer to skip.
+    fn face_cull(&self) -> FaceCull<'_> {
+        FaceCull {
+            drops_back: match self.rules.face_culling {
+                FaceCulling::Back => Some(true),
+                FaceCulling::Front => Some(false),
+                FaceCulling::None => None,
+            },
+            either_face: &self.casters.double_sided,
+        }
     }
 
     /// A traced ray's kept hits up to its cut-off, classified.

@@ -84,6 +84,33 @@ impl TraceTriangle {
     }
 }
 
+/// The hits a caller drops for their facing alone (face culling), told to
+/// a packet traversal so that a packet of parallel rays can skip a
+/// triangle every one of whose hits would be dropped: one sign of facing
+/// holds for all parallel rays, except for a triangle within rounding of
+/// edge-on, which is tested as usual.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FaceCull<'a> {
+    /// `Some(true)`: back-facing hits are dropped, `Some(false)`: front
+    /// facing ones; `None`: none.
+    pub drops_back: Option<bool>,
+    /// Casters (bits of their ids, 64 a word) whose hits count on either
+    /// face (double-sided groups).
+    pub either_face: &'a [u64],
+}
+
+impl FaceCull<'_> {
+    /// Whether a hit of `caster` facing as `back_facing` is dropped.
+    #[inline]
+    pub fn drops(&self, caster: u32, back_facing: bool) -> bool {
+        let either = self
+            .either_face
+            .get(caster as usize / 64)
+            .is_some_and(|w| w & (1 << (caster % 64)) != 0);
+        self.drops_back == Some(back_facing) && !either
+    }
+}
+
 /// How a [`Tracer`] finds hits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TraceMode {
@@ -126,6 +153,18 @@ impl Tracer<'_> {
         &self,
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
+        on_hit: impl FnMut(usize, Hit) -> f32,
+    ) {
+        self.for_each_packet_hit_culled(rays, scratch, &FaceCull::default(), on_hit);
+    }
+
+    /// [`Self::for_each_packet_hit`] for a caller that drops the hits
+    /// `cull` says: those may not be reported (every other hit is).
+    pub fn for_each_packet_hit_culled(
+        &self,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        cull: &FaceCull,
         mut on_hit: impl FnMut(usize, Hit) -> f32,
     ) {
         if self.mode != TraceMode::Trees {
@@ -137,7 +176,7 @@ impl Tracer<'_> {
         for (k, packet) in rays.chunks(PACKET_RAYS).enumerate() {
             let first = k * PACKET_RAYS;
             self.top
-                .for_each_packet_hit(self.bottom, packet, scratch, &mut |lane, hit| {
+                .for_each_packet_hit(self.bottom, packet, scratch, cull, &mut |lane, hit| {
                     on_hit(first + lane, hit)
                 });
         }

@@ -17,7 +17,7 @@ use super::blas::BottomLevels;
 use super::heightfield::Step;
 use super::tlas::{Entry, TopLevel};
 use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
-use super::{Bvh, Hit, ToModel, TraceRay, TraceTriangle};
+use super::{Bvh, FaceCull, Hit, ToModel, TraceRay, TraceTriangle};
 use glam::Vec3;
 
 /// Rays of one packet at most (lane numbers are u8).
@@ -142,6 +142,45 @@ impl ShearPlane {
             outward(image[3], false),
         ];
         image.iter().all(|v| v.is_finite()).then_some(image)
+    }
+
+    /// Whether every ray of the plane that can hit `tri` meets it from
+    /// behind (`Some(true)`) or from the front (`Some(false)`), as the
+    /// watertight test judges each: the sign of the image's doubled area,
+    /// which is minus the test's determinant for every ray, when it is
+    /// beyond what rounding could change; `None` near edge-on. A ray that
+    /// can hit lies within `pad` of the image, so its sheared vertices are
+    /// within the image's extent (plus `pad`) of it, each off by `delta`
+    /// (a few ulps of the coordinates, up to `magnitude`, sheared); the
+    /// determinant sums three edge functions, each two products of such
+    /// coordinates, rounded to f32.
+    #[inline]
+    fn facing(&self, tri: &TraceTriangle, magnitude: f32, pad: f32) -> Option<bool> {
+        let [kx, ky, kz] = self.axes;
+        let (sx, sy) = (f64::from(self.sx), f64::from(self.sy));
+        let image = |v: Vec3| {
+            let a = v.to_array().map(f64::from);
+            (a[kx] - sx * a[kz], a[ky] - sy * a[kz])
+        };
+        let (a, b, c) = (
+            image(tri.vertices[0]),
+            image(tri.vertices[1]),
+            image(tri.vertices[2]),
+        );
+        let det = (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
+        let width = a.0.max(b.0).max(c.0) - a.0.min(b.0).min(c.0);
+        let height = a.1.max(b.1).max(c.1) - a.1.min(b.1).min(c.1);
+        let eps = f64::from(f32::EPSILON);
+        let extent = width + height + 2.0 * f64::from(pad);
+        let delta = 8.0 * eps * (1.0 + sx.abs() + sy.abs()) * 2.0 * f64::from(magnitude);
+        let bound =
+            4.0 * (6.0 * extent * delta + 3.0 * delta * delta + 3.0 * eps * extent * extent);
+        if !det.is_finite() || !bound.is_finite() || det.abs() <= bound {
+            return None;
+        }
+        // The test's determinant (the sum of its edge functions) is minus
+        // this area: front facing when it is positive.
+        Some(det > 0.0)
     }
 
     /// The groups (bits) whose box meets `tri`'s image grown by `pad`;
@@ -306,10 +345,18 @@ impl Frame {
         tri: &TraceTriangle,
         index: u32,
         t_max: &mut [f32],
+        cull: &Culled,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
         let selected = match &self.plane {
-            Some(plane) => plane.groups_near(tri, &self.group_boxes, self.plane_pad),
+            Some(plane) => {
+                let magnitude = self.magnitude.max(self.origin_max);
+                let facing = plane.facing(tri, magnitude, self.plane_pad);
+                if facing.is_some_and(|back| cull.drops(tri.caster, back)) {
+                    return;
+                }
+                plane.groups_near(tri, &self.group_boxes, self.plane_pad)
+            }
             None => ALL_GROUPS,
         };
         Lanes::candidates(&self.groups, tri, &mut self.masks, selected);
@@ -325,6 +372,20 @@ impl Frame {
                 });
             }
         }
+    }
+}
+
+/// The caller's face culling for the triangles of one frame, whose caster
+/// ids are `first_caster` plus the triangle's own.
+struct Culled<'c, 'a> {
+    cull: &'c FaceCull<'a>,
+    first_caster: u32,
+}
+
+impl Culled<'_, '_> {
+    #[inline]
+    fn drops(&self, caster: u32, back_facing: bool) -> bool {
+        self.cull.drops(self.first_caster + caster, back_facing)
     }
 }
 
@@ -346,6 +407,7 @@ impl TopLevel {
         bottom: &BottomLevels,
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
+        cull: &FaceCull,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
         assert!(
@@ -374,7 +436,7 @@ impl TopLevel {
         let mut widest = reach_of(light, t_max);
         self.tree.visit_beam(&mut beam, direction, |slot, beam| {
             let entry = &self.entries[slot];
-            self.entry_packet(bottom, entry, beam, light, model, t_max, on_hit);
+            self.entry_packet(bottom, entry, beam, light, model, t_max, cull, on_hit);
             // Settled rays leave; the beam shrinks with the rays' reach.
             let settled = light.retain_live(t_max);
             // Rebuilding costs a pass over the rays: only when the reach
@@ -414,6 +476,7 @@ impl TopLevel {
         light: &mut Frame,
         model: &mut Frame,
         t_max: &mut [f32],
+        cull: &FaceCull,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
         match *entry {
@@ -469,7 +532,8 @@ impl TopLevel {
                         },
                     )
                 };
-                bvh_packet(bvh, model, model_beam, t_max, &mut relay);
+                let cull = Culled { cull, first_caster };
+                bvh_packet(bvh, model, model_beam, t_max, &cull, &mut relay);
             }
             Entry::Block { block, caster } => {
                 // The top level's beam: its padding covers the tile
@@ -485,7 +549,11 @@ impl TopLevel {
                                 .into_iter()
                                 .flatten()
                             {
-                                light.triangle(&tri, index, t_max, on_hit);
+                                let cull = Culled {
+                                    cull,
+                                    first_caster: 0,
+                                };
+                                light.triangle(&tri, index, t_max, &cull, on_hit);
                             }
                         }
                         true
@@ -526,6 +594,7 @@ fn bvh_packet(
     model: &mut Frame,
     beam: Option<Beam>,
     t_max: &mut [f32],
+    cull: &Culled,
     on_hit: &mut impl FnMut(usize, Hit) -> f32,
 ) {
     if model.is_empty() {
@@ -541,7 +610,7 @@ fn bvh_packet(
     bvh.tree
         .visit_beam(&mut beam, model.direction(), |slot, _| {
             let (tri, index) = bvh.slot(slot);
-            model.triangle(tri, index, t_max, on_hit);
+            model.triangle(tri, index, t_max, cull, on_hit);
             true
         });
 }

@@ -1403,6 +1403,97 @@ mod two_level {
     }
 
     #[test]
+    fn culled_packets_report_every_hit_the_caller_keeps() {
+        // Face culling told to the packet traversal: parallel rays skip
+        // triangles every hit of which the caller would drop (back or front
+        // faces, not of double-sided casters); the hits left must be the
+        // single-ray hits the caller keeps, on rotated, scaled and mirrored
+        // instances, terrain, and grazing and axis-parallel directions.
+        instanced_tracer_check(|tracer, world| {
+            let mut rng = Rng::new(41);
+            let either: Vec<u64> = vec![0b1010_0000_0000_0000_0000_0000; 12];
+            let mut kept = 0;
+            for k in 0..90 {
+                let drops_back = [Some(true), Some(false), None][k % 3];
+                let cull = FaceCull {
+                    drops_back,
+                    either_face: &either,
+                };
+                let d = match k % 5 {
+                    0 => Vec3::NEG_Y,
+                    1 => Vec3::new(1.0, -0.05, 0.3),
+                    _ => Vec3::new(
+                        rng.range(-1.0, 1.0) as f32,
+                        rng.range(-1.0, -0.2) as f32,
+                        rng.range(-1.0, 1.0) as f32,
+                    ),
+                };
+                let c = Vec3::new(
+                    rng.range(-60.0, 60.0) as f32,
+                    rng.range(0.0, 10.0) as f32,
+                    rng.range(-60.0, 60.0) as f32,
+                );
+                let spacing = [0.05, 0.25, 1.0][k % 3];
+                let rays = parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0);
+                let mut got = vec![Vec::new(); rays.len()];
+                let mut scratch = PacketScratch::default();
+                tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, |lane, h| {
+                    if !cull.drops(h.caster, h.back_facing) {
+                        got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+                    }
+                    f32::INFINITY
+                });
+                for (ray, mut list) in rays.iter().zip(got) {
+                    list.sort();
+                    let mut want = hits(tracer, ray);
+                    want.retain(|&(_, caster, back, _)| !cull.drops(caster, back));
+                    assert_eq!(list, want, "ray {ray:?}, {drops_back:?}");
+                    kept += list.len();
+                }
+            }
+            assert!(kept > 2000, "{kept}");
+            // Nearly edge-on: rays along the cards' planes, tilted by
+            // 1e-7 to 1e-3 radians, through their centres.
+            for (k, part) in world_cards(world).enumerate().take(60) {
+                let along = part.world.transform_vector3(DVec3::X).normalize();
+                let normal = part
+                    .world
+                    .inverse()
+                    .transpose()
+                    .transform_vector3(DVec3::Y)
+                    .normalize();
+                let tilt = [1e-7, 1e-5, 1e-3][k % 3];
+                let d = (along + normal * tilt).normalize().as_vec3();
+                let centre = (part.world.transform_point3(DVec3::ZERO) - world.reference).as_vec3();
+                let cull = FaceCull {
+                    drops_back: [Some(true), Some(false)][k % 2],
+                    either_face: &either,
+                };
+                let rays = parallel_tile(centre - d * 20.0, d, 8, 0.01, 60.0);
+                let mut got = vec![Vec::new(); rays.len()];
+                let mut scratch = PacketScratch::default();
+                tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, |lane, h| {
+                    if !cull.drops(h.caster, h.back_facing) {
+                        got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+                    }
+                    f32::INFINITY
+                });
+                for (ray, mut list) in rays.iter().zip(got) {
+                    list.sort();
+                    let mut want = hits(tracer, ray);
+                    want.retain(|&(_, caster, back, _)| !cull.drops(caster, back));
+                    assert_eq!(list, want, "grazing ray {ray:?}");
+                }
+            }
+        });
+    }
+
+    /// The card instances (model 1) of an instanced world.
+    fn world_cards(world: &Instanced) -> impl Iterator<Item = &PlacedPart> {
+        world.parts.iter().filter(|p| p.model == 1)
+    }
+
+    #[test]
     fn segments_reaching_behind_their_origins_match_single_rays() {
         instanced_tracer_check(|tracer, _| {
             let mut seen = 0;
