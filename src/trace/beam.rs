@@ -54,14 +54,22 @@ impl Beam {
         // Any axis inside the cone of directions will do: their sum.
         let mut sum = DVec3::ZERO;
         let mut origin_max = 0.0f32;
+        let mut first: Option<Vec3> = None;
+        let mut parallel = true;
         for ray in rays.clone() {
             if !(ray.origin.is_finite() && ray.direction.is_finite()) || ray.t_min.is_nan() {
                 return None;
             }
             sum += ray.direction.as_dvec3();
             origin_max = origin_max.max(ray.origin.abs().max_element());
+            let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+            parallel &= first.is_none_or(|f| bits(f) == bits(ray.direction));
+            first.get_or_insert(ray.direction);
         }
         let axis = sum.try_normalize()?;
+        if parallel {
+            return Beam::parallel(rays, axis, first?, magnitude, origin_max);
+        }
         let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
         let (u, v) = perpendiculars(axis);
         // Each ray's direction and origin in the (u, v, axis) frame: the
@@ -124,6 +132,78 @@ impl Beam {
             limits[k] = loosen(side_max[k], n64[k], pad, scale);
         }
         // Caps along the axis: from the nearest start to the farthest end.
+        let axis32 = axis.as_vec3();
+        normals[4] = -axis32;
+        limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
+        normals[5] = axis32;
+        limits[5] = loosen(far, axis32.as_dvec3(), pad, scale);
+        Some(Beam {
+            normals,
+            limits,
+            pad,
+        })
+    }
+
+    /// [`Beam::new`] for rays that share their direction `direction` (a
+    /// directional light's packet, in any frame): the side planes' slopes
+    /// are the one direction's, so a single pass over the rays finds the
+    /// planes' offsets and the caps. The same planes as the general
+    /// construction, computed once instead of per ray.
+    fn parallel(
+        rays: impl Iterator<Item = TraceRay>,
+        axis: DVec3,
+        direction: Vec3,
+        magnitude: f32,
+        origin_max: f32,
+    ) -> Option<Beam> {
+        let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
+        let (u, v) = perpendiculars(axis);
+        let d = direction.as_dvec3();
+        let along = axis.dot(d);
+        if !(along > 0.0 && along * along > MIN_COSINE * MIN_COSINE * d.length_squared()) {
+            return None;
+        }
+        let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
+        let sides = [u, -u, v, -v];
+        let mut normals = [Vec3::ZERO; 6];
+        let mut n64 = [DVec3::ZERO; 4];
+        let mut behind_rate = [0.0f64; 4];
+        for (k, slope) in [su, -su, sv, -sv].into_iter().enumerate() {
+            let slope = slope + SLOPE_MARGIN * (1.0 + slope.abs());
+            normals[k] = (sides[k] - axis * slope).as_vec3();
+            n64[k] = normals[k].as_dvec3();
+            behind_rate[k] = n64[k].dot(d).min(0.0) * (1.0 + 1e-9);
+        }
+        let mut near = f64::INFINITY;
+        let mut far = f64::NEG_INFINITY;
+        let mut side_max = [f64::NEG_INFINITY; 4];
+        for ray in rays {
+            let o64 = ray.origin.as_dvec3();
+            let o = axis.dot(o64);
+            let t_min = f64::from(ray.t_min);
+            near = near.min(
+                o + if t_min.is_finite() {
+                    t_min * along
+                } else {
+                    f64::NEG_INFINITY
+                },
+            );
+            far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
+            let back = f64::from(ray.t_min.min(0.0));
+            for k in 0..4 {
+                let behind = if back < 0.0 {
+                    back * behind_rate[k]
+                } else {
+                    0.0
+                };
+                side_max[k] = side_max[k].max(n64[k].dot(o64) + behind);
+            }
+        }
+        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let mut limits = [0.0f32; 6];
+        for k in 0..4 {
+            limits[k] = loosen(side_max[k], n64[k], pad, scale);
+        }
         let axis32 = axis.as_vec3();
         normals[4] = -axis32;
         limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
