@@ -20,7 +20,7 @@ use super::trace_light::{CasterSet, LightRays, RayCounter};
 use super::{grid_pass, BakeConfig, BakeError, GridMode, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 use std::time::Instant;
 
 /// Tiles (32×32 texels) of each light traced to measure the ray rate.
@@ -158,7 +158,7 @@ impl GridSource for Plan {
     }
 }
 
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, serde::Serialize)]
 pub struct Plan {
     pub lights: Vec<LightPlan>,
     pub casters: usize,
@@ -174,10 +174,10 @@ pub struct Plan {
     kept: KeptSetup,
 }
 
-/// The setup a [`Plan`] keeps for the bake (shared by its clones: the
-/// first bake to ask takes it).
-#[derive(Clone, Default)]
-struct KeptSetup(Arc<Mutex<Option<LightSetup>>>);
+/// The setup a [`Plan`] keeps for the bake (the first bake to ask takes
+/// it; a `GridSource` is shared, hence the lock).
+#[derive(Default)]
+struct KeptSetup(Mutex<Option<LightSetup>>);
 
 impl std::fmt::Debug for KeptSetup {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -222,7 +222,7 @@ pub fn plan(
         calibration_seconds,
         estimated_seconds,
         estimated_peak_bytes,
-        kept: KeptSetup(Arc::new(Mutex::new(kept))),
+        kept: KeptSetup(Mutex::new(kept)),
     })
 }
 

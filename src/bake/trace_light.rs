@@ -8,6 +8,7 @@ use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
+use crate::trace::texel_beam::{self, Rect};
 use crate::trace::{FaceCull, Hit, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -128,78 +129,25 @@ impl TileReach {
         let origins = (grid.width().max(grid.height()) as f64 + 2.0) * texel;
         let rounding = 1024.0 * f64::from(f32::EPSILON) * (magnitude + origins) / texel;
         TileReach {
-            hull: Some(convex_hull(corners)),
+            hull: Some(texel_beam::convex_hull(corners)),
             margin: 1.0 + rounding,
         }
     }
 
-    /// Whether a ray of the texels `x0..x1 × y0..y1` can hit anything: the
-    /// rectangle meets the grown hull (separating axes: the rectangle's
-    /// two and the hull's edge normals).
+    /// Whether a ray of the texels `x0..x1 × y0..y1` can hit anything:
+    /// the rectangle, grown by the margin, meets the hull.
     pub fn may_hit(&self, (x0, y0, x1, y1): (u32, u32, u32, u32)) -> bool {
         let Some(hull) = &self.hull else {
             return true;
         };
-        if hull.is_empty() {
-            return false;
-        }
-        let m = self.margin;
-        let (x0, y0, x1, y1) = (
-            f64::from(x0) - m,
-            f64::from(y0) - m,
-            f64::from(x1) + m,
-            f64::from(y1) + m,
-        );
-        let (lo, hi) = hull.iter().fold(
-            (
-                (f64::INFINITY, f64::INFINITY),
-                (f64::NEG_INFINITY, f64::NEG_INFINITY),
-            ),
-            |(lo, hi), &(x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
-        );
-        if hi.0 < x0 || lo.0 > x1 || hi.1 < y0 || lo.1 > y1 {
-            return false;
-        }
-        let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)];
-        (0..hull.len()).all(|i| {
-            let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
-            // Counter-clockwise: inside is to the left of a→b.
-            let left = |p: (f64, f64)| (b.0 - a.0) * (p.1 - a.1) - (b.1 - a.1) * (p.0 - a.0);
-            corners.iter().any(|&p| left(p) >= 0.0)
-        })
-    }
-}
-
-/// The convex hull of `points`, counter-clockwise (Andrew's monotone
-/// chain); collinear points left out.
-fn convex_hull(mut points: Vec<(f64, f64)>) -> Vec<(f64, f64)> {
-    points.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
-    points.dedup();
-    if points.len() < 3 {
-        return points;
-    }
-    let cross = |o: (f64, f64), a: (f64, f64), b: (f64, f64)| {
-        (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0)
-    };
-    let mut hull: Vec<(f64, f64)> = Vec::with_capacity(2 * points.len());
-    for pass in 0..2 {
-        let start = hull.len();
-        let ordered: Box<dyn Iterator<Item = &(f64, f64)>> = if pass == 0 {
-            Box::new(points.iter())
-        } else {
-            Box::new(points.iter().rev())
+        let rect = Rect {
+            x0: f64::from(x0),
+            y0: f64::from(y0),
+            x1: f64::from(x1),
+            y1: f64::from(y1),
         };
-        for &p in ordered {
-            while hull.len() >= start + 2
-                && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0
-            {
-                hull.pop();
-            }
-            hull.push(p);
-        }
-        hull.pop();
+        texel_beam::overlaps_rect(hull, rect.grown(self.margin))
     }
-    hull
 }
 
 /// The rules a ray applies to its hits.
@@ -590,7 +538,7 @@ mod tests {
                     )
                 })
                 .collect();
-            let hull = convex_hull(points.clone());
+            let hull = texel_beam::convex_hull(points.clone());
             for p in &points {
                 assert!(
                     inside(&hull, *p) || hull.contains(p),

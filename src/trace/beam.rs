@@ -18,7 +18,7 @@
 
 use super::boxtree::PAD_EPSILONS;
 use super::{ToModel, TraceRay};
-use glam::{DVec3, Vec3};
+use glam::{DMat3, DVec3, Vec3};
 use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 
 /// A packet whose rays spread beyond this cosine from the central
@@ -41,6 +41,27 @@ pub(crate) struct Beam {
     /// Padding of the single-ray node test for these rays.
     #[cfg_attr(not(test), allow(dead_code))]
     pad: f32,
+}
+
+/// How far a packet's rays reach: the largest offset along each side
+/// normal, and the nearest start and farthest end along the axis.
+struct Extent {
+    side_max: [f64; 4],
+    near: f64,
+    far: f64,
+}
+
+/// The side planes' normals for the extreme slopes `slope_max` (along u,
+/// −u, v, −v over the axis), widened by the slope margin and rounded to
+/// f32 (kept in f64 for the offsets): n · d < 0 for every ray still (the
+/// margin exceeds the rounding), so each ray's points stay at or below its
+/// origin's n · o.
+fn side_normals(axis: DVec3, u: DVec3, v: DVec3, slope_max: [f64; 4]) -> [DVec3; 4] {
+    let sides = [u, -u, v, -v];
+    std::array::from_fn(|k| {
+        let slope = slope_max[k] + SLOPE_MARGIN * (1.0 + slope_max[k].abs());
+        (sides[k] - axis * slope).as_vec3().as_dvec3()
+    })
 }
 
 impl Beam {
@@ -98,17 +119,7 @@ impl Beam {
             );
             far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
         }
-        // Normals widened by the slope margin and rounded to f32: n · d < 0
-        // for every ray still (the margin exceeds the rounding), so each
-        // ray's points stay at or below its origin's n · o.
-        let sides = [u, -u, v, -v];
-        let mut normals = [Vec3::ZERO; 6];
-        let mut n64 = [DVec3::ZERO; 4];
-        for k in 0..4 {
-            let slope = slope_max[k] + SLOPE_MARGIN * (1.0 + slope_max[k].abs());
-            normals[k] = (sides[k] - axis * slope).as_vec3();
-            n64[k] = normals[k].as_dvec3();
-        }
+        let n64 = side_normals(axis, u, v, slope_max);
         let mut side_max = [f64::NEG_INFINITY; 4];
         for ray in rays {
             let o = ray.origin.as_dvec3();
@@ -124,24 +135,51 @@ impl Beam {
                 *m = m.max(n.dot(o) + behind);
             }
         }
+        let extent = Extent {
+            side_max,
+            near,
+            far,
+        };
+        Some(Beam::of_planes(
+            axis,
+            n64,
+            extent,
+            pad,
+            [magnitude, origin_max],
+        ))
+    }
+
+    /// The beam of side normals `n64` (from [`side_normals`]) and the rays'
+    /// `extent` along them and along `axis`, every plane loosened by the
+    /// padding and by the f32 error of box tests with coordinates up to the
+    /// sum of `magnitudes` (the boxes' and the origins').
+    fn of_planes(
+        axis: DVec3,
+        n64: [DVec3; 4],
+        extent: Extent,
+        pad: f32,
+        [boxes, origins]: [f32; 2],
+    ) -> Beam {
         // Where the box test's f32 dot products may err: a few ulps of
         // the largest coordinate involved.
-        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
+        let scale = f64::from(boxes) + f64::from(origins) + f64::from(pad);
+        let mut normals = [Vec3::ZERO; 6];
         let mut limits = [0.0f32; 6];
         for k in 0..4 {
-            limits[k] = loosen(side_max[k], n64[k], pad, scale);
+            normals[k] = n64[k].as_vec3();
+            limits[k] = loosen(extent.side_max[k], n64[k], pad, scale);
         }
         // Caps along the axis: from the nearest start to the farthest end.
         let axis32 = axis.as_vec3();
         normals[4] = -axis32;
-        limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
+        limits[4] = loosen(-extent.near, -axis32.as_dvec3(), pad, scale);
         normals[5] = axis32;
-        limits[5] = loosen(far, axis32.as_dvec3(), pad, scale);
-        Some(Beam {
+        limits[5] = loosen(extent.far, axis32.as_dvec3(), pad, scale);
+        Beam {
             normals,
             limits,
             pad,
-        })
+        }
     }
 
     /// [`Beam::new`] for rays that share their direction `direction` (a
@@ -164,16 +202,8 @@ impl Beam {
             return None;
         }
         let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
-        let sides = [u, -u, v, -v];
-        let mut normals = [Vec3::ZERO; 6];
-        let mut n64 = [DVec3::ZERO; 4];
-        let mut behind_rate = [0.0f64; 4];
-        for (k, slope) in [su, -su, sv, -sv].into_iter().enumerate() {
-            let slope = slope + SLOPE_MARGIN * (1.0 + slope.abs());
-            normals[k] = (sides[k] - axis * slope).as_vec3();
-            n64[k] = normals[k].as_dvec3();
-            behind_rate[k] = n64[k].dot(d).min(0.0) * (1.0 + 1e-9);
-        }
+        let n64 = side_normals(axis, u, v, [su, -su, sv, -sv]);
+        let behind_rate = n64.map(|n| n.dot(d).min(0.0) * (1.0 + 1e-9));
         let mut near = f64::INFINITY;
         let mut far = f64::NEG_INFINITY;
         let mut side_max = [f64::NEG_INFINITY; 4];
@@ -199,25 +229,23 @@ impl Beam {
                 side_max[k] = side_max[k].max(n64[k].dot(o64) + behind);
             }
         }
-        let scale = f64::from(magnitude) + f64::from(origin_max) + f64::from(pad);
-        let mut limits = [0.0f32; 6];
-        for k in 0..4 {
-            limits[k] = loosen(side_max[k], n64[k], pad, scale);
-        }
-        let axis32 = axis.as_vec3();
-        normals[4] = -axis32;
-        limits[4] = loosen(-near, -axis32.as_dvec3(), pad, scale);
-        normals[5] = axis32;
-        limits[5] = loosen(far, axis32.as_dvec3(), pad, scale);
-        Some(Beam {
-            normals,
-            limits,
+        let extent = Extent {
+            side_max,
+            near,
+            far,
+        };
+        Some(Beam::of_planes(
+            axis,
+            n64,
+            extent,
             pad,
-        })
+            [magnitude, origin_max],
+        ))
     }
 
     /// This beam mapped into an instance's model space, for rays mapped by
-    /// `to_model` (and rounded to f32 there) and boxes within `magnitude`
+    /// `to_model` (and rounded to f32 there; `world` is
+    /// [`ToModel::world_linear`]) and boxes within `magnitude`
     /// of the model's origin; `origin_max` bounds the mapped origins. A
     /// plane n · x <= c becomes (Wᵀn) · y <= c + (Wᵀn) · offset for the
     /// world-linear map W (y = L x + offset, W = L⁻¹). The model-space
@@ -227,11 +255,11 @@ impl Beam {
     pub(crate) fn to_model(
         &self,
         to_model: &ToModel,
+        world: DMat3,
         magnitude: f32,
         origin_max: f32,
     ) -> Option<Beam> {
-        let (linear, offset) = to_model.parts();
-        let world = linear.inverse();
+        let (_, offset) = to_model.parts();
         if !world.is_finite() {
             return None;
         }

@@ -250,6 +250,15 @@ impl BoxRay {
     /// test, for boxes that are not tree nodes: height-field tiles).
     #[inline(always)]
     pub(crate) fn touches(&self, min: Vec3, max: Vec3, t_lo: f32, t_hi: f32) -> bool {
+        self.span(min, max, t_lo, t_hi) != Span::Miss
+    }
+
+    /// The part of the segment `[t_lo, t_hi]` inside the box grown by the
+    /// padding, so a hit on anything inside the box has its t within it.
+    /// A NaN slab bounds nothing (the other axes still do); a NaN end of
+    /// the segment leaves it unbounded.
+    #[inline(always)]
+    pub(crate) fn span(&self, min: Vec3, max: Vec3, t_lo: f32, t_hi: f32) -> Span {
         let (mut t_near, mut t_far) = (t_lo, t_hi);
         for i in 0..3 {
             let (n, f) = if self.negative[i] {
@@ -267,33 +276,10 @@ impl BoxRay {
                 t_far = b;
             }
         }
-        t_near <= t_far || t_near.is_nan() || t_far.is_nan()
-    }
-
-    /// The part of the segment `[t_lo, t_hi]` inside the box grown by the
-    /// padding ([`Self::touches`]'s arithmetic), so a hit on anything
-    /// inside the box has its t within it.
-    #[inline(always)]
-    pub(crate) fn span(&self, min: Vec3, max: Vec3, t_lo: f32, t_hi: f32) -> Span {
-        let (mut t_near, mut t_far) = (t_lo, t_hi);
-        for i in 0..3 {
-            let (n, f) = if self.negative[i] {
-                (max[i], min[i])
-            } else {
-                (min[i], max[i])
-            };
-            let a = (n - self.origin_near[i]) * self.inv[i];
-            let b = (f - self.origin_far[i]) * self.inv[i];
-            if a.is_nan() || b.is_nan() {
-                return Span::Unbounded;
-            }
-            t_near = t_near.max(a);
-            t_far = t_far.min(b);
-        }
-        if t_near.is_nan() || t_far.is_nan() {
-            Span::Unbounded
-        } else if t_near <= t_far {
+        if t_near <= t_far {
             Span::Within(t_near, t_far)
+        } else if t_near.is_nan() || t_far.is_nan() {
+            Span::Unbounded
         } else {
             Span::Miss
         }

@@ -372,7 +372,7 @@ impl HeightField {
     /// cells of a block this way, where the pyramid tests a box per level
     /// and four per tile. `None` (nothing visited): the path crosses more
     /// than [`MAX_ROW_WALK_CELLS`] rows and columns (a grazing ray, where
-    /// the pyramid skips empty space), or a slab is NaN.
+    /// the pyramid skips empty space), or the span is unbounded (NaN).
     fn row_walk(
         &self,
         grid: &HeightGrid,

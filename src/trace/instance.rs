@@ -49,6 +49,12 @@ impl ToModel {
         (self.linear, self.offset)
     }
 
+    /// The inverse of the linear part: model space back to the light's
+    /// frame (computed on demand: an entry does not hold it).
+    pub(crate) fn world_linear(&self) -> DMat3 {
+        self.linear.inverse()
+    }
+
     /// The ray in model space, same t range.
     #[inline]
     pub fn ray(&self, ray: &TraceRay) -> TraceRay {

@@ -76,7 +76,8 @@ impl ShearPlane {
     }
 
     /// A bound on the difference between the test's sheared `v − o` and
-    /// `point(v) − point(o)` for coordinates up to `magnitude`: each side
+    /// `image(v) − point(o)` for coordinates up to `magnitude` (the f64
+    /// image of a vertex is nearer the truth than `point`'s): each side
     /// rounds a few times (a subtraction, a product, a subtraction) at most
     /// one ulp of `(1 + |sx| + |sy|)·magnitude` each; thirty-two of those
     /// (also covering a vertex a rounding beyond its tree's magnitude).
@@ -88,18 +89,19 @@ impl ShearPlane {
     /// ray (origin within `origin_max` of 0, t up to `reach`) that the
     /// model-space test can find a hit of inside the instance's model box
     /// `bounds`; `None` when it cannot be bounded (not finite). The model
-    /// box's corners are mapped back in f64; the padding bounds what the
+    /// box's corners are mapped back in f64 (`world`: the inverse of the
+    /// instance's linear part); the padding bounds what the
     /// mapping into model space and the model-space test round, grown by
     /// the conditioning of the instance's transform, four times over.
     fn instance_image(
         &self,
         to_model: &ToModel,
+        world: glam::DMat3,
         (min, max): (Vec3, Vec3),
         origin_max: f32,
         reach: f32,
     ) -> Option<[f32; 4]> {
         let (linear, offset) = to_model.parts();
-        let world = linear.inverse();
         let norm = |m: &glam::DMat3| {
             let rows = m.transpose();
             [rows.x_axis, rows.y_axis, rows.z_axis]
@@ -155,24 +157,14 @@ impl ShearPlane {
     /// determinant sums three edge functions, each two products of such
     /// coordinates, rounded to f32.
     #[inline]
-    fn facing(&self, tri: &TraceTriangle, magnitude: f32, pad: f32) -> Option<bool> {
-        let [kx, ky, kz] = self.axes;
-        let (sx, sy) = (f64::from(self.sx), f64::from(self.sy));
-        let image = |v: Vec3| {
-            let a = v.to_array().map(f64::from);
-            (a[kx] - sx * a[kz], a[ky] - sy * a[kz])
-        };
-        let (a, b, c) = (
-            image(tri.vertices[0]),
-            image(tri.vertices[1]),
-            image(tri.vertices[2]),
-        );
+    fn facing(&self, image: &TriangleImage, magnitude: f32, pad: f32) -> Option<bool> {
+        let [a, b, c] = image.points;
         let det = (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
-        let width = a.0.max(b.0).max(c.0) - a.0.min(b.0).min(c.0);
-        let height = a.1.max(b.1).max(c.1) - a.1.min(b.1).min(c.1);
+        let [x0, y0, x1, y1] = image.bounds;
         let eps = f64::from(f32::EPSILON);
-        let extent = width + height + 2.0 * f64::from(pad);
-        let delta = 8.0 * eps * (1.0 + sx.abs() + sy.abs()) * 2.0 * f64::from(magnitude);
+        let extent = (x1 - x0) + (y1 - y0) + 2.0 * f64::from(pad);
+        let shear = 1.0 + f64::from(self.sx).abs() + f64::from(self.sy).abs();
+        let delta = 8.0 * eps * shear * 2.0 * f64::from(magnitude);
         let bound =
             4.0 * (6.0 * extent * delta + 3.0 * delta * delta + 3.0 * eps * extent * extent);
         if !det.is_finite() || !bound.is_finite() || det.abs() <= bound {
@@ -183,27 +175,56 @@ impl ShearPlane {
         Some(det > 0.0)
     }
 
-    /// The groups (bits) whose box meets `tri`'s image grown by `pad`;
-    /// every group when the image is not finite.
+    /// The groups (bits) whose box meets the triangle's `image` grown by
+    /// `pad`; every group when the image is not finite.
     #[inline]
-    fn groups_near(&self, tri: &TraceTriangle, boxes: &[[f32; 4]], pad: f32) -> u64 {
-        let a = self.point(tri.vertices[0]);
-        let b = self.point(tri.vertices[1]);
-        let c = self.point(tri.vertices[2]);
-        let (x0, x1) = (a.0.min(b.0).min(c.0) - pad, a.0.max(b.0).max(c.0) + pad);
-        let (y0, y1) = (a.1.min(b.1).min(c.1) - pad, a.1.max(b.1).max(c.1) + pad);
+    fn groups_near(&self, image: &TriangleImage, boxes: &[[f32; 4]], pad: f32) -> u64 {
+        let pad = f64::from(pad);
+        let [x0, y0, x1, y1] = image.bounds;
+        let (x0, y0, x1, y1) = (x0 - pad, y0 - pad, x1 + pad, y1 + pad);
         let finite = x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite();
         if !finite || boxes.len() > 64 {
             return ALL_GROUPS;
         }
         let mut near = 0;
-        for (g, &[bx0, by0, bx1, by1]) in boxes.iter().enumerate() {
+        for (g, b) in boxes.iter().enumerate() {
+            let [bx0, by0, bx1, by1] = b.map(f64::from);
             if bx0 <= x1 && bx1 >= x0 && by0 <= y1 && by1 >= y0 {
                 near |= 1 << g;
             }
         }
         near
     }
+
+    /// The image of `tri` in the plane, in f64 (the products of f32 are
+    /// exact there, so it is nearer the truth than [`Self::point`]'s, which
+    /// the pads bound).
+    #[inline]
+    fn triangle_image(&self, tri: &TraceTriangle) -> TriangleImage {
+        let [kx, ky, kz] = self.axes;
+        let (sx, sy) = (f64::from(self.sx), f64::from(self.sy));
+        let points = tri.vertices.map(|v| {
+            let a = v.to_array().map(f64::from);
+            (a[kx] - sx * a[kz], a[ky] - sy * a[kz])
+        });
+        let [a, b, c] = points;
+        TriangleImage {
+            points,
+            bounds: [
+                a.0.min(b.0).min(c.0),
+                a.1.min(b.1).min(c.1),
+                a.0.max(b.0).max(c.0),
+                a.1.max(b.1).max(c.1),
+            ],
+        }
+    }
+}
+
+/// A triangle's image in a [`ShearPlane`] and its box `[x0, y0, x1, y1]`:
+/// made once per triangle, read by the facing and the groups tests.
+struct TriangleImage {
+    points: [(f64, f64); 3],
+    bounds: [f64; 4],
 }
 
 impl Frame {
@@ -350,12 +371,13 @@ impl Frame {
     ) {
         let selected = match &self.plane {
             Some(plane) => {
+                let image = plane.triangle_image(tri);
                 let magnitude = self.magnitude.max(self.origin_max);
-                let facing = plane.facing(tri, magnitude, self.plane_pad);
+                let facing = plane.facing(&image, magnitude, self.plane_pad);
                 if facing.is_some_and(|back| cull.drops(tri.caster, back)) {
                     return;
                 }
-                plane.groups_near(tri, &self.group_boxes, self.plane_pad)
+                plane.groups_near(&image, &self.group_boxes, self.plane_pad)
             }
             None => ALL_GROUPS,
         };
@@ -486,13 +508,14 @@ impl TopLevel {
                 to_model,
             } => {
                 let bvh = &bottom.models[index as usize];
+                let world = to_model.world_linear();
                 // Parallel rays: only those whose origin lies in the image
                 // of the instance's box in the shear plane can hit it.
                 let image = light.plane.zip(bvh.bounds()).and_then(|(plane, bounds)| {
                     // The longest stretch of a ray from its origin.
                     let behind = light.rays.iter().fold(0.0f32, |m, r| m.max(-r.t_min));
                     let reach = reach_of(light, t_max).max(behind);
-                    plane.instance_image(&to_model, bounds, light.origin_max, reach)
+                    plane.instance_image(&to_model, world, bounds, light.origin_max, reach)
                 });
                 let inside = |r: &TraceRay| {
                     let Some(([x0, y0, x1, y1], plane)) = image.zip(light.plane) else {
@@ -522,7 +545,8 @@ impl TopLevel {
                     }),
                     bvh.tree.magnitude,
                 );
-                let model_beam = beam.to_model(&to_model, bvh.tree.magnitude, model.origin_max);
+                let model_beam =
+                    beam.to_model(&to_model, world, bvh.tree.magnitude, model.origin_max);
                 let mut relay = |lane: usize, hit: Hit| {
                     on_hit(
                         lane,

@@ -1435,21 +1435,7 @@ mod two_level {
                 );
                 let spacing = [0.05, 0.25, 1.0][k % 3];
                 let rays = parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0);
-                let mut got = vec![Vec::new(); rays.len()];
-                let mut scratch = PacketScratch::default();
-                tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, |lane, h| {
-                    if !cull.drops(h.caster, h.back_facing) {
-                        got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
-                    }
-                    f32::INFINITY
-                });
-                for (ray, mut list) in rays.iter().zip(got) {
-                    list.sort();
-                    let mut want = hits(tracer, ray);
-                    want.retain(|&(_, caster, back, _)| !cull.drops(caster, back));
-                    assert_eq!(list, want, "ray {ray:?}, {drops_back:?}");
-                    kept += list.len();
-                }
+                kept += assert_culled_packets_agree(tracer, &rays, &cull);
             }
             assert!(kept > 2000, "{kept}");
             // Nearly edge-on: rays along the cards' planes, tilted by
@@ -1470,22 +1456,32 @@ mod two_level {
                     either_face: &either,
                 };
                 let rays = parallel_tile(centre - d * 20.0, d, 8, 0.01, 60.0);
-                let mut got = vec![Vec::new(); rays.len()];
-                let mut scratch = PacketScratch::default();
-                tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, |lane, h| {
-                    if !cull.drops(h.caster, h.back_facing) {
-                        got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
-                    }
-                    f32::INFINITY
-                });
-                for (ray, mut list) in rays.iter().zip(got) {
-                    list.sort();
-                    let mut want = hits(tracer, ray);
-                    want.retain(|&(_, caster, back, _)| !cull.drops(caster, back));
-                    assert_eq!(list, want, "grazing ray {ray:?}");
-                }
+                assert_culled_packets_agree(tracer, &rays, &cull);
             }
         });
+    }
+
+    /// The hits the packet traversal told `cull` reports for each ray of
+    /// `rays` (one packet) that the caller keeps are the single-ray hits it
+    /// keeps; returns how many.
+    fn assert_culled_packets_agree(tracer: &Tracer, rays: &[TraceRay], cull: &FaceCull) -> usize {
+        let mut got = vec![Vec::new(); rays.len()];
+        let mut scratch = PacketScratch::default();
+        tracer.for_each_packet_hit_culled(rays, &mut scratch, cull, |lane, h| {
+            if !cull.drops(h.caster, h.back_facing) {
+                got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+            }
+            f32::INFINITY
+        });
+        let mut kept = 0;
+        for (ray, mut list) in rays.iter().zip(got) {
+            list.sort();
+            let mut want = hits(tracer, ray);
+            want.retain(|&(_, caster, back, _)| !cull.drops(caster, back));
+            assert_eq!(list, want, "ray {ray:?}, {:?}", cull.drops_back);
+            kept += list.len();
+        }
+        kept
     }
 
     /// The card instances (model 1) of an instanced world.

@@ -78,6 +78,33 @@ pub fn inside_convex(polygon: &[Point], p: Point, tolerance: f64) -> bool {
     })
 }
 
+/// The convex hull of `points`, counter-clockwise (Andrew's monotone
+/// chain); collinear points left out, fewer than three points returned as
+/// they are (sorted, without repeats).
+pub fn convex_hull(mut points: Vec<Point>) -> Vec<Point> {
+    points.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+    points.dedup();
+    if points.len() < 3 {
+        return points;
+    }
+    let mut hull: Vec<Point> = Vec::with_capacity(2 * points.len());
+    // The lower chain left to right, then the upper one right to left.
+    for chain in [points.clone(), points.into_iter().rev().collect()] {
+        let start = hull.len();
+        for p in chain {
+            while hull.len() >= start + 2
+                && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0
+            {
+                hull.pop();
+            }
+            hull.push(p);
+        }
+        // Each chain's last point is the next chain's first.
+        hull.pop();
+    }
+    hull
+}
+
 /// Whether the convex `polygon` and `rect` share a point (separating axes:
 /// the rectangle's two and the polygon's edge normals).
 pub fn overlaps_rect(polygon: &[Point], rect: Rect) -> bool {

@@ -18,14 +18,27 @@ impl RayCounter for NoCount {
     fn add(&self, _: u64) {}
 }
 
-#[test]
-fn tiles_give_every_light_the_single_ray_answers() {
-    let world = generate(Preset::Small, 3);
+/// The `small` preset with `seed`, written to a temporary folder (kept
+/// alive by the first value) and loaded, with its settings.
+fn small_world(
+    seed: u64,
+) -> (
+    tempfile::TempDir,
+    shadowcull::scene::Scene,
+    shadowcull::formats::bake_settings::BakeSettings,
+) {
+    let world = generate(Preset::Small, seed);
     let dir = tempfile::tempdir().unwrap();
     write_tree(dir.path(), &world.files).unwrap();
     let settings_file = dir.path().join(SETTINGS_FILE);
     let scene = load_world(&settings_file);
     let settings = read_bake_settings(&settings_file).unwrap();
+    (dir, scene, settings)
+}
+
+#[test]
+fn tiles_give_every_light_the_single_ray_answers() {
+    let (_dir, scene, settings) = small_world(3);
     let baked = BakeWorld::new(&scene);
     for texel in [0.4, 2.0 * MAX_PACKET_SPACING] {
         let mut config = BakeConfig::from_settings(&settings);
@@ -86,12 +99,7 @@ fn tiles_outside_the_reach_are_skipped_and_lose_nothing() {
     // A low sun over the small world: its grid covers the slanted
     // projection of the world's box, whose corners hold no geometry.
     use shadowcull::bake::trace_light::{tile_rect, TileReach};
-    let world = generate(Preset::Small, 5);
-    let dir = tempfile::tempdir().unwrap();
-    write_tree(dir.path(), &world.files).unwrap();
-    let settings_file = dir.path().join(SETTINGS_FILE);
-    let scene = load_world(&settings_file);
-    let settings = read_bake_settings(&settings_file).unwrap();
+    let (_dir, scene, settings) = small_world(5);
     let baked = BakeWorld::new(&scene);
     let mut skipped_somewhere = 0;
     for (texel, offset, samples) in [
