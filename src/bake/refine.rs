@@ -34,7 +34,7 @@ use crate::formats::bake_settings::FaceCulling;
 use crate::light::TexelRay;
 use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
-use crate::trace::texel_beam::{self as beam, Point, Rect};
+use crate::trace::texel_beam::{self as beam, ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -130,6 +130,9 @@ impl Scratch {
 /// Rays traced together ([`Sampler::trace_batch`]): a packet's worth.
 const BATCH: usize = 64;
 
+/// Surface points traced before the others (see [`surface_points`]).
+const FIRST_POINTS: usize = 8;
+
 /// Traces refinement rays for one caster, recording what they prove.
 struct Sampler<'r, 'a> {
     rays: &'r LightRays<'a>,
@@ -197,7 +200,7 @@ fn surface_points(
     let grid = sampler.rays.grid;
     let reference = grid.reference_point();
     let mut rng = Rng::new(mix(((light as u64) << 32) | sampler.caster as u64));
-    let mut batch = Vec::with_capacity(BATCH);
+    let mut points = Vec::with_capacity(samples as usize);
     for _ in 0..samples {
         let pick = rng.unit() * total;
         let mut chosen = run.len() - 1;
@@ -210,13 +213,19 @@ fn surface_points(
             }
         }
         let p = reference + sample_point(&run[chosen], &mut rng);
-        batch.extend(grid.ray_toward(p));
-        if batch.len() == BATCH {
-            sampler.trace_batch(&batch);
-            batch.clear();
+        points.extend(grid.ray_toward(p));
+    }
+    // Most casters the points prove are proven by one of the first few:
+    // those go alone, and the rest only when they did not.
+    let (first, rest) = points.split_at(points.len().min(FIRST_POINTS));
+    if sampler.trace_batch(first) {
+        return;
+    }
+    for batch in rest.chunks(BATCH) {
+        if sampler.trace_batch(batch) {
+            return;
         }
     }
-    sampler.trace_batch(&batch);
 }
 
 /// Texels per side of the footprint's first cells.
@@ -232,6 +241,8 @@ const TOUCH: f64 = 1e-6;
 struct Footprint {
     face: usize,
     polygons: Vec<Vec<Point>>,
+    /// `polygons` grown by [`TOUCH`], for the lattice points' tests.
+    regions: Vec<Option<ConvexRegion>>,
     outline: Option<Vec<(Point, Point)>>,
     density: u32,
 }
@@ -277,6 +288,10 @@ fn footprint_lattice(
         });
         let footprint = Footprint {
             face,
+            regions: polygons
+                .iter()
+                .map(|p| ConvexRegion::new(p, TOUCH))
+                .collect(),
             polygons,
             outline,
             density,
@@ -354,6 +369,14 @@ struct Near<'f> {
 }
 
 impl Footprint {
+    /// Whether lattice point `p` lies on polygon `index` (within [`TOUCH`]).
+    #[inline]
+    fn touches(&self, index: u32, p: Point) -> bool {
+        self.regions[index as usize]
+            .as_ref()
+            .is_some_and(|region| region.contains(p))
+    }
+
     /// Samples the footprint cell by cell; true once the caster is proven
     /// useful.
     fn sample(&self, sampler: &mut Sampler<'_, '_>) -> bool {
@@ -419,8 +442,7 @@ impl Footprint {
         for j in j0..j0 + nj {
             for i in i0..i0 + ni {
                 let p = ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
-                let on = |&k: &u32| beam::inside_convex(&self.polygons[k as usize], p, TOUCH);
-                if polygons.iter().any(on) {
+                if polygons.iter().any(|&k| self.touches(k, p)) {
                     batch.push(grid.ray_through(self.face, p.0, p.1));
                 }
             }
@@ -446,10 +468,7 @@ impl Footprint {
         let grid = sampler.rays.grid;
         if ni == 1 && nj == 1 {
             let p = point(i0, j0);
-            let inside = near
-                .polygons
-                .iter()
-                .any(|&i| beam::inside_convex(&self.polygons[i as usize], p, TOUCH));
+            let inside = near.polygons.iter().any(|&i| self.touches(i, p));
             return inside && sampler.trace(&grid.ray_through(self.face, p.0, p.1)).0;
         }
         // What meets this cell, handed down so smaller cells test less.

@@ -64,18 +64,50 @@ fn cross(o: Point, a: Point, b: Point) -> f64 {
     (a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0)
 }
 
+/// A convex polygon (either winding) grown by a tolerance, ready for many
+/// point tests: each edge's direction and allowance are worked out once,
+/// and a point is tested with the same operations, in the same order, as
+/// the one-off test [`inside_convex`] (so the two agree bit for bit).
+#[derive(Debug, Clone)]
+pub struct ConvexRegion {
+    /// Per edge: its start, its direction (end − start), and how far
+    /// outside (a cross product, negative) a point may lie.
+    edges: Vec<(Point, Point, f64)>,
+    /// The winding's sign, so "inside" is a non-negative cross product.
+    sign: f64,
+}
+
+impl ConvexRegion {
+    /// `None` for a degenerate polygon (fewer than three points or no
+    /// area), which contains nothing.
+    pub fn new(polygon: &[Point], tolerance: f64) -> Option<ConvexRegion> {
+        let sign = signed_area2(polygon).signum();
+        if polygon.len() < 3 || sign == 0.0 || sign.is_nan() {
+            return None;
+        }
+        let edges = (0..polygon.len())
+            .map(|i| {
+                let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+                let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+                (a, (b.0 - a.0, b.1 - a.1), -tolerance * length)
+            })
+            .collect();
+        Some(ConvexRegion { edges, sign })
+    }
+
+    /// Whether `p` lies in the polygon or within the tolerance of it.
+    #[inline]
+    pub fn contains(&self, p: Point) -> bool {
+        self.edges.iter().all(|&(a, e, allowance)| {
+            self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance
+        })
+    }
+}
+
 /// Whether `p` lies in the convex `polygon` (either winding) or within
 /// `tolerance` texels of it.
 pub fn inside_convex(polygon: &[Point], p: Point, tolerance: f64) -> bool {
-    let sign = signed_area2(polygon).signum();
-    if polygon.len() < 3 || sign == 0.0 {
-        return false;
-    }
-    (0..polygon.len()).all(|i| {
-        let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
-        let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-        sign * cross(a, b, p) >= -tolerance * length
-    })
+    ConvexRegion::new(polygon, tolerance).is_some_and(|region| region.contains(p))
 }
 
 /// The convex hull of `points`, counter-clockwise (Andrew's monotone
