@@ -46,8 +46,9 @@
 //!   the shadow map), but a surface behind.
 //! - *Below ground*: candidates and surfaces behind ignore the rule (a hit
 //!   it might drop is kept); a non-terrain occluder counts only when its
-//!   lowest point is at least the highest terrain of every block under its
-//!   box minus heightBias, so no part of it can be dropped.
+//!   lowest point is at least the highest terrain sample of every cell
+//!   under its box minus heightBias, with 5 cm to spare for the rounding
+//!   of hit points (`Ground::at_most`), so no part of it can be dropped.
 //!
 //! Where it keeps more than a dense grid at every offset: a fragment is
 //! compared with its nearest point (a steep caster partly hidden counts as
@@ -69,38 +70,36 @@ use std::collections::HashMap;
 const GROW: f64 = 1e-7;
 
 /// One caster triangle as a face of the light sees it.
-struct Fragment {
-    caster: u32,
-    polygon: Vec<Point>,
+pub(super) struct Fragment {
+    pub(super) caster: u32,
+    pub(super) polygon: Vec<Point>,
     /// Depth as a function of image position: `w` (directional: t plus a
     /// constant) or `1/z` (perspective), affine.
-    depth: Affine,
+    pub(super) depth: Affine,
     /// Light-relative geometric normal of the kept side (perspective
     /// facing per texel).
-    normal: DVec3,
-    receiver_only: bool,
-    alpha_tested: bool,
+    pub(super) normal: DVec3,
+    pub(super) receiver_only: bool,
+    pub(super) alpha_tested: bool,
     /// Never dropped by the below-ground rule.
-    above_ground: bool,
-    /// Culled by facing for every ray (directional only).
-    culled: bool,
+    pub(super) above_ground: bool,
 }
 
 /// `value(x, y) = a + bx·x + by·y`.
 #[derive(Clone, Copy)]
-struct Affine {
+pub(super) struct Affine {
     a: f64,
     bx: f64,
     by: f64,
 }
 
 impl Affine {
-    fn at(&self, (x, y): Point) -> f64 {
+    pub(super) fn at(&self, (x, y): Point) -> f64 {
         self.a + self.bx * x + self.by * y
     }
 
     /// Through three points `(x, y, value)`; `None` when they are collinear.
-    fn through(p: [(f64, f64, f64); 3]) -> Option<Affine> {
+    pub(super) fn through(p: [(f64, f64, f64); 3]) -> Option<Affine> {
         let (x1, y1) = (p[1].0 - p[0].0, p[1].1 - p[0].1);
         let (x2, y2) = (p[2].0 - p[0].0, p[2].1 - p[0].1);
         let det = x1 * y2 - x2 * y1;
@@ -161,7 +160,7 @@ struct Source {
     casters: u32,
 }
 
-struct Light<'w, 'a> {
+pub(super) struct Light<'w, 'a> {
     world: &'w BakeWorld<'a>,
     setup: &'w LightSetup,
     grid: &'w TexelGrid,
@@ -171,24 +170,15 @@ struct Light<'w, 'a> {
     height_bias: f64,
     two_passes: bool,
     radius: f64,
-    /// Highest terrain per outdoor grid cell (chunk), for the below-ground
-    /// rule.
-    terrain_top: HashMap<(i32, i32), f64>,
 }
 
 impl<'w, 'a> Light<'w, 'a> {
-    fn new(
+    pub(super) fn new(
         world: &'w BakeWorld<'a>,
         setup: &'w LightSetup,
         rays: &'w LightRays<'w>,
         config: &BakeConfig,
     ) -> Self {
-        let scene = world.scene;
-        let terrain_top = scene
-            .chunks
-            .iter()
-            .filter_map(|c| Some((c.grid?, scene.terrain[c.terrain?].bounds().1.y)))
-            .collect();
         Light {
             world,
             setup,
@@ -199,8 +189,23 @@ impl<'w, 'a> Light<'w, 'a> {
             height_bias: config.height_bias,
             two_passes: setup.passes == crate::classify::Passes::AllAndOpaque,
             radius: config.filter_radius as f64,
-            terrain_top,
         }
+    }
+
+    pub(super) fn grid(&self) -> &'w TexelGrid {
+        self.grid
+    }
+
+    pub(super) fn setup(&self) -> &'w LightSetup {
+        self.setup
+    }
+
+    pub(super) fn world(&self) -> &'w BakeWorld<'a> {
+        self.world
+    }
+
+    pub(super) fn two_passes(&self) -> bool {
+        self.two_passes
     }
 
     /// Every part and block in reach, binned into the tiles its world box
@@ -271,7 +276,7 @@ impl<'w, 'a> Light<'w, 'a> {
             for caster in source.first_caster..source.first_caster + source.casters {
                 for t in self.setup.caster_triangles(self.world, caster) {
                     let vertices = t.vertices.map(|v| reference + v.as_dvec3());
-                    if let Some(fragment) = self.fragment(face, caster, vertices, area) {
+                    if let Some(fragment) = self.fragment(face, caster, vertices, Some(area)) {
                         out.push(fragment);
                     }
                 }
@@ -280,16 +285,34 @@ impl<'w, 'a> Light<'w, 'a> {
         out
     }
 
-    fn fragment(&self, face: usize, caster: u32, v: [DVec3; 3], area: Rect) -> Option<Fragment> {
-        let projected = self.grid.project_triangle_with_depth(face, v)?;
-        let polygon: Vec<Point> = projected.iter().map(|&(x, y, _)| (x, y)).collect();
-        if !beam::overlaps_rect(&polygon, area) {
-            return None;
-        }
+    /// Triangle `v` (world points) of `caster` on `face` if it meets
+    /// `area` (`None` for any area) and some ray of the face could hit its
+    /// kept side: a directional light's rays all see the same side, so a
+    /// triangle face culling drops is left out here.
+    pub(super) fn fragment(
+        &self,
+        face: usize,
+        caster: u32,
+        v: [DVec3; 3],
+        area: Option<Rect>,
+    ) -> Option<Fragment> {
         let info = &self.rays.casters.casters[caster as usize];
         let reference = self.grid.reference_point();
         let rel = v.map(|p| p - reference);
         let normal = (rel[1] - rel[0]).cross(rel[2] - rel[0]);
+        let culled = !info.double_sided
+            && self
+                .grid
+                .direction()
+                .is_some_and(|d| !self.kept_side(normal.dot(d)));
+        if culled {
+            return None;
+        }
+        let projected = self.grid.project_triangle_with_depth(face, v)?;
+        let polygon: Vec<Point> = projected.iter().map(|&(x, y, _)| (x, y)).collect();
+        if area.is_some_and(|area| !beam::overlaps_rect(&polygon, area)) {
+            return None;
+        }
         let perspective = self.grid.direction().is_none();
         // The largest triangle among the polygon's vertices fixes the
         // depth plane best (a clipped polygon has up to four).
@@ -311,11 +334,6 @@ impl<'w, 'a> Light<'w, 'a> {
             (x, y, if perspective { 1.0 / d } else { d })
         };
         let depth = Affine::through(corners.map(value))?;
-        let culled = !info.double_sided
-            && self
-                .grid
-                .direction()
-                .is_some_and(|d| !self.kept_side(normal.dot(d)));
         Some(Fragment {
             caster,
             polygon,
@@ -328,7 +346,6 @@ impl<'w, 'a> Light<'w, 'a> {
             receiver_only: info.receiver_only,
             alpha_tested: info.alpha_tested,
             above_ground: info.is_terrain() || self.surely_above_ground(&v),
-            culled,
         })
     }
 
@@ -478,27 +495,31 @@ impl<'w, 'a> Light<'w, 'a> {
         }
     }
 
-    /// No point of the triangle can be dropped by the below-ground test.
+    /// No point of the triangle can be dropped by the below-ground test:
+    /// its lowest point is at least the highest terrain under its box
+    /// minus heightBias, with [`ABOVE_GROUND_MARGIN`] to spare.
     fn surely_above_ground(&self, v: &[DVec3; 3]) -> bool {
-        if self.world.ground.is_none() {
+        let Some(ground) = &self.world.ground else {
             return true;
-        }
-        let size = self.world.scene.settings.chunk_size;
+        };
         let lowest = v.iter().map(|p| p.y).fold(f64::INFINITY, f64::min);
         let (lo, hi) = (v[0].min(v[1]).min(v[2]), v[0].max(v[1]).max(v[2]));
-        let cells = |a: f64, b: f64| (a / size).floor() as i64 - 1..=(b / size).floor() as i64;
         if !(lo.is_finite() && hi.is_finite()) {
             return false;
         }
-        let (xs, zs) = (cells(lo.x, hi.x), cells(lo.z, hi.z));
-        if xs.clone().count() * zs.clone().count() > 4096 {
-            return false;
-        }
-        zs.flat_map(|gz| xs.clone().map(move |gx| (gx, gz)))
-            .filter_map(|(gx, gz)| self.terrain_top.get(&(gx as i32, gz as i32)))
-            .all(|&top| lowest >= top - self.height_bias)
+        let level = lowest + self.height_bias - ABOVE_GROUND_MARGIN;
+        ground.at_most((lo.x, lo.z), (hi.x, hi.z), level, MOST_GROUND_CELLS)
     }
 }
+
+/// How far (metres) above "just not below ground" a triangle must lie to
+/// count as surely above it: a hit point is found from an `f32` distance,
+/// so it may lie a hair below the exact triangle.
+const ABOVE_GROUND_MARGIN: f64 = 0.05;
+
+/// Terrain cells a triangle's box may span before the below-ground test
+/// counts it as possibly dropped (its box is scanned cell by cell).
+const MOST_GROUND_CELLS: usize = 4096;
 
 /// One fragment within one beam.
 struct Part {
@@ -585,8 +606,8 @@ impl<'l, 'w, 'a> Beam<'l, 'w, 'a> {
             .iter()
             .map(|d| f.normal == DVec3::ZERO || self.light.kept_side(f.normal.dot(*d)))
             .collect();
-        let maybe_faced = !f.culled && (!self.perspective || facing.iter().any(|&k| k));
-        let surely_faced = !f.culled && facing.iter().all(|&k| k);
+        let maybe_faced = !self.perspective || facing.iter().any(|&k| k);
+        let surely_faced = facing.iter().all(|&k| k);
         if !maybe_faced {
             return None;
         }

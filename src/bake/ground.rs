@@ -123,6 +123,63 @@ impl<'a> Ground<'a> {
     }
 }
 
+impl Ground<'_> {
+    /// Whether H(x, z) ≤ `level` everywhere over the rectangle `[x0, x1] ×
+    /// [z0, z1]` (and so whether no point at or above `level` there can be
+    /// below ground), judged by the samples of every cell of every block
+    /// that meets it: each cell's surface lies between its corners'
+    /// heights. `false` for a rectangle that is not finite or that spans
+    /// more than `most_cells` cells of blocks higher than `level`.
+    pub fn at_most(
+        &self,
+        (x0, z0): (f64, f64),
+        (x1, z1): (f64, f64),
+        level: f64,
+        most_cells: usize,
+    ) -> bool {
+        if !(x0.abs() < 1e9 && z0.abs() < 1e9 && x1.abs() < 1e9 && z1.abs() < 1e9) {
+            return false;
+        }
+        let size = self.chunk_size;
+        let chunks = |a: f64, b: f64| (a / size).floor() as i64 - 1..=(b / size).floor() as i64;
+        let mut cells = 0;
+        for gz in chunks(z0, z1) {
+            for gx in chunks(x0, x1) {
+                let Some(block) = self.table.get(gx, gz) else {
+                    continue;
+                };
+                let block = &self.scene.terrain[block];
+                if block.bounds().1.y <= level {
+                    continue;
+                }
+                let (o, (sx, sz), (nx, nz)) = (block.origin(), block.spacing(), block.cells());
+                let span = |a: f64, b: f64, origin: f64, step: f64, n: usize| {
+                    let first = ((a - origin) / step).floor().max(0.0);
+                    let last = ((b - origin) / step).ceil().min(n as f64);
+                    (first <= last).then_some((first as usize, last as usize))
+                };
+                let (Some((ix0, ix1)), Some((iz0, iz1))) =
+                    (span(x0, x1, o.x, sx, nx), span(z0, z1, o.z, sz, nz))
+                else {
+                    continue;
+                };
+                cells += (ix1 - ix0 + 1) * (iz1 - iz0 + 1);
+                if cells > most_cells {
+                    return false;
+                }
+                for iz in iz0..=iz1 {
+                    for ix in ix0..=ix1 {
+                        if block.vertex_height(ix, iz).is_some_and(|h| o.y + h > level) {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -11,6 +11,7 @@ pub mod geometry;
 pub mod grid_pass;
 pub mod ground;
 pub mod memory;
+pub mod occlusion;
 pub mod output;
 pub mod refine;
 pub mod setup;

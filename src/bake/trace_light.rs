@@ -233,6 +233,14 @@ pub struct PacketState {
     scratch: PacketScratch,
 }
 
+impl PacketState {
+    /// The kept hits (up to each ray's cut-off, sorted) of the first
+    /// `rays` rays of the latest [`LightRays::trace_packet`].
+    pub fn hits(&self, rays: usize) -> &[Vec<RayHit>] {
+        &self.hits[..rays.min(self.hits.len())]
+    }
+}
+
 /// Everything one light's rays need: its grid, how to find hits, what the
 /// hits belong to, the ground and the rules. Made by
 /// [`super::setup::LightSetup::rays`]; the grid pass, refinement, the

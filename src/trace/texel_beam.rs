@@ -70,11 +70,13 @@ fn cross(o: Point, a: Point, b: Point) -> f64 {
 /// the one-off test [`inside_convex`] (so the two agree bit for bit).
 #[derive(Debug, Clone)]
 pub struct ConvexRegion {
-    /// Per edge: its start, its direction (end − start), and how far
-    /// outside (a cross product, negative) a point may lie.
-    edges: Vec<(Point, Point, f64)>,
+    /// Per edge: its start, its direction (end − start), how far outside
+    /// (a cross product, negative) a point may lie, and its length.
+    edges: Vec<(Point, Point, f64, f64)>,
     /// The winding's sign, so "inside" is a non-negative cross product.
     sign: f64,
+    /// A box holding every point the test accepts (a quick reject).
+    bounds: Rect,
 }
 
 impl ConvexRegion {
@@ -89,19 +91,110 @@ impl ConvexRegion {
             .map(|i| {
                 let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
                 let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-                (a, (b.0 - a.0, b.1 - a.1), -tolerance * length)
+                (a, (b.0 - a.0, b.1 - a.1), -tolerance * length, length)
             })
             .collect();
-        Some(ConvexRegion { edges, sign })
+        let bounds = grown_bounds(polygon, tolerance.max(0.0));
+        Some(ConvexRegion {
+            edges,
+            sign,
+            bounds,
+        })
+    }
+
+    /// Whether `p` lies within `extra` texels more than the tolerance of
+    /// the polygon (each edge moved out by `extra` more; no quick reject by
+    /// box, which does not hold the grown corners).
+    pub fn contains_grown(&self, p: Point, extra: f64) -> bool {
+        self.edges.iter().all(|&(a, e, allowance, length)| {
+            self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance - extra * length
+        })
+    }
+
+    /// A box holding every point [`Self::contains`] accepts.
+    pub fn bounds(&self) -> Rect {
+        self.bounds
     }
 
     /// Whether `p` lies in the polygon or within the tolerance of it.
     #[inline]
     pub fn contains(&self, p: Point) -> bool {
-        self.edges.iter().all(|&(a, e, allowance)| {
+        let b = self.bounds;
+        if !(p.0 >= b.x0 && p.0 <= b.x1 && p.1 >= b.y0 && p.1 <= b.y1) {
+            return false;
+        }
+        self.edges.iter().all(|&(a, e, allowance, _)| {
             self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance
         })
     }
+}
+
+/// A box holding convex `polygon` grown by `by` ≥ 0 (each edge moved out
+/// by `by`): the polygon's own box when `by` is 0, else the box of the
+/// moved edges' crossings, which reach out further than `by` at sharp
+/// corners; with a hair of slack for rounding; unbounded when two
+/// neighbouring edges are too near parallel to cross reliably.
+fn grown_bounds(polygon: &[Point], by: f64) -> Rect {
+    let everywhere = Rect {
+        x0: f64::NEG_INFINITY,
+        y0: f64::NEG_INFINITY,
+        x1: f64::INFINITY,
+        y1: f64::INFINITY,
+    };
+    let n = polygon.len();
+    if by == 0.0 {
+        let (lo, hi) = polygon.iter().fold(
+            (
+                (f64::INFINITY, f64::INFINITY),
+                (f64::NEG_INFINITY, f64::NEG_INFINITY),
+            ),
+            |(lo, hi), &(x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
+        );
+        let scale = lo.0.abs().max(lo.1.abs()).max(hi.0.abs()).max(hi.1.abs());
+        return Rect {
+            x0: lo.0,
+            y0: lo.1,
+            x1: hi.0,
+            y1: hi.1,
+        }
+        .grown(1e-9 * (1.0 + scale) + 1e-12);
+    }
+    let sign = signed_area2(polygon).signum();
+    // Outward unit normal and offset of edge i (from vertex i to i + 1).
+    let line = |i: usize| {
+        let (a, b) = (polygon[i], polygon[(i + 1) % n]);
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let length = (dx * dx + dy * dy).sqrt();
+        let normal = (sign * dy / length, -sign * dx / length);
+        (normal, normal.0 * a.0 + normal.1 * a.1 + by)
+    };
+    let mut bounds = Rect {
+        x0: f64::INFINITY,
+        y0: f64::INFINITY,
+        x1: f64::NEG_INFINITY,
+        y1: f64::NEG_INFINITY,
+    };
+    let mut scale: f64 = 0.0;
+    for i in 0..n {
+        let ((n1, c1), (n2, c2)) = (line((i + n - 1) % n), line(i));
+        let det = n1.0 * n2.1 - n1.1 * n2.0;
+        if det.is_nan() || det.abs() <= 1e-9 {
+            return everywhere;
+        }
+        let x = (c1 * n2.1 - c2 * n1.1) / det;
+        let y = (n1.0 * c2 - n2.0 * c1) / det;
+        bounds = Rect {
+            x0: bounds.x0.min(x),
+            y0: bounds.y0.min(y),
+            x1: bounds.x1.max(x),
+            y1: bounds.y1.max(y),
+        };
+        scale = scale.max(x.abs()).max(y.abs());
+    }
+    if !(bounds.x0 <= bounds.x1 && bounds.y0 <= bounds.y1) {
+        return everywhere;
+    }
+    bounds.grown(1e-9 * (1.0 + scale) + 1e-12)
 }
 
 /// Whether `p` lies in the convex `polygon` (either winding) or within
@@ -240,6 +333,18 @@ pub fn subtract(pieces: Vec<Vec<Point>>, cutter: &[Point]) -> Vec<Vec<Point>> {
                 break;
             }
             let (a, b) = (cutter[i], cutter[(i + 1) % cutter.len()]);
+            // Wholly on one side of the edge's line, the clips below would
+            // return the piece itself and nothing: skip their copies.
+            let sides = rest.iter().map(|&p| sign * cross(a, b, p));
+            if sides.clone().all(|d| d > 0.0) {
+                continue;
+            }
+            if sides.clone().all(|d| d < 0.0) {
+                if signed_area2(&rest).abs() * 0.5 > SLIVER {
+                    out.push(rest);
+                }
+                break;
+            }
             let outside = clip_half(&rest, a, b, -sign);
             if signed_area2(&outside).abs() * 0.5 > SLIVER {
                 out.push(outside);
@@ -289,5 +394,102 @@ mod tests {
         assert!(segment_meets_rect((-1.0, 0.5), (2.0, 0.5), SQUARE));
         assert!(!segment_meets_rect((-1.0, 1.5), (2.0, 1.5), SQUARE));
         assert!(!segment_meets_rect((1.2, 2.0), (2.0, 1.2), SQUARE));
+    }
+
+    /// `subtract` without its one-side shortcuts: the two clips per edge.
+    fn subtract_by_clipping(pieces: Vec<Vec<Point>>, cutter: &[Point]) -> Vec<Vec<Point>> {
+        let sign = signed_area2(cutter).signum();
+        if cutter.len() < 3 || sign == 0.0 {
+            return pieces;
+        }
+        let mut out = Vec::new();
+        for piece in pieces {
+            let mut rest = piece;
+            for i in 0..cutter.len() {
+                if rest.is_empty() {
+                    break;
+                }
+                let (a, b) = (cutter[i], cutter[(i + 1) % cutter.len()]);
+                let outside = clip_half(&rest, a, b, -sign);
+                if signed_area2(&outside).abs() * 0.5 > SLIVER {
+                    out.push(outside);
+                }
+                rest = clip_half(&rest, a, b, sign);
+            }
+        }
+        out
+    }
+
+    fn random_triangle(rng: &mut crate::rng::Rng, size: f64) -> Vec<Point> {
+        let c = (rng.range(-5.0, 5.0), rng.range(-5.0, 5.0));
+        (0..3)
+            .map(|_| (c.0 + rng.range(-size, size), c.1 + rng.range(-size, size)))
+            .collect()
+    }
+
+    #[test]
+    fn subtract_gives_what_clipping_every_edge_gives() {
+        let mut rng = crate::rng::Rng::new(3);
+        for _ in 0..2000 {
+            let pieces = vec![
+                random_triangle(&mut rng, 2.0),
+                random_triangle(&mut rng, 1.0),
+            ];
+            let cutter = random_triangle(&mut rng, 3.0);
+            assert_eq!(
+                subtract(pieces.clone(), &cutter),
+                subtract_by_clipping(pieces, &cutter)
+            );
+        }
+    }
+
+    #[test]
+    fn a_convex_region_box_holds_every_point_it_accepts() {
+        // Sharp triangles grown by a tolerance reach past their box grown
+        // by it at the corners; the region's box must still hold them.
+        let mut rng = crate::rng::Rng::new(8);
+        let mut accepted = 0;
+        for round in 0..3000 {
+            let mut polygon = random_triangle(&mut rng, 2.0);
+            if round % 2 == 0 {
+                // A needle: one vertex near the line through the others.
+                let (a, b) = (polygon[0], polygon[1]);
+                let t = rng.range(-0.5, 1.5);
+                polygon[2] = (
+                    a.0 + (b.0 - a.0) * t + rng.range(-1e-3, 1e-3),
+                    a.1 + (b.1 - a.1) * t + rng.range(-1e-3, 1e-3),
+                );
+            }
+            let tolerance = [0.0, 1e-6, 0.01, 0.3, -0.01][round % 5];
+            let Some(region) = ConvexRegion::new(&polygon, tolerance) else {
+                continue;
+            };
+            let b = region.bounds();
+            for _ in 0..40 {
+                let v = polygon[rng.below(3)];
+                let reach = tolerance.abs().max(1e-3) * 50.0;
+                let p = (
+                    v.0 + rng.range(-reach, reach),
+                    v.1 + rng.range(-reach, reach),
+                );
+                // The test without the box: every edge within the tolerance.
+                let by_edges = region.contains_grown(p, 0.0);
+                assert_eq!(
+                    region.contains(p),
+                    by_edges,
+                    "{polygon:?} {tolerance} {p:?}"
+                );
+                if by_edges {
+                    accepted += 1;
+                    assert!(
+                        p.0 >= b.x0 && p.0 <= b.x1 && p.1 >= b.y0 && p.1 <= b.y1,
+                        "{polygon:?} grown by {tolerance}: {p:?} outside {b:?}"
+                    );
+                }
+                // Growing further only adds points.
+                assert!(!by_edges || region.contains_grown(p, 0.05));
+            }
+        }
+        assert!(accepted > 5000, "{accepted}");
     }
 }

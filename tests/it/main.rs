@@ -10,6 +10,7 @@ mod hardening;
 mod memory;
 mod micro;
 mod nomiss;
+mod occlusion;
 mod packed_real;
 mod pipeline;
 mod primitives_real;

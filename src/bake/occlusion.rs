@@ -1,0 +1,204 @@
+//! Refinement's shortcut for hidden casters: a lattice ray need not be
+//! traced when geometry already known to lie on it surely keeps the
+//! refined caster out of its front set, for then that ray cannot prove the
+//! caster useful. On `bench` most of the rays refinement traced went to
+//! casters no ray ever proves (things under trees), and most of those rays
+//! stopped at two surfaces in front of the caster before reaching it.
+//!
+//! The known geometry is the casters that refinement's probe rays met
+//! (`refine`): their triangles, projected on the light's face, are tested
+//! at each lattice point with the refined caster's own. A point is
+//! *hidden* when, in every pass, some occluder triangle
+//! - contains it with [`INSIDE_MARGIN`] to spare from every edge (so the
+//!   ray surely crosses that triangle, whatever the tie rule does on its
+//!   edges and however the `f32` test rounds),
+//! - faces the light's rays (face culling) and is never dropped by the
+//!   below-ground test (`conservative::Light::surely_above_ground`),
+//! - belongs to a caster counted in the pass (not receiver-only; not
+//!   alpha-tested in the Opaque pass),
+//! - lies there more than ε (plus [`ROUNDING`]) nearer than every triangle
+//!   of the refined caster that could be hit through the point (within
+//!   refinement's touch tolerance):
+//!
+//! then the pass's nearest caster hit lies more than ε before any hit on
+//! the refined caster, which is therefore not in the front set. Directional
+//! lights only: refinement traces the whole lattice only for models under
+//! them, and their rays share one direction, so a triangle faces every ray
+//! alike and a depth along the light orders hits on one ray as t does.
+
+use super::conservative::{Fragment, Light};
+use super::setup::{BakeWorld, LightSetup};
+use super::trace_light::LightRays;
+use super::BakeConfig;
+use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
+
+/// How far inside (metres on the light's image plane) an occluder triangle
+/// must contain a lattice point to count: far more than the `f32` ray test
+/// can stray from the exact edges in any world the grid can hold.
+const INSIDE_MARGIN: f64 = 0.01;
+
+/// Beyond ε, how much nearer an occluder must be (metres, plus a part of
+/// the depth): a ray's t comes from `f32` light-relative coordinates.
+const ROUNDING: f64 = 1e-3;
+const ROUNDING_RELATIVE: f64 = 1e-5;
+
+/// One caster's hittable triangles as a directional light's face sees
+/// them, each with the region a lattice point must lie in to count.
+pub struct CasterImage {
+    triangles: Vec<ImageTriangle>,
+}
+
+struct ImageTriangle {
+    fragment: Fragment,
+    region: ConvexRegion,
+}
+
+/// The occlusion test of one directional light.
+pub struct Occlusion<'w, 'a> {
+    light: Light<'w, 'a>,
+    /// [`INSIDE_MARGIN`] in texels.
+    inside_margin: f64,
+    epsilon: f64,
+    /// The depths (as the images': t plus the rays' common constant) a
+    /// ray of the grid spans; an occluder outside them is not hit.
+    depths: (f64, f64),
+}
+
+impl<'w, 'a> Occlusion<'w, 'a> {
+    /// `None` for a spot or point light.
+    pub fn new(
+        world: &'w BakeWorld<'a>,
+        setup: &'w LightSetup,
+        rays: &'w LightRays<'w>,
+        config: &BakeConfig,
+    ) -> Option<Self> {
+        let direction = setup.grid.direction()?;
+        let texel = setup.grid.texel_size()?;
+        // Every ray of a directional grid starts on one plane across the
+        // light and spans the same t.
+        let ray = setup.grid.ray(0, 0, 0);
+        let start = ray.origin.dot(direction);
+        Some(Occlusion {
+            light: Light::new(world, setup, rays, config),
+            inside_margin: INSIDE_MARGIN / texel,
+            epsilon: config.tie_epsilon,
+            depths: (start + ray.t_min, start + ray.t_max),
+        })
+    }
+
+    /// [`INSIDE_MARGIN`] in texels: how far from a triangle a ray may
+    /// still hit it, for the refined caster's depth at a point (every
+    /// triangle whose box grown by this holds the point counts).
+    pub fn margin(&self) -> f64 {
+        self.inside_margin
+    }
+
+    /// Caster `caster`'s triangles on `face` that may hide others: those
+    /// every ray sees the kept side of and the below-ground test never
+    /// drops, each with the region (its polygon shrunk by
+    /// [`INSIDE_MARGIN`]) where rays surely cross it.
+    pub fn image(&self, face: usize, caster: u32) -> CasterImage {
+        let light = &self.light;
+        let reference = light.grid().reference_point();
+        let triangles = light
+            .setup()
+            .caster_triangles(light.world(), caster)
+            .iter()
+            .filter_map(|t| {
+                let vertices = t.vertices.map(|v| reference + v.as_dvec3());
+                let fragment = light.fragment(face, caster, vertices, None)?;
+                if !fragment.above_ground {
+                    return None;
+                }
+                let region = ConvexRegion::new(&fragment.polygon, -self.inside_margin)?;
+                Some(ImageTriangle { fragment, region })
+            })
+            .collect();
+        CasterImage { triangles }
+    }
+
+    /// For each point of `points` (texel units on the images' face), with
+    /// the refined caster's nearest depth there (`target_near`: the
+    /// least of its triangles' planes, as the images' depths, over those
+    /// that may be hit through the point; infinite where none): whether
+    /// `occluders` hide it (see the module docs). An alpha-tested caster
+    /// (`target_alpha`) is in no Opaque pass, so only the All pass counts.
+    pub fn hidden(
+        &self,
+        points: &[Point],
+        target_near: &[f64],
+        target_alpha: bool,
+        occluders: &[&CasterImage],
+    ) -> Vec<bool> {
+        let passes = if self.light.two_passes() && !target_alpha {
+            2
+        } else {
+            1
+        };
+        // Per point and pass, the nearest occluder's depth.
+        let mut cover = vec![[f64::INFINITY; 2]; points.len()];
+        let (first, last) = self.depths;
+        for image in occluders {
+            nearest(points, image, |k, t, depth| {
+                let margin = ROUNDING + ROUNDING_RELATIVE * depth.abs();
+                if t.fragment.receiver_only || depth < first + margin || depth > last - margin {
+                    return;
+                }
+                cover[k][0] = cover[k][0].min(depth);
+                if !t.fragment.alpha_tested {
+                    cover[k][1] = cover[k][1].min(depth);
+                }
+            });
+        }
+        (0..points.len())
+            .map(|k| {
+                let near = target_near[k];
+                let margin = self.epsilon + ROUNDING + ROUNDING_RELATIVE * near.abs();
+                // Not hittable there at all, or hidden in every pass where
+                // the target counts.
+                near == f64::INFINITY || (0..passes).all(|pass| cover[k][pass] < near - margin)
+            })
+            .collect()
+    }
+}
+
+/// Calls `found(k, triangle, depth)` for every point `k` of `points` that
+/// lies in a triangle's region, with the triangle's depth there.
+fn nearest(
+    points: &[Point],
+    image: &CasterImage,
+    mut found: impl FnMut(usize, &ImageTriangle, f64),
+) {
+    let Some(&first) = points.first() else {
+        return;
+    };
+    let all = points.iter().fold(
+        Rect {
+            x0: first.0,
+            y0: first.1,
+            x1: first.0,
+            y1: first.1,
+        },
+        |r, &(x, y)| Rect {
+            x0: r.x0.min(x),
+            y0: r.y0.min(y),
+            x1: r.x1.max(x),
+            y1: r.y1.max(y),
+        },
+    );
+    for t in &image.triangles {
+        let b = t.region.bounds();
+        if b.x0 > all.x1 || b.x1 < all.x0 || b.y0 > all.y1 || b.y1 < all.y0 {
+            continue;
+        }
+        for (k, &p) in points.iter().enumerate() {
+            if !t.region.contains(p) {
+                continue;
+            }
+            let depth = t.fragment.depth.at(p);
+            if depth.is_finite() {
+                found(k, t, depth);
+            }
+        }
+    }
+}
