@@ -81,8 +81,11 @@ pub(super) struct Fragment {
     pub(super) normal: DVec3,
     pub(super) receiver_only: bool,
     pub(super) alpha_tested: bool,
-    /// Never dropped by the below-ground rule.
-    pub(super) above_ground: bool,
+    /// The triangle (world points), for the below-ground rule.
+    pub(super) vertices: [DVec3; 3],
+    /// Never dropped by the below-ground rule: worked out when first asked
+    /// ([`Light::surely_above`]), since it scans the terrain under it.
+    pub(super) above_ground: std::cell::OnceCell<bool>,
 }
 
 /// `value(x, y) = a + bx·x + by·y`.
@@ -345,7 +348,8 @@ impl<'w, 'a> Light<'w, 'a> {
             },
             receiver_only: info.receiver_only,
             alpha_tested: info.alpha_tested,
-            above_ground: info.is_terrain() || self.surely_above_ground(&v),
+            vertices: v,
+            above_ground: std::cell::OnceCell::new(),
         })
     }
 
@@ -468,14 +472,14 @@ impl<'w, 'a> Light<'w, 'a> {
                     }
                     let o = &fragments[j as usize];
                     let Some(other) = other else { continue };
-                    if m == k || o.receiver_only || !counts(o) || !o.above_ground || !other.sure {
+                    if m == k || o.receiver_only || !counts(o) || !other.sure {
                         continue;
                     }
                     let over = beam::clip_to_rect(&o.polygon, polygon_rect(region));
                     let Some(far) = beam.far_depth(o, &over) else {
                         continue;
                     };
-                    if far < near_depth - self.epsilon {
+                    if far < near_depth - self.epsilon && self.surely_above(o) {
                         rest = beam::subtract(rest, &o.polygon);
                     }
                 }
@@ -493,6 +497,15 @@ impl<'w, 'a> Light<'w, 'a> {
             FaceCulling::Front => dot >= 0.0,
             FaceCulling::None => true,
         }
+    }
+
+    /// Whether no hit on fragment `f` can be dropped by the below-ground
+    /// test (terrain is never dropped).
+    pub(super) fn surely_above(&self, f: &Fragment) -> bool {
+        *f.above_ground.get_or_init(|| {
+            self.rays.casters.casters[f.caster as usize].is_terrain()
+                || self.surely_above_ground(&f.vertices)
+        })
     }
 
     /// No point of the triangle can be dropped by the below-ground test:

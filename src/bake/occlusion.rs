@@ -13,7 +13,7 @@
 //!   ray surely crosses that triangle, whatever the tie rule does on its
 //!   edges and however the `f32` test rounds),
 //! - faces the light's rays (face culling) and is never dropped by the
-//!   below-ground test (`conservative::Light::surely_above_ground`),
+//!   below-ground test (`conservative::Light::surely_above`),
 //! - belongs to a caster counted in the pass (not receiver-only; not
 //!   alpha-tested in the Opaque pass),
 //! - lies there more than ε (plus [`ROUNDING`]) nearer than every triangle
@@ -107,7 +107,7 @@ impl<'w, 'a> Occlusion<'w, 'a> {
             .filter_map(|t| {
                 let vertices = t.vertices.map(|v| reference + v.as_dvec3());
                 let fragment = light.fragment(face, caster, vertices, None)?;
-                if !fragment.above_ground {
+                if !light.surely_above(&fragment) {
                     return None;
                 }
                 let region = ConvexRegion::new(&fragment.polygon, -self.inside_margin)?;
