@@ -3,16 +3,13 @@
 //! every point it calls hidden from a caster must be one whose ray, traced
 //! in full, does not have that caster in its front set in any pass.
 
-use crate::generated::load_world;
+use crate::tiles::small_world;
 use glam::DVec3;
 use shadowcull::bake::occlusion::{CasterImage, Occlusion};
 use shadowcull::bake::setup::{BakeWorld, LightSetup};
 use shadowcull::bake::BakeConfig;
 use shadowcull::classify;
 use shadowcull::formats::bake_settings::LightKind;
-use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::write_tree;
-use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::rng::Rng;
 use std::collections::HashMap;
 
@@ -24,12 +21,7 @@ fn points_called_hidden_never_have_the_caster_in_front() {
         (7, DVec3::new(0.8, -0.45, -0.5)),
         (11, DVec3::new(0.05, -1.0, 0.0)),
     ] {
-        let world = generate(Preset::Small, seed);
-        let dir = tempfile::tempdir().unwrap();
-        write_tree(dir.path(), &world.files).unwrap();
-        let settings_file = dir.path().join(SETTINGS_FILE);
-        let scene = load_world(&settings_file);
-        let settings = read_bake_settings(&settings_file).unwrap();
+        let (_dir, scene, settings) = small_world(seed);
         let baked = BakeWorld::new(&scene);
         let mut config = BakeConfig::from_settings(&settings);
         let index = config

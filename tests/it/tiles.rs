@@ -20,7 +20,7 @@ impl RayCounter for NoCount {
 
 /// The `small` preset with `seed`, written to a temporary folder (kept
 /// alive by the first value) and loaded, with its settings.
-fn small_world(
+pub fn small_world(
     seed: u64,
 ) -> (
     tempfile::TempDir,
