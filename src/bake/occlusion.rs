@@ -16,9 +16,10 @@
 //!   below-ground test (`conservative::Light::surely_above`),
 //! - belongs to a caster counted in the pass (not receiver-only; not
 //!   alpha-tested in the Opaque pass),
-//! - lies there more than ε (plus [`ROUNDING`]) nearer than every triangle
-//!   of the refined caster that could be hit through the point (within
-//!   refinement's touch tolerance):
+//! - lies there within the rays' span and more than ε (plus [`ROUNDING`])
+//!   nearer than every triangle of the refined caster that could be hit
+//!   through the point (the caller's `target_near`: refinement takes every
+//!   triangle of the caster within [`INSIDE_MARGIN`] of the point):
 //!
 //! then the pass's nearest caster hit lies more than ε before any hit on
 //! the refined caster, which is therefore not in the front set. Directional
@@ -34,7 +35,8 @@ use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
 
 /// How far inside (metres on the light's image plane) an occluder triangle
 /// must contain a lattice point to count: far more than the `f32` ray test
-/// can stray from the exact edges in any world the grid can hold.
+/// (light-relative coordinates, about 1 mm off at 10 km) strays from the
+/// exact edges.
 const INSIDE_MARGIN: f64 = 0.01;
 
 /// Beyond ε, how much nearer an occluder must be (metres, plus a part of
