@@ -475,7 +475,14 @@ impl<'w, 'a> Light<'w, 'a> {
                     if m == k || o.receiver_only || !counts(o) || !other.sure {
                         continue;
                     }
-                    let over = beam::clip_to_rect(&o.polygon, polygon_rect(region));
+                    // Boxes apart: the clip below would be empty.
+                    let bounds = polygon_rect(region);
+                    let (lo, hi) = polygon_box(&o.polygon);
+                    if lo.0 > bounds.x1 || hi.0 < bounds.x0 || lo.1 > bounds.y1 || hi.1 < bounds.y0
+                    {
+                        continue;
+                    }
+                    let over = beam::clip_to_rect(&o.polygon, bounds);
                     let Some(far) = beam.far_depth(o, &over) else {
                         continue;
                     };
