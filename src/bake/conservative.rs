@@ -378,7 +378,7 @@ impl<'w, 'a> Light<'w, 'a> {
         let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
         let mut near: Vec<Vec<u32>> = vec![Vec::new(); w * h];
         for (index, fragment) in fragments.iter().enumerate() {
-            let (lo, hi) = polygon_box(&fragment.polygon);
+            let (lo, hi) = beam::bounds(fragment.polygon.iter().copied());
             let reach = self.radius + GROW;
             let xs = ((lo.0 - reach).floor().max(x0 as f64) as u32)
                 ..((hi.0 + reach).ceil().min(x1 as f64) as u32).max(x0);
@@ -476,10 +476,8 @@ impl<'w, 'a> Light<'w, 'a> {
                         continue;
                     }
                     // Boxes apart: the clip below would be empty.
-                    let bounds = polygon_rect(region);
-                    let (lo, hi) = polygon_box(&o.polygon);
-                    if lo.0 > bounds.x1 || hi.0 < bounds.x0 || lo.1 > bounds.y1 || hi.1 < bounds.y0
-                    {
+                    let bounds = Rect::around(region.iter().copied());
+                    if !Rect::around(o.polygon.iter().copied()).meets(bounds) {
                         continue;
                     }
                     let over = beam::clip_to_rect(&o.polygon, bounds);
@@ -662,25 +660,5 @@ impl<'l, 'w, 'a> Beam<'l, 'w, 'a> {
             far_wide: wide_hi * self.stretch,
             sure,
         })
-    }
-}
-
-fn polygon_box(polygon: &[Point]) -> (Point, Point) {
-    polygon.iter().fold(
-        (
-            (f64::INFINITY, f64::INFINITY),
-            (f64::NEG_INFINITY, f64::NEG_INFINITY),
-        ),
-        |(lo, hi), &(x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
-    )
-}
-
-fn polygon_rect(polygon: &[Point]) -> Rect {
-    let (lo, hi) = polygon_box(polygon);
-    Rect {
-        x0: lo.0,
-        y0: lo.1,
-        x1: hi.0,
-        y1: hi.1,
     }
 }

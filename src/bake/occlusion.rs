@@ -171,26 +171,12 @@ fn nearest(
     image: &CasterImage,
     mut found: impl FnMut(usize, &ImageTriangle, f64),
 ) {
-    let Some(&first) = points.first() else {
+    if points.is_empty() {
         return;
-    };
-    let all = points.iter().fold(
-        Rect {
-            x0: first.0,
-            y0: first.1,
-            x1: first.0,
-            y1: first.1,
-        },
-        |r, &(x, y)| Rect {
-            x0: r.x0.min(x),
-            y0: r.y0.min(y),
-            x1: r.x1.max(x),
-            y1: r.y1.max(y),
-        },
-    );
+    }
+    let all = Rect::around(points.iter().copied());
     for t in &image.triangles {
-        let b = t.region.bounds();
-        if b.x0 > all.x1 || b.x1 < all.x0 || b.y0 > all.y1 || b.y1 < all.y0 {
+        if !t.region.bounds().meets(all) {
             continue;
         }
         for (k, &p) in points.iter().enumerate() {

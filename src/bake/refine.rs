@@ -45,7 +45,7 @@ use crate::formats::bake_settings::FaceCulling;
 use crate::light::TexelRay;
 use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
-use crate::trace::texel_beam::{self as beam, ConvexRegion, Point, Rect};
+use crate::trace::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -440,14 +440,7 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
 /// A projected triangle's box grown by `margin` and the plane of its
 /// depths (a directional light's: t plus a constant), if it has one.
 fn depth_plane(projected: &[(f64, f64, f64)], margin: f64) -> (Rect, Option<Affine>) {
-    let (lo, hi) = bounds(projected.iter().map(|&(x, y, _)| (x, y)));
-    let rect = Rect {
-        x0: lo.0,
-        y0: lo.1,
-        x1: hi.0,
-        y1: hi.1,
-    }
-    .grown(margin);
+    let rect = Rect::around(projected.iter().map(|&(x, y, _)| (x, y))).grown(margin);
     let plane = match projected {
         [a, b, c] => Affine::through([*a, *b, *c]),
         _ => None,
@@ -565,7 +558,7 @@ impl Footprint {
             }
         }
         for (index, &(a, b)) in self.outline.iter().flatten().enumerate() {
-            let (lo, hi) = bounds([a, b].into_iter());
+            let (lo, hi) = bounds([a, b]);
             for cy in span(lo.1, hi.1, cells_y) {
                 for cx in span(lo.0, hi.0, cells_x) {
                     if let Some(bin) = bins.get_mut(&(cy, cx)) {
@@ -655,11 +648,11 @@ impl Footprint {
         if self.planes.is_empty() || points.is_empty() {
             return vec![f64::NEG_INFINITY; points.len()];
         }
-        let (lo, hi) = bounds(points.iter().copied());
+        let all = Rect::around(points.iter().copied());
         let mut near = vec![f64::INFINITY; points.len()];
         for &k in polygons {
             let ((b, plane), region) = (&self.planes[k as usize], &self.regions[k as usize]);
-            if b.x0 > hi.0 || b.x1 < lo.0 || b.y0 > hi.1 || b.y1 < lo.1 {
+            if !b.meets(all) {
                 continue;
             }
             for (n, &p) in near.iter_mut().zip(points) {
@@ -713,12 +706,12 @@ impl Footprint {
         let grown = rect.grown(TOUCH);
         let meets = |&i: &u32| match self.outline {
             None => {
-                let near = |b: Rect| {
-                    b.x0 <= rect.x1 && b.x1 >= rect.x0 && b.y0 <= rect.y1 && b.y1 >= rect.y0
-                };
                 let region = &self.regions[i as usize];
-                region.as_ref().is_some_and(|r| near(r.bounds()))
-                    || self.planes.get(i as usize).is_some_and(|&(b, _)| near(b))
+                region.as_ref().is_some_and(|r| r.bounds().meets(rect))
+                    || self
+                        .planes
+                        .get(i as usize)
+                        .is_some_and(|&(b, _)| b.meets(rect))
             }
             Some(_) => beam::overlaps_rect(&self.polygons[i as usize], grown),
         };
@@ -774,17 +767,6 @@ impl Footprint {
         }
         false
     }
-}
-
-/// The smallest and largest coordinates of `points`.
-fn bounds(points: impl Iterator<Item = Point>) -> (Point, Point) {
-    points.fold(
-        (
-            (f64::INFINITY, f64::INFINITY),
-            (f64::NEG_INFINITY, f64::NEG_INFINITY),
-        ),
-        |(lo, hi), (x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
-    )
 }
 
 fn area(triangle: &TraceTriangle) -> f64 {

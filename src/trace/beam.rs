@@ -51,6 +51,54 @@ struct Extent {
     far: f64,
 }
 
+impl Extent {
+    fn empty() -> Extent {
+        Extent {
+            side_max: [f64::NEG_INFINITY; 4],
+            near: f64::INFINITY,
+            far: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Widens the extent to hold `ray`'s segment, given `along` = axis · d
+    /// and `n_dot_d` = n · d for the side normals `n64` (the caller's, once
+    /// per ray or once for a packet sharing one direction).
+    fn add(
+        &mut self,
+        ray: &TraceRay,
+        axis: DVec3,
+        along: f64,
+        n64: &[DVec3; 4],
+        n_dot_d: [f64; 4],
+        pad: f32,
+    ) {
+        let o64 = ray.origin.as_dvec3();
+        let o = axis.dot(o64);
+        let t_min = f64::from(ray.t_min);
+        self.near = self.near.min(
+            o + if t_min.is_finite() {
+                t_min * along
+            } else {
+                f64::NEG_INFINITY
+            },
+        );
+        self.far = self
+            .far
+            .max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
+        // A segment starting behind its origin (t_min < 0) reaches back
+        // past n · o by |t_min| · |n · d|.
+        let back = f64::from(ray.t_min.min(0.0));
+        for k in 0..4 {
+            let behind = if back < 0.0 {
+                back * n_dot_d[k].min(0.0) * (1.0 + 1e-9)
+            } else {
+                0.0
+            };
+            self.side_max[k] = self.side_max[k].max(n64[k].dot(o64) + behind);
+        }
+    }
+}
+
 /// The side planes' normals for the extreme slopes `slope_max` (along u,
 /// −u, v, −v over the axis), widened by the slope margin and rounded to
 /// f32 (kept in f64 for the offsets): n · d < 0 for every ray still (the
@@ -93,11 +141,9 @@ impl Beam {
         }
         let pad = PAD_EPSILONS * f32::EPSILON * (magnitude + origin_max) + 1e-30;
         let (u, v) = perpendiculars(axis);
-        // Each ray's direction and origin in the (u, v, axis) frame: the
-        // side planes' slopes are the extreme ratios u·d / axis·d.
+        // Each ray's direction in the (u, v, axis) frame: the side planes'
+        // slopes are the extreme ratios u·d / axis·d.
         let mut slope_max = [f64::NEG_INFINITY; 4];
-        let mut near = f64::INFINITY;
-        let mut far = f64::NEG_INFINITY;
         for ray in rays.clone() {
             let d = ray.direction.as_dvec3();
             let along = axis.dot(d);
@@ -108,38 +154,14 @@ impl Beam {
             for (m, s) in slope_max.iter_mut().zip([su, -su, sv, -sv]) {
                 *m = m.max(s);
             }
-            let o = axis.dot(ray.origin.as_dvec3());
-            let t_min = f64::from(ray.t_min);
-            near = near.min(
-                o + if t_min.is_finite() {
-                    t_min * along
-                } else {
-                    f64::NEG_INFINITY
-                },
-            );
-            far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
         }
         let n64 = side_normals(axis, u, v, slope_max);
-        let mut side_max = [f64::NEG_INFINITY; 4];
+        let mut extent = Extent::empty();
         for ray in rays {
-            let o = ray.origin.as_dvec3();
-            // A segment starting behind its origin (t_min < 0) reaches
-            // back past n · o by |t_min| · |n · d|.
-            let back = f64::from(ray.t_min.min(0.0));
-            for (m, n) in side_max.iter_mut().zip(&n64) {
-                let behind = if back < 0.0 {
-                    back * n.dot(ray.direction.as_dvec3()).min(0.0) * (1.0 + 1e-9)
-                } else {
-                    0.0
-                };
-                *m = m.max(n.dot(o) + behind);
-            }
+            let d = ray.direction.as_dvec3();
+            let n_dot_d = n64.map(|n| n.dot(d));
+            extent.add(&ray, axis, axis.dot(d), &n64, n_dot_d, pad);
         }
-        let extent = Extent {
-            side_max,
-            near,
-            far,
-        };
         Some(Beam::of_planes(
             axis,
             n64,
@@ -203,37 +225,11 @@ impl Beam {
         }
         let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
         let n64 = side_normals(axis, u, v, [su, -su, sv, -sv]);
-        let behind_rate = n64.map(|n| n.dot(d).min(0.0) * (1.0 + 1e-9));
-        let mut near = f64::INFINITY;
-        let mut far = f64::NEG_INFINITY;
-        let mut side_max = [f64::NEG_INFINITY; 4];
+        let n_dot_d = n64.map(|n| n.dot(d));
+        let mut extent = Extent::empty();
         for ray in rays {
-            let o64 = ray.origin.as_dvec3();
-            let o = axis.dot(o64);
-            let t_min = f64::from(ray.t_min);
-            near = near.min(
-                o + if t_min.is_finite() {
-                    t_min * along
-                } else {
-                    f64::NEG_INFINITY
-                },
-            );
-            far = far.max(o + f64::from(node_t_max(ray.t_max, pad)) * along);
-            let back = f64::from(ray.t_min.min(0.0));
-            for k in 0..4 {
-                let behind = if back < 0.0 {
-                    back * behind_rate[k]
-                } else {
-                    0.0
-                };
-                side_max[k] = side_max[k].max(n64[k].dot(o64) + behind);
-            }
+            extent.add(&ray, axis, along, &n64, n_dot_d, pad);
         }
-        let extent = Extent {
-            side_max,
-            near,
-            far,
-        };
         Some(Beam::of_planes(
             axis,
             n64,

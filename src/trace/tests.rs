@@ -1175,6 +1175,33 @@ mod two_level {
 
     /// A directional light's tile: `n`×`n` parallel rays along `d`, from a
     /// plane through `centre` perpendicular to d, `spacing` apart.
+    /// Tile `k` of a seeded series: 8×8 parallel rays along `fixed[k]` or,
+    /// for the next three k of each cycle, a random downward direction,
+    /// centred at a random point within ±`reach` (x, z) and 0..`height`
+    /// (y), 0.05, 0.25 or 1 m apart, starting 40 m back.
+    fn random_parallel_tile(
+        rng: &mut Rng,
+        k: usize,
+        fixed: &[Vec3],
+        (reach, height): (f64, f64),
+    ) -> Vec<TraceRay> {
+        let d = match k % (fixed.len() + 3) {
+            i if i < fixed.len() => fixed[i],
+            _ => Vec3::new(
+                rng.range(-1.0, 1.0) as f32,
+                rng.range(-1.0, -0.2) as f32,
+                rng.range(-1.0, 1.0) as f32,
+            ),
+        };
+        let c = Vec3::new(
+            rng.range(-reach, reach) as f32,
+            rng.range(0.0, height) as f32,
+            rng.range(-reach, reach) as f32,
+        );
+        let spacing = [0.05, 0.25, 1.0][k % 3];
+        parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0)
+    }
+
     fn parallel_tile(centre: Vec3, d: Vec3, n: usize, spacing: f32, t_max: f32) -> Vec<TraceRay> {
         let d = d.normalize();
         let helper = if d.x.abs() < 0.6 { Vec3::X } else { Vec3::Y };
@@ -1252,26 +1279,15 @@ mod two_level {
             let mut rng = Rng::new(31);
             let mut seen = 0;
             for k in 0..60 {
-                let d = match k % 6 {
-                    // Straight down (axis-parallel), grazing, and slanted.
-                    0 => Vec3::NEG_Y,
-                    1 => Vec3::new(1.0, -0.04, 0.3),
-                    2 => Vec3::new(-0.2, -1e-7, 1.0),
-                    _ => Vec3::new(
-                        rng.range(-1.0, 1.0) as f32,
-                        rng.range(-1.0, -0.2) as f32,
-                        rng.range(-1.0, 1.0) as f32,
-                    ),
-                };
-                // Tile centres inside the world and across its border
-                // (the world spans -50..50 around the reference).
-                let c = Vec3::new(
-                    rng.range(-70.0, 70.0) as f32,
-                    rng.range(0.0, 12.0) as f32,
-                    rng.range(-70.0, 70.0) as f32,
-                );
-                let spacing = [0.05, 0.25, 1.0][k % 3];
-                let rays = parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0);
+                // Straight down (axis-parallel), grazing, and slanted; tile
+                // centres inside the world and across its border (the world
+                // spans -50..50 around the reference).
+                let fixed = [
+                    Vec3::NEG_Y,
+                    Vec3::new(1.0, -0.04, 0.3),
+                    Vec3::new(-0.2, -1e-7, 1.0),
+                ];
+                let rays = random_parallel_tile(&mut rng, k, &fixed, (70.0, 12.0));
                 seen += assert_packets_agree(tracer, &rays, 64);
             }
             assert!(seen > 2000, "{seen}");
@@ -1419,22 +1435,8 @@ mod two_level {
                     drops_back,
                     either_face: &either,
                 };
-                let d = match k % 5 {
-                    0 => Vec3::NEG_Y,
-                    1 => Vec3::new(1.0, -0.05, 0.3),
-                    _ => Vec3::new(
-                        rng.range(-1.0, 1.0) as f32,
-                        rng.range(-1.0, -0.2) as f32,
-                        rng.range(-1.0, 1.0) as f32,
-                    ),
-                };
-                let c = Vec3::new(
-                    rng.range(-60.0, 60.0) as f32,
-                    rng.range(0.0, 10.0) as f32,
-                    rng.range(-60.0, 60.0) as f32,
-                );
-                let spacing = [0.05, 0.25, 1.0][k % 3];
-                let rays = parallel_tile(c - d.normalize() * 40.0, d, 8, spacing, 200.0);
+                let fixed = [Vec3::NEG_Y, Vec3::new(1.0, -0.05, 0.3)];
+                let rays = random_parallel_tile(&mut rng, k, &fixed, (60.0, 10.0));
                 kept += assert_culled_packets_agree(tracer, &rays, &cull);
             }
             assert!(kept > 2000, "{kept}");

@@ -40,6 +40,23 @@ impl Rect {
         }
     }
 
+    /// The smallest rectangle holding `points` (inverted, meeting nothing,
+    /// for none).
+    pub fn around(points: impl IntoIterator<Item = Point>) -> Rect {
+        let (lo, hi) = bounds(points);
+        Rect {
+            x0: lo.0,
+            y0: lo.1,
+            x1: hi.0,
+            y1: hi.1,
+        }
+    }
+
+    /// Whether the two closed rectangles share a point.
+    pub fn meets(self, other: Rect) -> bool {
+        self.x0 <= other.x1 && self.x1 >= other.x0 && self.y0 <= other.y1 && self.y1 >= other.y0
+    }
+
     pub fn corners(self) -> [Point; 4] {
         [
             (self.x0, self.y0),
@@ -48,6 +65,17 @@ impl Rect {
             (self.x0, self.y1),
         ]
     }
+}
+
+/// The smallest and largest coordinates of `points`.
+pub fn bounds(points: impl IntoIterator<Item = Point>) -> (Point, Point) {
+    points.into_iter().fold(
+        (
+            (f64::INFINITY, f64::INFINITY),
+            (f64::NEG_INFINITY, f64::NEG_INFINITY),
+        ),
+        |(lo, hi), (x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
+    )
 }
 
 /// Twice the signed area of `polygon` (positive: counter-clockwise).
@@ -143,21 +171,14 @@ fn grown_bounds(polygon: &[Point], by: f64) -> Rect {
     };
     let n = polygon.len();
     if by == 0.0 {
-        let (lo, hi) = polygon.iter().fold(
-            (
-                (f64::INFINITY, f64::INFINITY),
-                (f64::NEG_INFINITY, f64::NEG_INFINITY),
-            ),
-            |(lo, hi), &(x, y)| ((lo.0.min(x), lo.1.min(y)), (hi.0.max(x), hi.1.max(y))),
-        );
-        let scale = lo.0.abs().max(lo.1.abs()).max(hi.0.abs()).max(hi.1.abs());
-        return Rect {
-            x0: lo.0,
-            y0: lo.1,
-            x1: hi.0,
-            y1: hi.1,
-        }
-        .grown(1e-9 * (1.0 + scale) + 1e-12);
+        let own = Rect::around(polygon.iter().copied());
+        let scale = own
+            .x0
+            .abs()
+            .max(own.y0.abs())
+            .max(own.x1.abs())
+            .max(own.y1.abs());
+        return own.grown(1e-9 * (1.0 + scale) + 1e-12);
     }
     let sign = signed_area2(polygon).signum();
     // Outward unit normal and offset of edge i (from vertex i to i + 1).
@@ -236,15 +257,7 @@ pub fn overlaps_rect(polygon: &[Point], rect: Rect) -> bool {
     if polygon.is_empty() {
         return false;
     }
-    let (mut lo, mut hi) = (
-        (f64::INFINITY, f64::INFINITY),
-        (f64::NEG_INFINITY, f64::NEG_INFINITY),
-    );
-    for &(x, y) in polygon {
-        lo = (lo.0.min(x), lo.1.min(y));
-        hi = (hi.0.max(x), hi.1.max(y));
-    }
-    if hi.0 < rect.x0 || lo.0 > rect.x1 || hi.1 < rect.y0 || lo.1 > rect.y1 {
+    if !Rect::around(polygon.iter().copied()).meets(rect) {
         return false;
     }
     let sign = signed_area2(polygon).signum();
