@@ -60,16 +60,16 @@ impl Extent {
         }
     }
 
-    /// Widens the extent to hold `ray`'s segment, given `along` = axis · d
-    /// and `n_dot_d` = n · d for the side normals `n64` (the caller's, once
-    /// per ray or once for a packet sharing one direction).
+    /// Widens the extent to hold `ray`'s segment (direction `d` in f64),
+    /// given `along` = axis · d (the caller's, once per ray or once for a
+    /// packet sharing one direction) and the side normals `n64`.
     fn add(
         &mut self,
         ray: &TraceRay,
         axis: DVec3,
         along: f64,
         n64: &[DVec3; 4],
-        n_dot_d: [f64; 4],
+        d: DVec3,
         pad: f32,
     ) {
         let o64 = ray.origin.as_dvec3();
@@ -88,13 +88,13 @@ impl Extent {
         // A segment starting behind its origin (t_min < 0) reaches back
         // past n · o by |t_min| · |n · d|.
         let back = f64::from(ray.t_min.min(0.0));
-        for k in 0..4 {
+        for (m, n) in self.side_max.iter_mut().zip(n64) {
             let behind = if back < 0.0 {
-                back * n_dot_d[k].min(0.0) * (1.0 + 1e-9)
+                back * n.dot(d).min(0.0) * (1.0 + 1e-9)
             } else {
                 0.0
             };
-            self.side_max[k] = self.side_max[k].max(n64[k].dot(o64) + behind);
+            *m = m.max(n.dot(o64) + behind);
         }
     }
 }
@@ -159,8 +159,7 @@ impl Beam {
         let mut extent = Extent::empty();
         for ray in rays {
             let d = ray.direction.as_dvec3();
-            let n_dot_d = n64.map(|n| n.dot(d));
-            extent.add(&ray, axis, axis.dot(d), &n64, n_dot_d, pad);
+            extent.add(&ray, axis, axis.dot(d), &n64, d, pad);
         }
         Some(Beam::of_planes(
             axis,
@@ -225,10 +224,9 @@ impl Beam {
         }
         let (su, sv) = (u.dot(d) / along, v.dot(d) / along);
         let n64 = side_normals(axis, u, v, [su, -su, sv, -sv]);
-        let n_dot_d = n64.map(|n| n.dot(d));
         let mut extent = Extent::empty();
         for ray in rays {
-            extent.add(&ray, axis, along, &n64, n_dot_d, pad);
+            extent.add(&ray, axis, along, &n64, d, pad);
         }
         Some(Beam::of_planes(
             axis,
