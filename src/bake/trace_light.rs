@@ -501,10 +501,7 @@ impl LightRays<'_> {
         }
         if let Some(ground) = self.ground.filter(|_| !caster.is_terrain()) {
             let p = ray.origin + ray.direction * hit.t as f64;
-            if ground
-                .height(p.x, p.z)
-                .is_some_and(|h| p.y < h - self.rules.height_bias)
-            {
+            if ground.is_below(p, self.rules.height_bias) {
                 return None;
             }
         }

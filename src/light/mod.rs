@@ -410,17 +410,18 @@ impl TexelGrid {
         x: u32,
         y: u32,
         samples: u32,
-    ) -> impl Iterator<Item = TexelRay> + '_ {
+    ) -> impl ExactSizeIterator<Item = TexelRay> + '_ {
         let samples = samples.max(1);
         let step = 1.0 / samples as f64;
-        (0..samples).flat_map(move |sy| {
-            (0..samples).map(move |sx| {
-                self.ray_through(
-                    face,
-                    x as f64 + (sx as f64 + 0.5) * step,
-                    y as f64 + (sy as f64 + 0.5) * step,
-                )
-            })
+        // One flat range (rows of samples, x fastest): its exact length lets
+        // a packet's rays be written straight into place.
+        (0..samples * samples).map(move |i| {
+            let (sx, sy) = (i % samples, i / samples);
+            self.ray_through(
+                face,
+                x as f64 + (sx as f64 + 0.5) * step,
+                y as f64 + (sy as f64 + 0.5) * step,
+            )
         })
     }
 

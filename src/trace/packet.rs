@@ -270,18 +270,21 @@ impl Frame {
     /// Drops the rays whose running t_max fell below their t_min; true if
     /// any did.
     fn retain_live(&mut self, t_max: &[f32]) -> bool {
+        let live = |(r, &l): (&TraceRay, &u8)| r.t_min <= t_max[l as usize];
+        // Rays seldom settle (none of `bench`'s sun rays do), and this runs
+        // after every entry that reported a hit: read before moving anything.
+        let Some(first_settled) = self.rays.iter().zip(&self.lanes).position(|p| !live(p)) else {
+            return false;
+        };
         let before = self.rays.len();
-        let mut kept = 0;
-        for i in 0..before {
+        let mut kept = first_settled;
+        for i in first_settled + 1..before {
             if self.rays[i].t_min <= t_max[self.lanes[i] as usize] {
                 self.rays.swap(kept, i);
                 self.prepared.swap(kept, i);
                 self.lanes.swap(kept, i);
                 kept += 1;
             }
-        }
-        if kept == before {
-            return false;
         }
         self.rays.truncate(kept);
         self.prepared.truncate(kept);
@@ -458,7 +461,17 @@ impl TopLevel {
         let mut widest = reach_of(light, t_max);
         self.tree.visit_beam(&mut beam, direction, |slot, beam| {
             let entry = &self.entries[slot];
-            self.entry_packet(bottom, entry, beam, light, model, t_max, cull, on_hit);
+            // Only a hit moves a ray's t_max: without one, the frame and
+            // the beam stay as they are.
+            let mut reported = false;
+            let mut noting = |lane: usize, hit: Hit| {
+                reported = true;
+                on_hit(lane, hit)
+            };
+            self.entry_packet(bottom, entry, beam, light, model, t_max, cull, &mut noting);
+            if !reported {
+                return true;
+            }
             // Settled rays leave; the beam shrinks with the rays' reach.
             let settled = light.retain_live(t_max);
             // Rebuilding costs a pass over the rays: only when the reach

@@ -6,6 +6,7 @@ mod bake_world;
 mod cli;
 mod fuzz;
 mod generated;
+mod ground;
 mod hardening;
 mod memory;
 mod micro;
