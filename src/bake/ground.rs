@@ -35,13 +35,15 @@ const CEILING_SLACK: f64 = 1e-3;
 /// every point of the square that any block covers: the highest corner
 /// sample of every cell of every block that comes within `margin` of the
 /// square (holes included), rounded up to f32; −∞ where no cell comes near.
-/// A point's square is found by a floor that may err by an ulp near an
-/// edge: the margin (a thousandth of a square) covers that.
+/// A point's square is found by a product with the inverse side that may
+/// err by an ulp or two near an edge: the margin (a thousandth of a
+/// square) covers that.
 struct Ceilings {
     /// World coordinates of square (0, 0)'s lower corner, the side.
     min_x: f64,
     min_z: f64,
     side: f64,
+    per_side: f64,
     width: usize,
     depth: usize,
     /// Row-major by z.
@@ -66,6 +68,7 @@ impl Ceilings {
             min_x: (min_x - 1) as f64 * chunk_size,
             min_z: (min_z - 1) as f64 * chunk_size,
             side,
+            per_side: 1.0 / side,
             width: ((chunks_x + 2) * n) as usize,
             depth: ((chunks_z + 2) * n) as usize,
             heights: vec![f32::NEG_INFINITY; ((chunks_x + 2) * n * (chunks_z + 2) * n) as usize],
@@ -138,8 +141,9 @@ impl Ceilings {
     /// The ceiling over world point (x, z); `None` outside the grid.
     #[inline]
     fn at(&self, x: f64, z: f64) -> Option<f32> {
-        let qx = ((x - self.min_x) / self.side).floor();
-        let qz = ((z - self.min_z) / self.side).floor();
+        // Truncation is the floor for the non-negative values kept.
+        let qx = (x - self.min_x) * self.per_side;
+        let qz = (z - self.min_z) * self.per_side;
         if !(qx >= 0.0 && qz >= 0.0 && qx < self.width as f64 && qz < self.depth as f64) {
             return None;
         }

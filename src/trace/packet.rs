@@ -297,6 +297,47 @@ impl Frame {
         self.groups.clear();
         self.group_boxes.clear();
         self.members.clear();
+        self.origin_max = 0.0;
+        match self.plane {
+            Some(plane) => self.group_parallel(plane),
+            None => self.group_by_axes(),
+        }
+        self.masks.resize(self.groups.len(), 0);
+        if let Some(plane) = self.plane {
+            self.plane_pad = plane.pad(self.magnitude.max(self.origin_max));
+        }
+    }
+
+    /// Rays sharing one direction (so one permutation): groups of
+    /// consecutive rays, each with the box of its origins' images, in one
+    /// pass (this runs for every instance a packet enters).
+    fn group_parallel(&mut self, plane: ShearPlane) {
+        for start in (0..self.rays.len()).step_by(LANES) {
+            let end = (start + LANES).min(self.rays.len());
+            self.groups
+                .push(Lanes::new(self.prepared[start..end].iter()));
+            let mut b = [
+                f32::INFINITY,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::NEG_INFINITY,
+            ];
+            let mut slots = [0u8; LANES];
+            for (slot, i) in slots.iter_mut().zip(start..end) {
+                let origin = self.rays[i].origin;
+                let (x, y) = plane.point(origin);
+                b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
+                self.origin_max = self.origin_max.max(origin.abs().max_element());
+                *slot = i as u8;
+            }
+            self.group_boxes.push(b);
+            self.members.push(slots);
+        }
+    }
+
+    /// Rays of several directions: grouped by permutation (rays of a spot
+    /// or point light's tile mostly share one).
+    fn group_by_axes(&mut self) {
         self.order.clear();
         self.order.extend((0..self.rays.len()).map(|i| i as u8));
         let prepared = &self.prepared;
@@ -315,32 +356,15 @@ impl Frame {
             let members = &self.order[start..end];
             self.groups
                 .push(Lanes::new(members.iter().map(|&i| &prepared[i as usize])));
-            if let Some(plane) = self.plane {
-                let mut b = [
-                    f32::INFINITY,
-                    f32::INFINITY,
-                    f32::NEG_INFINITY,
-                    f32::NEG_INFINITY,
-                ];
-                for &i in members {
-                    let (x, y) = plane.point(self.rays[i as usize].origin);
-                    b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
-                }
-                self.group_boxes.push(b);
-            }
             let mut slots = [0u8; LANES];
             slots[..members.len()].copy_from_slice(members);
             self.members.push(slots);
             start = end;
         }
-        self.masks.resize(self.groups.len(), 0);
         self.origin_max = self
             .rays
             .iter()
             .fold(0.0, |m, r| m.max(r.origin.abs().max_element()));
-        if let Some(plane) = self.plane {
-            self.plane_pad = plane.pad(self.magnitude.max(self.origin_max));
-        }
     }
 
     fn is_empty(&self) -> bool {
