@@ -49,6 +49,10 @@ struct Extent {
     side_max: [f64; 4],
     near: f64,
     far: f64,
+    /// The origin of the last ray added that starts at or after it (t_min
+    /// ≥ 0): a ray from the same origin adds nothing to the sides (a spot
+    /// or point light's packet shares one).
+    last_origin: Option<[u32; 3]>,
 }
 
 impl Extent {
@@ -57,6 +61,7 @@ impl Extent {
             side_max: [f64::NEG_INFINITY; 4],
             near: f64::INFINITY,
             far: f64::NEG_INFINITY,
+            last_origin: None,
         }
     }
 
@@ -88,6 +93,11 @@ impl Extent {
         // A segment starting behind its origin (t_min < 0) reaches back
         // past n · o by |t_min| · |n · d|.
         let back = f64::from(ray.t_min.min(0.0));
+        let bits = ray.origin.to_array().map(f32::to_bits);
+        if back == 0.0 && self.last_origin == Some(bits) {
+            return;
+        }
+        self.last_origin = (back == 0.0).then_some(bits);
         for (m, n) in self.side_max.iter_mut().zip(n64) {
             let behind = if back < 0.0 {
                 back * n.dot(d).min(0.0) * (1.0 + 1e-9)

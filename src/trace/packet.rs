@@ -298,9 +298,18 @@ impl Frame {
         self.group_boxes.clear();
         self.members.clear();
         self.origin_max = 0.0;
-        match self.plane {
-            Some(plane) => self.group_parallel(plane),
-            None => self.group_by_axes(),
+        let first = self.prepared.first().map(Lanes::axes_of);
+        // Rays sharing a direction share a permutation; a spot or point
+        // light's mostly do too.
+        if self.plane.is_some()
+            || self
+                .prepared
+                .iter()
+                .all(|p| Some(Lanes::axes_of(p)) == first)
+        {
+            self.group_consecutive();
+        } else {
+            self.group_by_axes();
         }
         self.masks.resize(self.groups.len(), 0);
         if let Some(plane) = self.plane {
@@ -308,10 +317,10 @@ impl Frame {
         }
     }
 
-    /// Rays sharing one direction (so one permutation): groups of
-    /// consecutive rays, each with the box of its origins' images, in one
-    /// pass (this runs for every instance a packet enters).
-    fn group_parallel(&mut self, plane: ShearPlane) {
+    /// Rays sharing one permutation: groups of consecutive rays (with, for
+    /// parallel rays, the box of each group's origins' images), in one pass
+    /// (this runs for every instance a packet enters).
+    fn group_consecutive(&mut self) {
         for start in (0..self.rays.len()).step_by(LANES) {
             let end = (start + LANES).min(self.rays.len());
             self.groups
@@ -325,27 +334,28 @@ impl Frame {
             let mut slots = [0u8; LANES];
             for (slot, i) in slots.iter_mut().zip(start..end) {
                 let origin = self.rays[i].origin;
-                let (x, y) = plane.point(origin);
-                b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
+                if let Some(plane) = self.plane {
+                    let (x, y) = plane.point(origin);
+                    b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
+                }
                 self.origin_max = self.origin_max.max(origin.abs().max_element());
                 *slot = i as u8;
             }
-            self.group_boxes.push(b);
+            if self.plane.is_some() {
+                self.group_boxes.push(b);
+            }
             self.members.push(slots);
         }
     }
 
-    /// Rays of several directions: grouped by permutation (rays of a spot
-    /// or point light's tile mostly share one).
+    /// Rays of several permutations (a spot or point light's tile across
+    /// a diagonal): sorted by permutation, then grouped.
     fn group_by_axes(&mut self) {
         self.order.clear();
         self.order.extend((0..self.rays.len()).map(|i| i as u8));
         let prepared = &self.prepared;
         let key = |i: &u8| Lanes::axes_of(&prepared[*i as usize]);
-        let first = prepared.first().map(Lanes::axes_of);
-        if prepared.iter().any(|p| Some(Lanes::axes_of(p)) != first) {
-            self.order.sort_by_key(key);
-        }
+        self.order.sort_by_key(key);
         let mut start = 0;
         while start < self.order.len() {
             let axes = key(&self.order[start]);
