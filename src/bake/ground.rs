@@ -1,5 +1,7 @@
 //! The below-ground test of SPEC §4: the terrain height H(x, z) over a world
-//! point, from whichever block covers it.
+//! point, from whichever block covers it. Every non-terrain hit of every ray
+//! asks it, so most answers come from a coarse ceiling of the terrain
+//! before the exact height is looked up.
 
 use crate::scene::terrain::TerrainBlock;
 use crate::scene::Scene;
