@@ -7,6 +7,7 @@ use crate::scene::terrain::TerrainBlock;
 use crate::scene::Scene;
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 pub struct Ground<'a> {
     scene: &'a Scene,
@@ -54,7 +55,8 @@ struct Ceilings {
 
 impl Ceilings {
     /// `None` when the blocks' grid rectangle is mostly empty or not
-    /// finite (the exact test alone then).
+    /// finite, or a block lies off its grid cell (the exact test alone
+    /// then).
     fn new(scene: &Scene, cells: &[((i32, i32), usize)], chunk_size: f64) -> Option<Ceilings> {
         let xs = cells.iter().map(|&((x, _), _)| i64::from(x));
         let zs = cells.iter().map(|&((_, z), _)| i64::from(z));
@@ -66,44 +68,51 @@ impl Ceilings {
         }
         let n = CEILING_SQUARES_PER_CHUNK;
         let side = chunk_size / n as f64;
+        let (width, depth) = ((chunks_x + 2) * n, (chunks_z + 2) * n);
         let mut ceilings = Ceilings {
             min_x: (min_x - 1) as f64 * chunk_size,
             min_z: (min_z - 1) as f64 * chunk_size,
             side,
             per_side: 1.0 / side,
-            width: ((chunks_x + 2) * n) as usize,
-            depth: ((chunks_z + 2) * n) as usize,
-            heights: vec![f32::NEG_INFINITY; ((chunks_x + 2) * n * (chunks_z + 2) * n) as usize],
+            width: width as usize,
+            depth: depth as usize,
+            heights: Vec::new(),
         };
         if !(ceilings.min_x.is_finite() && ceilings.min_z.is_finite() && side > 0.0) {
             return None;
         }
-        let raised: Vec<Vec<(usize, f32)>> = cells
-            .par_iter()
-            .map(|&(_, block)| ceilings.of_block(&scene.terrain[block]))
+        // Blocks raise squares in parallel: an atomic max over f32 in an
+        // order-preserving u32 (the same answer in any order).
+        let raised: Vec<AtomicU32> = (0..width * depth)
+            .map(|_| AtomicU32::new(ordered(f32::NEG_INFINITY)))
             .collect();
-        for (at, h) in raised.into_iter().flatten() {
-            ceilings.heights[at] = ceilings.heights[at].max(h);
-        }
-        Some(ceilings)
+        let all_on_grid = cells.par_iter().all(|&(_, block)| {
+            ceilings.raise(&scene.terrain[block], |at, h| {
+                raised[at].fetch_max(ordered(h), Ordering::Relaxed);
+            })
+        });
+        ceilings.heights = raised
+            .into_iter()
+            .map(|a| unordered(a.into_inner()))
+            .collect();
+        all_on_grid.then_some(ceilings)
     }
 
-    /// The ceilings `block` raises: (square, bound) for each square its
-    /// cells come near.
-    fn of_block(&self, block: &TerrainBlock) -> Vec<(usize, f32)> {
+    /// Raises (`raise(square, bound)`) each square `block`'s cells come
+    /// near to the highest corner sample of those cells; false when the
+    /// block reaches past the grid (a block off its grid cell: never from a
+    /// well-formed space).
+    fn raise(&self, block: &TerrainBlock, mut raise: impl FnMut(usize, f32)) -> bool {
         let (o, (sx, sz), (nx, nz)) = (block.origin(), block.spacing(), block.cells());
         let margin = self.side * 1e-3;
         let square = |v: f64, min: f64| ((v - min) / self.side).floor();
         let clamp = |v: f64, n: usize| v.clamp(0.0, n as f64 - 1.0) as usize;
         let (x0, x1) = (o.x - margin, o.x + block.chunk_size() + margin);
         let (z0, z1) = (o.z - margin, o.z + block.chunk_size() + margin);
-        let mut out = Vec::new();
         let (qx0, qx1) = (square(x0, self.min_x), square(x1, self.min_x));
         let (qz0, qz1) = (square(z0, self.min_z), square(z1, self.min_z));
         if !(qx0 >= 0.0 && qz0 >= 0.0 && qx1 < self.width as f64 && qz1 < self.depth as f64) {
-            // A block off its grid cell: every square it may reach, bounded
-            // by its highest sample.
-            return self.of_stray_block(block);
+            return false;
         }
         for qz in qz0 as usize..=qz1 as usize {
             for qx in qx0 as usize..=qx1 as usize {
@@ -127,17 +136,10 @@ impl Ceilings {
                         high = high.max(block.vertex_height(x, z).unwrap_or(f64::INFINITY));
                     }
                 }
-                out.push((qz * self.width + qx, round_up(o.y + high)));
+                raise(qz * self.width + qx, round_up(o.y + high));
             }
         }
-        out
-    }
-
-    /// Every square of the grid (a block whose square is not where its
-    /// grid cell says: never from a well-formed space, handled anyway).
-    fn of_stray_block(&self, block: &TerrainBlock) -> Vec<(usize, f32)> {
-        let high = round_up(block.bounds().1.y);
-        (0..self.heights.len()).map(|at| (at, high)).collect()
+        true
     }
 
     /// The ceiling over world point (x, z); `None` outside the grid.
@@ -151,6 +153,24 @@ impl Ceilings {
         }
         Some(self.heights[qz as usize * self.width + qx as usize])
     }
+}
+
+/// `f` as a u32 in the same order (negative floats' bits flipped, positive
+/// ones' sign bit set), for an atomic max.
+fn ordered(f: f32) -> u32 {
+    let bits = f.to_bits();
+    match bits >> 31 {
+        1 => !bits,
+        _ => bits | 1 << 31,
+    }
+}
+
+/// The f32 that [`ordered`] made `u`.
+fn unordered(u: u32) -> f32 {
+    f32::from_bits(match u >> 31 {
+        1 => u & !(1 << 31),
+        _ => !u,
+    })
 }
 
 /// `v` as the nearest f32 not below it (+∞ for NaN or beyond f32).
@@ -359,6 +379,38 @@ impl Ground<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn ordered_bits_keep_the_order_of_floats() {
+        let mut rng = Rng::new(12);
+        let special = [
+            f32::NEG_INFINITY,
+            f32::MIN,
+            -1.0,
+            -f32::MIN_POSITIVE,
+            -1e-45,
+            -0.0,
+            0.0,
+            1e-45,
+            f32::MIN_POSITIVE,
+            1.0,
+            f32::MAX,
+            f32::INFINITY,
+        ];
+        let mut values: Vec<f32> = special.to_vec();
+        values.extend(
+            (0..500).map(|_| (rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-40.0, 38.0))) as f32),
+        );
+        for &a in &values {
+            assert_eq!(unordered(ordered(a)).to_bits(), a.to_bits());
+            for &b in &values {
+                if a < b {
+                    assert!(ordered(a) < ordered(b), "{a} < {b}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn dense_and_sparse_tables_find_the_same_blocks() {

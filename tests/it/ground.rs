@@ -125,3 +125,44 @@ fn no_ceiling_outside_the_blocks_reach() {
         assert!(!ground.is_below(DVec3::new(x, -1e6, z), 0.0));
     }
 }
+
+#[test]
+fn blocks_off_their_grid_cells_keep_the_rule() {
+    // Chunk (1, 0)'s block moved along x and z (a chunk transform that
+    // disagrees with its name). Half a chunk stays within the grid of
+    // ceilings, which then bound the moved block where it lies; five
+    // chunks leave it, and there are no ceilings at all. Either way the
+    // rule answers as the exact lookup does.
+    for (shift, ceilings) in [(0.5 * CHUNK, true), (5.0 * CHUNK, false)] {
+        let mut world = World::new(2, 2);
+        for chunk in world.scene.chunks.iter_mut() {
+            if chunk.grid == Some((1, 0)) {
+                chunk.transform.w_axis.x += shift;
+                chunk.transform.w_axis.z += shift;
+            }
+        }
+        for grid in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            world.terrain_of(grid, 8, |x, z| 2.0 * (x * 0.5).sin() + 0.2 * z + 1.0);
+        }
+        let ground = Ground::new(&world.scene).expect("terrain");
+        let mut rng = Rng::new(4);
+        let mut under = 0;
+        for _ in 0..4000 {
+            let (x, z) = (
+                rng.range(-2.0, 2.0 * CHUNK + shift + 2.0),
+                rng.range(-2.0, 2.0 * CHUNK + shift + 2.0),
+            );
+            let h = ground.height(x, z);
+            let c = ground.ceiling(x, z);
+            assert_eq!(c.is_some(), ceilings, "({x}, {z})");
+            if let (Some(h), Some(c)) = (h, c) {
+                assert!(c >= h, "ceiling {c} below H({x}, {z}) = {h}");
+            }
+            let y = rng.range(-4.0, 8.0);
+            let rule = h.is_some_and(|h| y < h - 0.05);
+            under += usize::from(rule);
+            assert_eq!(ground.is_below(DVec3::new(x, y, z), 0.05), rule);
+        }
+        assert!(under > 100, "{under} points below ground");
+    }
+}
