@@ -58,11 +58,7 @@ impl Ceilings {
     /// finite, or a block lies off its grid cell (the exact test alone
     /// then).
     fn new(scene: &Scene, cells: &[((i32, i32), usize)], chunk_size: f64) -> Option<Ceilings> {
-        let xs = cells.iter().map(|&((x, _), _)| i64::from(x));
-        let zs = cells.iter().map(|&((_, z), _)| i64::from(z));
-        let (min_x, max_x) = (xs.clone().min()?, xs.max()?);
-        let (min_z, max_z) = (zs.clone().min()?, zs.max()?);
-        let (chunks_x, chunks_z) = (max_x - min_x + 1, max_z - min_z + 1);
+        let (min_x, min_z, chunks_x, chunks_z) = grid_rectangle(cells)?;
         if chunks_x * chunks_z > 4 * cells.len() as i64 + 64 {
             return None;
         }
@@ -199,17 +195,23 @@ enum BlockTable {
     Sparse(Vec<((i64, i64), usize)>),
 }
 
+/// The rectangle of grid cells holding `cells`: (min x, min z, width,
+/// depth); `None` for no cells.
+fn grid_rectangle(cells: &[((i32, i32), usize)]) -> Option<(i64, i64, i64, i64)> {
+    let xs = cells.iter().map(|&((x, _), _)| i64::from(x));
+    let zs = cells.iter().map(|&((_, z), _)| i64::from(z));
+    let (min_x, max_x) = (xs.clone().min()?, xs.max()?);
+    let (min_z, max_z) = (zs.clone().min()?, zs.max()?);
+    Some((min_x, min_z, max_x - min_x + 1, max_z - min_z + 1))
+}
+
 /// A dense table may hold this many entries per block (plus a fixed
 /// allowance) before the sparse one is used instead.
 const DENSE_ENTRIES_PER_BLOCK: i64 = 16;
 
 impl BlockTable {
     fn new(cells: &[((i32, i32), usize)]) -> BlockTable {
-        let xs = cells.iter().map(|&((x, _), _)| i64::from(x));
-        let zs = cells.iter().map(|&((_, z), _)| i64::from(z));
-        let (min_x, max_x) = (xs.clone().min().unwrap_or(0), xs.max().unwrap_or(-1));
-        let (min_z, max_z) = (zs.clone().min().unwrap_or(0), zs.max().unwrap_or(-1));
-        let (width, depth) = ((max_x - min_x + 1).max(0), (max_z - min_z + 1).max(0));
+        let (min_x, min_z, width, depth) = grid_rectangle(cells).unwrap_or((0, 0, 0, 0));
         if width * depth > DENSE_ENTRIES_PER_BLOCK * cells.len() as i64 + 65_536 {
             let mut sparse: Vec<((i64, i64), usize)> = cells
                 .iter()
