@@ -56,6 +56,28 @@ impl ToModel {
     }
 
     /// The ray in model space, same t range.
+    /// A light-relative point in model space (a ray's origin).
+    #[inline]
+    pub(crate) fn origin(&self, origin: Vec3) -> Vec3 {
+        (self.linear * origin.as_dvec3() + self.offset).as_vec3()
+    }
+
+    /// A bound on the coordinates of light-relative points within
+    /// `origin_max` of 0 once mapped into model space (and rounded to f32):
+    /// the map's row-sum norm times `origin_max`, plus the offset, with a
+    /// relative margin far beyond the f64 evaluation's and the f32
+    /// rounding's.
+    pub(crate) fn origin_bound(&self, origin_max: f32) -> f32 {
+        let norm = row_sum_norm(&self.linear);
+        let bound = (norm * f64::from(origin_max) + self.offset.abs().max_element()) * (1.0 + 1e-6);
+        let f = bound as f32;
+        if f64::from(f) < bound {
+            f.next_up()
+        } else {
+            f
+        }
+    }
+
     #[inline]
     pub fn ray(&self, ray: &TraceRay) -> TraceRay {
         self.ray_with(ray, self.direction(ray.direction))
@@ -70,14 +92,22 @@ impl ToModel {
     /// [`Self::ray`] given the mapped direction.
     #[inline]
     pub(crate) fn ray_with(&self, ray: &TraceRay, direction: Vec3) -> TraceRay {
-        let origin = self.linear * ray.origin.as_dvec3() + self.offset;
         TraceRay {
-            origin: origin.as_vec3(),
+            origin: self.origin(ray.origin),
             direction,
             t_min: ray.t_min,
             t_max: ray.t_max,
         }
     }
+}
+
+/// The ∞-norm of `m` (its largest row sum of absolute values): how much
+/// it can grow a vector's largest coordinate.
+pub(crate) fn row_sum_norm(m: &DMat3) -> f64 {
+    let rows = m.transpose();
+    [rows.x_axis, rows.y_axis, rows.z_axis]
+        .iter()
+        .fold(0.0f64, |n, r| n.max(r.abs().element_sum()))
 }
 
 #[cfg(test)]
@@ -111,6 +141,74 @@ mod tests {
             );
         }
         assert_eq!((m.t_min, m.t_max), (0.0, 100.0));
+    }
+
+    #[test]
+    fn origin_bound_holds_every_mapped_origin() {
+        // Scaled, rotated, sheared and far-translated instances; points
+        // anywhere within origin_max, corners included (where a loose
+        // norm would show).
+        let mut rng = crate::rng::Rng::new(21);
+        for _ in 0..200 {
+            let world = DMat4::from_scale_rotation_translation(
+                DVec3::new(
+                    rng.range(0.05, 20.0),
+                    rng.range(0.05, 20.0),
+                    rng.range(0.05, 20.0),
+                ),
+                DQuat::from_euler(
+                    glam::EulerRot::YXZ,
+                    rng.range(-3.0, 3.0),
+                    rng.range(-3.0, 3.0),
+                    rng.range(-3.0, 3.0),
+                ),
+                DVec3::new(
+                    rng.range(-1e5, 1e5),
+                    rng.range(-100.0, 100.0),
+                    rng.range(-1e5, 1e5),
+                ),
+            ) * DMat4::from_cols_array(&[
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                rng.range(-0.5, 0.5),
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+            ]);
+            let reference = DVec3::new(rng.range(-1e5, 1e5), 0.0, rng.range(-1e5, 1e5));
+            let to_model = ToModel::new(&world, reference).unwrap();
+            let origin_max = rng.range(1.0, 5000.0) as f32;
+            let bound = to_model.origin_bound(origin_max);
+            let mut largest = 0.0f32;
+            for i in 0..64 {
+                let mut pick = |bit: usize| {
+                    if i < 8 {
+                        if i & bit == 0 {
+                            -origin_max
+                        } else {
+                            origin_max
+                        }
+                    } else {
+                        (rng.range(-1.0, 1.0) * f64::from(origin_max)) as f32
+                    }
+                };
+                let o = Vec3::new(pick(1), pick(2), pick(4));
+                largest = largest.max(to_model.origin(o).abs().max_element());
+            }
+            assert!(largest <= bound, "{largest} > {bound}");
+            // Tight: within the norm's slack of the largest corner.
+            assert!(bound <= 2.0 * largest + 1.0, "{bound} for {largest}");
+        }
     }
 
     #[test]

@@ -15,6 +15,7 @@
 use super::beam::Beam;
 use super::blas::BottomLevels;
 use super::heightfield::Step;
+use super::instance::row_sum_norm;
 use super::tlas::{Entry, TopLevel};
 use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
 use super::{Bvh, FaceCull, Hit, ToModel, TraceRay, TraceTriangle};
@@ -102,13 +103,7 @@ impl ShearPlane {
         reach: f32,
     ) -> Option<[f32; 4]> {
         let (linear, offset) = to_model.parts();
-        let norm = |m: &glam::DMat3| {
-            let rows = m.transpose();
-            [rows.x_axis, rows.y_axis, rows.z_axis]
-                .iter()
-                .fold(0.0f64, |n, r| n.max(r.abs().element_sum()))
-        };
-        let (to_norm, back_norm) = (norm(&linear), norm(&world));
+        let (to_norm, back_norm) = (row_sum_norm(&linear), row_sum_norm(&world));
         let (sx, sy) = (f64::from(self.sx), f64::from(self.sy));
         let [kx, ky, kz] = self.axes;
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
@@ -571,29 +566,37 @@ impl TopLevel {
                     let (x, y) = plane.point(r.origin);
                     x >= x0 && x <= x1 && y >= y0 && y <= y1
                 };
-                let mut last: Option<(Vec3, Vec3)> = None;
-                let rays = light
-                    .rays
-                    .iter()
-                    .zip(&light.lanes)
-                    .filter(|(r, _)| inside(r));
-                model.fill(
-                    rays.map(|(r, &l)| {
-                        let direction = match last {
-                            Some((light_direction, mapped))
-                                if same_bits(light_direction, r.direction) =>
-                            {
-                                mapped
-                            }
-                            _ => to_model.direction(r.direction),
-                        };
-                        last = Some((r.direction, direction));
-                        (l, to_model.ray_with(r, direction))
-                    }),
-                    bvh.tree.magnitude,
-                );
-                let model_beam =
-                    beam.to_model(&to_model, world, bvh.tree.magnitude, model.origin_max);
+                // The rays enter the model's frame only once the beam
+                // reaches one of its triangles (half of a spot or point
+                // packet's instances it reaches none of): the model beam's
+                // padding takes a bound on the mapped origins instead of
+                // their largest.
+                let fill = |model: &mut Frame| {
+                    let mut last: Option<(Vec3, Vec3)> = None;
+                    let rays = light
+                        .rays
+                        .iter()
+                        .zip(&light.lanes)
+                        .filter(|(r, _)| inside(r));
+                    model.fill(
+                        rays.map(|(r, &l)| {
+                            let direction = match last {
+                                Some((light_direction, mapped))
+                                    if same_bits(light_direction, r.direction) =>
+                                {
+                                    mapped
+                                }
+                                _ => to_model.direction(r.direction),
+                            };
+                            last = Some((r.direction, direction));
+                            (l, to_model.ray_with(r, direction))
+                        }),
+                        bvh.tree.magnitude,
+                    );
+                };
+                let origin_bound = to_model.origin_bound(light.origin_max);
+                let model_beam = beam.to_model(&to_model, world, bvh.tree.magnitude, origin_bound);
+                let direction = to_model.direction(light.direction());
                 let mut relay = |lane: usize, hit: Hit| {
                     on_hit(
                         lane,
@@ -604,7 +607,12 @@ impl TopLevel {
                     )
                 };
                 let cull = Culled { cull, first_caster };
-                bvh_packet(bvh, model, model_beam, t_max, &cull, &mut relay);
+                let lazy = LazyFrame {
+                    frame: model,
+                    fill: Some(fill),
+                    direction,
+                };
+                bvh_packet(bvh, lazy, model_beam, t_max, &cull, &mut relay);
             }
             Entry::Block { block, caster } => {
                 // The top level's beam: its padding covers the tile
@@ -658,30 +666,49 @@ fn reach_of(frame: &Frame, t_max: &[f32]) -> f32 {
         .fold(f32::NEG_INFINITY, f32::max)
 }
 
+/// A model's frame of rays, filled when first needed, and the direction
+/// the traversal orders its children by until then.
+struct LazyFrame<'m, F: FnOnce(&mut Frame)> {
+    frame: &'m mut Frame,
+    fill: Option<F>,
+    direction: Vec3,
+}
+
+impl<F: FnOnce(&mut Frame)> LazyFrame<'_, F> {
+    fn get(&mut self) -> &mut Frame {
+        if let Some(fill) = self.fill.take() {
+            fill(self.frame);
+        }
+        self.frame
+    }
+}
+
 /// A model's bottom level for the packet's rays in model space, culled by
 /// `beam` (the packet's beam mapped into model space).
-fn bvh_packet(
+fn bvh_packet<F: FnOnce(&mut Frame)>(
     bvh: &Bvh,
-    model: &mut Frame,
+    mut model: LazyFrame<'_, F>,
     beam: Option<Beam>,
     t_max: &mut [f32],
     cull: &Culled,
     on_hit: &mut impl FnMut(usize, Hit) -> f32,
 ) {
-    if model.is_empty() {
-        return;
-    }
     let Some(mut beam) = beam else {
+        let model = model.get();
         for (i, ray) in model.rays.iter().enumerate() {
             let lane = model.lanes[i] as usize;
             t_max[lane] = bvh.hits_within(ray, t_max[lane], &mut |hit| on_hit(lane, hit));
         }
         return;
     };
-    bvh.tree
-        .visit_beam(&mut beam, model.direction(), |slot, _| {
-            let (tri, index) = bvh.slot(slot);
-            model.triangle(tri, index, t_max, cull, on_hit);
-            true
-        });
+    let direction = model.direction;
+    bvh.tree.visit_beam(&mut beam, direction, |slot, _| {
+        let model = model.get();
+        if model.is_empty() {
+            return false;
+        }
+        let (tri, index) = bvh.slot(slot);
+        model.triangle(tri, index, t_max, cull, on_hit);
+        true
+    });
 }
