@@ -21,10 +21,11 @@
 //!   so: there a cell that the outline of the caster's union of hittable
 //!   triangles does not cross is probed at its corners and split only where
 //!   the probes disagree on whether the caster is front-most (in either
-//!   pass); outline cells still go down to single lattice points. Probing is
-//!   a sample: on `bench`, probing models too lost five sun casters the ×8
-//!   grid keeps (walls and a pillar useful only inside probed cells); the
-//!   whole lattice for terrain cost 3.6× the plain bake on `village`.
+//!   pass); outline cells go down to at most [`BATCH`] lattice points, each
+//!   of which on the footprint is then traced. Probing is a sample: on
+//!   `bench`, probing models too lost five sun casters the ×8 grid keeps
+//!   (walls and a pillar useful only inside probed cells); the whole
+//!   lattice for terrain cost 3.6× the plain bake on `village`.
 //!
 //! Whole-lattice cells leave out the lattice rays that cannot prove the
 //! caster: each cell's middle point is traced alone (a probe), the casters
@@ -32,7 +33,13 @@
 //! surely keep the caster out of the front set is not traced
 //! (`bake::occlusion`). On `bench` most remaining casters lie under trees
 //! and stay culled: this cut the sun's refinement rays from 1.0 M to 0.49 M
-//! with the same masks.
+//! with the same masks. A whole-lattice top cell works out which of its
+//! points lie on the footprint, and the caster's depth at each, once
+//! ([`LatticeCell`]); its cells of at most [`BATCH`] points read them.
+//!
+//! Rays go as packets wherever they lie near each other (surface points,
+//! a cell's corner probes, a small outline cell, a whole-lattice cell
+//! after its probe): a packet gives each ray the answer it gets alone.
 
 use super::casters::CasterTable;
 use super::conservative::Affine;
@@ -283,6 +290,33 @@ impl Sampler<'_, '_> {
         self.trace_batch(&batch)
     }
 
+    /// The probes of a cell (its corners) traced together; returns whether
+    /// any proves the caster useful and, per ray, the passes whose front
+    /// set holds the caster (see [`Self::trace`]).
+    fn trace_fronts<const N: usize>(&mut self, rays: &[TexelRay; N]) -> (bool, [u8; N]) {
+        let proven = self.trace_batch(rays);
+        let mut fronts = [0u8; N];
+        for (front, hits) in fronts.iter_mut().zip(self.packet.hits(N)) {
+            *front = self.front_passes(hits);
+        }
+        (proven, fronts)
+    }
+
+    /// Per pass, whether the caster is in the front set of a ray with
+    /// `hits` (bit 0: All, bit 1: Opaque).
+    fn front_passes(&self, hits: &[RayHit]) -> u8 {
+        let rules = self.rays.rules;
+        let mut front = 0u8;
+        for pass in 0..classify::pass_count(rules.passes) {
+            classify::pass_depths(hits, rules.passes, pass, rules.tie_epsilon, |c| {
+                if c == self.caster {
+                    front |= 1 << pass;
+                }
+            });
+        }
+        front
+    }
+
     /// Traces `ray`; returns whether it proves the caster useful and, per
     /// pass, whether the caster is in the ray's front set (bit 0: All,
     /// bit 1: Opaque).
@@ -294,16 +328,7 @@ impl Sampler<'_, '_> {
             proven |= c == caster;
             useful.insert(c);
         });
-        let rules = self.rays.rules;
-        let mut front = 0u8;
-        for pass in 0..classify::pass_count(rules.passes) {
-            classify::pass_depths(self.hits, rules.passes, pass, rules.tie_epsilon, |c| {
-                if c == caster {
-                    front |= 1 << pass;
-                }
-            });
-        }
-        (proven, front)
+        (proven, self.front_passes(self.hits))
     }
 }
 
@@ -508,6 +533,25 @@ fn outline_edges(
     edges
 }
 
+/// A top cell's lattice in whole-lattice mode ([`Footprint::fill_lattice`]):
+/// per point, row by row, whether it lies on the footprint and the
+/// caster's nearest depth there (`-∞` where a polygon without a plane may
+/// be hit, or without planes at all; `+∞` where none may). Reused from cell
+/// to cell.
+#[derive(Default)]
+struct LatticeCell {
+    cell: (i64, i64, i64, i64),
+    on: Vec<bool>,
+    near: Vec<f64>,
+}
+
+impl LatticeCell {
+    fn index(&self, i: i64, j: i64) -> usize {
+        let (i0, j0, ni, _) = self.cell;
+        ((j - j0) * ni + (i - i0)) as usize
+    }
+}
+
 /// The polygons and outline edges (indices) near one cell.
 struct Near<'f> {
     polygons: &'f [u32],
@@ -567,63 +611,153 @@ impl Footprint {
                 }
             }
         }
+        let mut lattice = LatticeCell::default();
         for ((cy, cx), (polygons, edges)) in &bins {
             let (i0, j0) = (cx * top, cy * top);
             let cell = (i0, j0, top.min(width - i0), top.min(height - j0));
-            let near = Near { polygons, edges };
-            if cell.2 > 0 && cell.3 > 0 && self.cell(sampler, &near, cell) {
+            if cell.2 <= 0 || cell.3 <= 0 {
+                continue;
+            }
+            let proven = match self.outline {
+                None => {
+                    self.fill_lattice(polygons, cell, &mut lattice);
+                    self.lattice_batches(sampler, &lattice, cell)
+                }
+                Some(_) => self.cell(sampler, &Near { polygons, edges }, cell),
+            };
+            if proven {
                 return true;
             }
         }
         false
     }
 
-    /// Every lattice point of a small cell on one of `polygons`, traced as
-    /// one batch (whole-lattice mode: a model under a directional light,
-    /// whose lattice rays are parallel and a fraction of a texel apart);
-    /// true if any proves the caster useful.
-    fn whole_cell(
+    /// Whole-lattice mode (no outline): which lattice points of a top
+    /// `cell` lie on one of `polygons` (the cell's bin), and the caster's
+    /// nearest depth at each, worked out once for the cell; its batches
+    /// read them.
+    fn fill_lattice(
         &self,
-        sampler: &mut Sampler<'_, '_>,
         polygons: &[u32],
-        (i0, j0, ni, nj): (i64, i64, i64, i64),
-    ) -> bool {
+        cell: (i64, i64, i64, i64),
+        lattice: &mut LatticeCell,
+    ) {
+        let (i0, j0, ni, nj) = cell;
         let d = self.density as f64;
         let point = |i: i64, j: i64| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
-        // Each polygon tests only the points in its region's box.
-        let mut on = vec![false; (ni * nj) as usize];
+        // The lattice indices of a box's points within the cell (rounded
+        // outward; every point in the range is tested).
+        let range = |lo: f64, hi: f64, first: i64, n: i64| {
+            let from = ((lo * d - 0.5).floor() as i64).max(first);
+            let to = ((hi * d - 0.5).ceil() as i64).min(first + n - 1);
+            from..=to
+        };
+        lattice.cell = cell;
+        lattice.on.clear();
+        lattice.on.resize((ni * nj) as usize, false);
+        let at = |i: i64, j: i64| ((j - j0) * ni + (i - i0)) as usize;
         for &k in polygons {
             let Some(region) = &self.regions[k as usize] else {
                 continue;
             };
             let b = region.bounds();
-            let range = |lo: f64, hi: f64, first: i64, n: i64| {
-                let from = ((lo * d - 0.5).floor() as i64).max(first);
-                let to = ((hi * d - 0.5).ceil() as i64).min(first + n - 1);
-                from..=to
-            };
             for j in range(b.y0, b.y1, j0, nj) {
                 for i in range(b.x0, b.x1, i0, ni) {
-                    let at = ((j - j0) * ni + (i - i0)) as usize;
-                    if !on[at] && region.contains(point(i, j)) {
-                        on[at] = true;
+                    if !lattice.on[at(i, j)] && region.contains(point(i, j)) {
+                        lattice.on[at(i, j)] = true;
                     }
                 }
             }
         }
-        let points: Vec<Point> = (j0..j0 + nj)
-            .flat_map(|j| (i0..i0 + ni).map(move |i| (i, j)))
-            .zip(&on)
-            .filter(|&(_, &on)| on)
-            .map(|((i, j), _)| point(i, j))
-            .collect();
-        let near = self.nearest_depths(polygons, &points);
+        // Without planes nothing is hidden: every point counts as nearest.
+        let unknown = if self.planes.is_empty() {
+            f64::NEG_INFINITY
+        } else {
+            f64::INFINITY
+        };
+        lattice.near.clear();
+        lattice.near.resize((ni * nj) as usize, unknown);
+        if self.planes.is_empty() {
+            return;
+        }
+        // Per polygon, the points within the margin of it: in its grown box
+        // and within the margin of every edge's line (each holds every point
+        // that near).
+        for &k in polygons {
+            let ((b, plane), region) = (&self.planes[k as usize], &self.regions[k as usize]);
+            for j in range(b.y0, b.y1, j0, nj) {
+                for i in range(b.x0, b.x1, i0, ni) {
+                    let p = point(i, j);
+                    let outside = p.0 < b.x0 || p.0 > b.x1 || p.1 < b.y0 || p.1 > b.y1;
+                    if !lattice.on[at(i, j)]
+                        || outside
+                        || region
+                            .as_ref()
+                            .is_some_and(|r| !r.contains_grown(p, self.margin))
+                    {
+                        continue;
+                    }
+                    let depth = plane.map_or(f64::NEG_INFINITY, |plane| plane.at(p));
+                    let near = &mut lattice.near[at(i, j)];
+                    *near = near.min(if depth.is_nan() {
+                        f64::NEG_INFINITY
+                    } else {
+                        depth
+                    });
+                }
+            }
+        }
+    }
+
+    /// The batches of a top cell in whole-lattice mode: quartered down to
+    /// at most [`BATCH`] lattice points, each traced by
+    /// [`Self::whole_cell`]; true once one proves the caster useful.
+    fn lattice_batches(
+        &self,
+        sampler: &mut Sampler<'_, '_>,
+        lattice: &LatticeCell,
+        (i0, j0, ni, nj): (i64, i64, i64, i64),
+    ) -> bool {
+        if ni * nj <= BATCH as i64 {
+            return self.whole_cell(sampler, lattice, (i0, j0, ni, nj));
+        }
+        let (hi, hj) = ((ni + 1) / 2, (nj + 1) / 2);
+        for (a, b, na, nb) in [
+            (i0, j0, hi, hj),
+            (i0 + hi, j0, ni - hi, hj),
+            (i0, j0 + hj, hi, nj - hj),
+            (i0 + hi, j0 + hj, ni - hi, nj - hj),
+        ] {
+            if na > 0 && nb > 0 && self.lattice_batches(sampler, lattice, (a, b, na, nb)) {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Every lattice point of a small cell (within the top cell
+    /// `lattice`) on the footprint, traced as one batch (whole-lattice
+    /// mode: a model under a directional light, whose lattice rays are
+    /// parallel and a fraction of a texel apart); true if any proves the
+    /// caster useful.
+    fn whole_cell(
+        &self,
+        sampler: &mut Sampler<'_, '_>,
+        lattice: &LatticeCell,
+        (i0, j0, ni, nj): (i64, i64, i64, i64),
+    ) -> bool {
+        let d = self.density as f64;
         let grid = sampler.rays.grid;
-        let mut rays: Vec<(TexelRay, Point, f64)> = points
-            .into_iter()
-            .zip(near)
-            .map(|(p, near)| (grid.ray_through(self.face, p.0, p.1), p, near))
-            .collect();
+        let mut rays: Vec<(TexelRay, Point, f64)> = Vec::new();
+        for j in j0..j0 + nj {
+            for i in i0..i0 + ni {
+                let at = lattice.index(i, j);
+                if lattice.on[at] {
+                    let p = ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
+                    rays.push((grid.ray_through(self.face, p.0, p.1), p, lattice.near[at]));
+                }
+            }
+        }
         if sampler.hidden.is_some() && rays.len() > FEW_POINTS {
             // A probe: the middle point alone, for the casters in front of
             // the caster here.
@@ -639,46 +773,29 @@ impl Footprint {
         sampler.trace_unhidden(&rays)
     }
 
-    /// The caster's nearest depth at each of `points` (of a cell whose
-    /// `polygons` include every polygon within the margin of one, see
-    /// [`Self::cell`]) over their planes (see [`Footprint::planes`]): `-∞`
-    /// where a polygon without a plane may be hit, `+∞` where none may; all
-    /// `-∞` without planes (nothing is then hidden).
-    fn nearest_depths(&self, polygons: &[u32], points: &[Point]) -> Vec<f64> {
-        if self.planes.is_empty() || points.is_empty() {
-            return vec![f64::NEG_INFINITY; points.len()];
-        }
-        let all = Rect::around(points.iter().copied());
-        let mut near = vec![f64::INFINITY; points.len()];
-        for &k in polygons {
-            let ((b, plane), region) = (&self.planes[k as usize], &self.regions[k as usize]);
-            if !b.meets(all) {
-                continue;
-            }
-            for (n, &p) in near.iter_mut().zip(points) {
-                // Within the margin of the polygon: in its grown box and
-                // within the margin of every edge's line (each holds every
-                // point that near).
-                let outside = p.0 < b.x0 || p.0 > b.x1 || p.1 < b.y0 || p.1 > b.y1;
-                if outside
-                    || region
-                        .as_ref()
-                        .is_some_and(|r| !r.contains_grown(p, self.margin))
-                {
-                    continue;
-                }
-                let depth = plane.map_or(f64::NEG_INFINITY, |plane| plane.at(p));
-                *n = n.min(if depth.is_nan() {
-                    f64::NEG_INFINITY
-                } else {
-                    depth
-                });
-            }
-        }
-        near
+    /// Every lattice point of a small cell the outline crosses that lies
+    /// on one of `near`'s polygons, traced as one batch: the points a
+    /// quartering down to single points would trace (and the corners it
+    /// would probe inside the footprint), as one packet of a fraction of a
+    /// texel instead of single rays; true if any proves the caster useful.
+    fn outline_cell(
+        &self,
+        sampler: &mut Sampler<'_, '_>,
+        near: &Near<'_>,
+        (i0, j0, ni, nj): (i64, i64, i64, i64),
+    ) -> bool {
+        let d = self.density as f64;
+        let grid = sampler.rays.grid;
+        let rays: Vec<TexelRay> = (j0..j0 + nj)
+            .flat_map(|j| (i0..i0 + ni).map(move |i| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d)))
+            .filter(|&p| near.polygons.iter().any(|&k| self.touches(k, p)))
+            .map(|p| grid.ray_through(self.face, p.0, p.1))
+            .collect();
+        sampler.trace_batch(&rays)
     }
 
-    /// Lattice points `i0..i0+ni × j0..j0+nj`; true once proven useful.
+    /// Lattice points `i0..i0+ni × j0..j0+nj` of an outlined footprint
+    /// (terrain blocks, perspective lights); true once proven useful.
     fn cell(
         &self,
         sampler: &mut Sampler<'_, '_>,
@@ -699,28 +816,16 @@ impl Footprint {
             let inside = near.polygons.iter().any(|&i| self.touches(i, p));
             return inside && sampler.trace(&grid.ray_through(self.face, p.0, p.1)).0;
         }
-        // What meets this cell, handed down so smaller cells test less: in
-        // whole-lattice mode whatever may touch one of its points or lie
-        // within the depth margin of one (by the boxes of the regions its
-        // points are tested against, and of `planes`), else what meets it.
+        // What meets this cell, handed down so smaller cells test less.
         let grown = rect.grown(TOUCH);
-        let meets = |&i: &u32| match self.outline {
-            None => {
-                let region = &self.regions[i as usize];
-                region.as_ref().is_some_and(|r| r.bounds().meets(rect))
-                    || self
-                        .planes
-                        .get(i as usize)
-                        .is_some_and(|&(b, _)| b.meets(rect))
-            }
-            Some(_) => beam::overlaps_rect(&self.polygons[i as usize], grown),
-        };
-        let polygons: Vec<u32> = near.polygons.iter().copied().filter(meets).collect();
+        let polygons: Vec<u32> = near
+            .polygons
+            .iter()
+            .copied()
+            .filter(|&i| beam::overlaps_rect(&self.polygons[i as usize], grown))
+            .collect();
         if polygons.is_empty() {
             return false;
-        }
-        if self.outline.is_none() && ni * nj <= BATCH as i64 {
-            return self.whole_cell(sampler, &polygons, (i0, j0, ni, nj));
         }
         let edges: Vec<u32> = match &self.outline {
             None => Vec::new(),
@@ -734,21 +839,23 @@ impl Footprint {
                 })
                 .collect(),
         };
-        let crossed = self.outline.is_none() || !edges.is_empty();
+        let crossed = !edges.is_empty();
         let near = &Near {
             polygons: &polygons,
             edges: &edges,
         };
+        if crossed && ni * nj <= BATCH as i64 {
+            return self.outline_cell(sampler, near, (i0, j0, ni, nj));
+        }
         if !crossed {
-            let mut fronts = Vec::with_capacity(4);
             let last = (i0 + ni - 1, j0 + nj - 1);
-            for (i, j) in [(i0, j0), (last.0, j0), (i0, last.1), last] {
+            let corners = [(i0, j0), (last.0, j0), (i0, last.1), last].map(|(i, j)| {
                 let p = point(i, j);
-                let (proven, front) = sampler.trace(&grid.ray_through(self.face, p.0, p.1));
-                if proven {
-                    return true;
-                }
-                fronts.push(front);
+                grid.ray_through(self.face, p.0, p.1)
+            });
+            let (proven, fronts) = sampler.trace_fronts(&corners);
+            if proven {
+                return true;
             }
             if fronts.iter().all(|&f| f == fronts[0]) {
                 return false;

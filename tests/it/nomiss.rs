@@ -149,6 +149,104 @@ fn a_caster_between_texel_centres_is_kept_by_conservative_and_refine() {
 }
 
 #[test]
+fn a_card_between_texel_centres_under_spot_and_point_lights_is_kept_by_the_outline_lattice() {
+    // A 15 cm card facing up (x, z 0.80..0.95 at y 1.2, centre 0.875) over
+    // flat terrain, under a spot light and a point light 10 m above and
+    // 0.55 m short of its centre in x and z, looking straight down (90°, 64
+    // texels a side; the point light's −y face is the same view; both
+    // image axes lie along world x and z). 8.8 m down, the view's texel
+    // edges lie 8.8 / 32 m apart, and the card's centre sits 0.55 m =
+    // 2 texels off the axis in both: on a texel corner, so the nearest
+    // centre rays cross its plane half a texel (0.14 m) off in both axes,
+    // beyond the card (0.075 m): the plain grid misses it. Refinement
+    // (lattice only) takes the outline way here: the card's edges cross
+    // every cell that meets it (a texel is larger than the card), so no
+    // probe of an uncrossed cell can find it (top cells' corners lie 2
+    // texels away); only the outline cells' points can, ×8 points 1/16
+    // texel (1.7 cm) either side of its centre lie on it, with terrain
+    // behind: useful. The flat terrain has nothing behind it: culled.
+    let mut world = World::new(1, 1);
+    world.terrain((0, 0), |_, _| 0.0);
+    let m = one(&mut world, quad_up(0.8, 0.8, 0.95, 0.95, 1.2), OPAQUE);
+    let card = world.place((0, 0), &[m], DMat4::IDENTITY, true);
+    let above = DVec3::new(0.875 - 0.55, 10.0, 0.875 - 0.55);
+    let lights = vec![
+        LightSettings {
+            name: "spot".into(),
+            kind: LightKind::Spot {
+                position: above,
+                direction: DOWN,
+                fov_degrees: 90.0,
+                near: 0.1,
+                far: 50.0,
+                resolution: 64,
+            },
+        },
+        LightSettings {
+            name: "point".into(),
+            kind: LightKind::Point {
+                position: above,
+                near: 0.1,
+                far: 50.0,
+                resolution: 64,
+            },
+        },
+    ];
+    let mut settings = config(lights);
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, card), vec![0]);
+    assert_eq!(terrain_mask(&result, 0), 0);
+    settings.refine_density = 8;
+    let result = run(&world, &settings);
+    assert_eq!(instance_masks(&result, &world, card), vec![0b11]);
+    assert!(result.lights.iter().all(|l| l.refine_rays > 0));
+    assert_eq!(terrain_mask(&result, 0), 0);
+}
+
+#[test]
+fn probes_that_disagree_split_their_cell_down_to_a_receiver_between_centres() {
+    // A closed slab C (y 0.9..1.0) whose +x edge runs 2.5 cm past a 15 cm
+    // receiver-only card R (x, z 0.80..0.95 at y 0.5, facing up) under it;
+    // no terrain, so C has something behind it only over R. A spot light
+    // (90°, 64 texels) looks straight down from 9.5 m above R, 0.59375 m =
+    // 2 texels (at R's depth) short of R's centre in x and z: R's centre
+    // is on a texel corner, the nearest centre rays pass half a texel
+    // (0.15 m) off in both axes, beyond R (0.075 m). The plain grid sees C
+    // in front with nothing behind: culled. C is closed (every edge of its
+    // hittable triangles is shared), so its footprint has no outline:
+    // refinement probes cells at their corners and splits a cell only
+    // where the probes disagree on C being in front. Along C's +x edge
+    // they do (on C and off it), down to single lattice points, and that
+    // edge runs within a lattice step (3.7 cm) of R: a point on R sees C
+    // in front with R behind, so C is useful.
+    let mut world = World::new(1, 1);
+    let c = one(
+        &mut world,
+        cube(Vec3::new(-0.125, 0.9, -0.125), Vec3::new(0.975, 1.0, 1.875)),
+        OPAQUE,
+    );
+    let r = one(&mut world, quad_up(0.8, 0.8, 0.95, 0.95, 0.5), OPAQUE);
+    let c = world.place((0, 0), &[c], DMat4::IDENTITY, true);
+    world.place((0, 0), &[r], DMat4::IDENTITY, false);
+    let short = 0.59375;
+    let spot = LightSettings {
+        name: "spot".into(),
+        kind: LightKind::Spot {
+            position: DVec3::new(0.875 - short, 10.0, 0.875 - short),
+            direction: DOWN,
+            fov_degrees: 90.0,
+            near: 0.1,
+            far: 50.0,
+            resolution: 64,
+        },
+    };
+    let mut settings = config(vec![spot]);
+    assert_eq!(instance_masks(&run(&world, &settings), &world, c), vec![0]);
+    settings.refine_density = 8;
+    assert_eq!(instance_masks(&run(&world, &settings), &world, c), vec![1]);
+}
+
+#[test]
 fn a_caster_hidden_behind_a_larger_occluder_is_culled_by_conservative() {
     // Box A (4..8 at y 2..3) covers box B (5..7 at y 0.5..1) from a light
     // straight down, over flat terrain; 0.7 m texels so texel edges cut
