@@ -7,7 +7,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use shadowcull::bake::setup::{BakeWorld, LightSetup};
-use shadowcull::bake::trace_light::RayCounter;
+use shadowcull::bake::trace_light::{PacketSkip, RayCounter};
 use shadowcull::bake::{self, BakeConfig, Silent};
 use shadowcull::trace::TraceRay;
 use std::time::Duration;
@@ -57,7 +57,7 @@ fn bake_bench(c: &mut Criterion) {
         group.measurement_time(Duration::from_secs(10));
         group.throughput(Throughput::Elements(grid.texel_count()));
         group.bench_function("bake_rays", |b| {
-            b.iter(|| rays_of_light.trace_grid(1, &NoCount))
+            b.iter(|| rays_of_light.trace_grid(1, PacketSkip::Never, &NoCount))
         });
         // The same rays through the traversal alone (no classification),
         // single-threaded, collecting hits with an early cut-off at the

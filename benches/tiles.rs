@@ -1,6 +1,7 @@
 //! Tile traversal against single rays on identical rays (issue 12): per
 //! light kind, the bake's tiles traced ray by ray (`single`) and as packets
-//! (`tiles`), both through `LightRays::trace_tiles` on the rayon pool, with
+//! (`tiles`), both through `LightRays::trace_tiles` on the rayon pool (every
+//! packet traced: `PacketSkip::Never`), with
 //! the same answer asserted before timing. The world is `gen --preset
 //! bench` (seed 1) or, with `SHADOWCULL_BENCH_CHUNKS=N`, N×N chunks at the
 //! bench's density; the sun's texel size is `SHADOWCULL_BENCH_TEXEL`
@@ -9,7 +10,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use shadowcull::bake::setup::{BakeWorld, LightSetup};
-use shadowcull::bake::trace_light::{tile_rect, RayCounter, TILE};
+use shadowcull::bake::trace_light::{tile_rect, PacketSkip, RayCounter, TILE};
 use shadowcull::bake::BakeConfig;
 use shadowcull::formats::bake_settings::LightKind;
 use shadowcull::trace::TraceMode;
@@ -65,8 +66,8 @@ fn tiles_bench(c: &mut Criterion) {
             .sum();
         eprintln!("{kind}: {} of {count} tiles, {rays} rays", sample.len());
         assert_eq!(
-            tiles.trace_tiles(sample.clone(), 1, &NoCount),
-            single.trace_tiles(sample.clone(), 1, &NoCount),
+            tiles.trace_tiles(sample.clone(), 1, PacketSkip::Never, &NoCount),
+            single.trace_tiles(sample.clone(), 1, PacketSkip::Never, &NoCount),
             "{kind}: the tile path's answer differs"
         );
         let mut group = c.benchmark_group(format!("rays/{kind}"));
@@ -74,10 +75,10 @@ fn tiles_bench(c: &mut Criterion) {
         group.measurement_time(Duration::from_secs(10));
         group.throughput(Throughput::Elements(rays));
         group.bench_function("single", |b| {
-            b.iter(|| single.trace_tiles(sample.clone(), 1, &NoCount))
+            b.iter(|| single.trace_tiles(sample.clone(), 1, PacketSkip::Never, &NoCount))
         });
         group.bench_function("tiles", |b| {
-            b.iter(|| tiles.trace_tiles(sample.clone(), 1, &NoCount))
+            b.iter(|| tiles.trace_tiles(sample.clone(), 1, PacketSkip::Never, &NoCount))
         });
         group.finish();
     }

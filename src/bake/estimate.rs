@@ -139,7 +139,8 @@ impl GridSource for Plan {
         let rest = (0..tile_count)
             .into_par_iter()
             .filter(|&t| !sample.holds(t));
-        grid_pass::trace_tiles(world, setup, rays_of_light, config, rest, rays_done)
+        let known = Some(&sample.useful);
+        grid_pass::trace_tiles(world, setup, rays_of_light, config, rest, known, rays_done)
             .union(&sample.useful)
     }
 
@@ -299,7 +300,7 @@ fn plan_light(
     );
     let started = Instant::now();
     let sample = (0..sampled_tiles).into_par_iter().map(|n| n * every);
-    let useful = grid_pass::trace_tiles(world, &setup, &rays, config, sample, &counter);
+    let useful = grid_pass::trace_tiles(world, &setup, &rays, config, sample, None, &counter);
     plan.sample_seconds = started.elapsed().as_secs_f64();
     plan.sample_rays = counter.done();
     counter.finish();

@@ -4,19 +4,22 @@
 //! plan's sample, so a shard traces exactly what one bake traces.
 
 use super::setup::{BakeWorld, LightSetup};
-use super::trace_light::{CasterSet, LightRays, RayCounter};
+use super::trace_light::{CasterSet, LightRays, PacketSkip, RayCounter};
 use super::{conservative, filter_margin, BakeConfig, GridMode};
 use rayon::prelude::*;
 
 /// The casters the grid rays of `tiles` prove useful (receiver-only ones
-/// included; the caller drops them). The union over a partition of the
-/// light's tiles is the same whatever the partition.
+/// included; the caller drops them), less some of those in `known` (the
+/// caller ORs it in): centre rays leave out the packets that can only
+/// prove casters already proven ([`PacketSkip::Settled`]). The union over
+/// a partition of the light's tiles is the same whatever the partition.
 pub fn trace_tiles(
     world: &BakeWorld,
     setup: &LightSetup,
     rays: &LightRays<'_>,
     config: &BakeConfig,
     tiles: impl IntoParallelIterator<Item = u64>,
+    known: Option<&CasterSet>,
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
     let samples = config.supersample.max(1);
@@ -24,7 +27,7 @@ pub fn trace_tiles(
         if config.filter_radius > 0 {
             filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
         } else {
-            rays.trace_tiles(tiles, samples, rays_done)
+            rays.trace_tiles(tiles, samples, PacketSkip::Settled { known }, rays_done)
         }
     };
     let tiles: Vec<u64> = tiles.into_par_iter().collect();

@@ -351,7 +351,7 @@ impl GridSource for TraceGrid {
         rays_done: &dyn RayCounter,
     ) -> CasterSet {
         let tiles = 0..rays_of_light.tile_count();
-        grid_pass::trace_tiles(world, setup, rays_of_light, config, tiles, rays_done)
+        grid_pass::trace_tiles(world, setup, rays_of_light, config, tiles, None, rays_done)
     }
 }
 

@@ -447,9 +447,15 @@ pub fn bake_shard(
         for unit in units {
             let unit_started = Instant::now();
             let useful = match (&setup, &rays_of_light) {
-                (Some(setup), Some(rays)) => {
-                    grid_pass::trace_tiles(world, setup, rays, config, unit.tiles.clone(), &counter)
-                }
+                (Some(setup), Some(rays)) => grid_pass::trace_tiles(
+                    world,
+                    setup,
+                    rays,
+                    config,
+                    unit.tiles.clone(),
+                    None,
+                    &counter,
+                ),
                 _ => CasterSet::new(world.casters.len()),
             };
             out.push(PartialUnit {

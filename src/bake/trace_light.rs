@@ -2,6 +2,8 @@
 //! face culling and the below-ground test, then classified (SPEC §4). The
 //! result is a set of useful casters, the same for any thread count (tiles
 //! are OR-ed, and each ray's answer does not depend on traversal order).
+//! A grid pass leaves out the rays that can meet only casters already
+//! proven ([`PacketSkip`]): they could add nothing to the set.
 
 use super::casters::CasterTable;
 use super::ground::Ground;
@@ -12,6 +14,7 @@ use crate::trace::texel_beam::{self, Rect};
 use crate::trace::{FaceCull, Hit, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Whether the ray's early cut-off is worth recomputing after its `hits`-th
 /// kept hit. Every hit while there are few (the common ray has two or three,
@@ -32,6 +35,10 @@ pub trait RayCounter: Sync {
 /// Metres between a directional light's rays beyond which its tiles are
 /// traced ray by ray (see [`LightRays::trace_tiles`]).
 pub const MAX_PACKET_SPACING: f64 = 0.5;
+
+/// Texels per side of the groups whose rays a ray-by-ray grid pass checks
+/// together for casters not yet settled ([`PacketSkip::Settled`]).
+pub const RAY_BY_RAY_GROUP: u32 = 8;
 
 /// Texels per tile side: big enough to amortise scheduling, small enough
 /// to balance 2–64 threads and to report progress often.
@@ -231,6 +238,7 @@ pub struct PacketState {
     hits: Vec<Vec<RayHit>>,
     limits: Vec<f32>,
     scratch: PacketScratch,
+    keep: Vec<bool>,
 }
 
 impl PacketState {
@@ -238,6 +246,45 @@ impl PacketState {
     /// `rays` rays of the latest [`LightRays::trace_packet`].
     pub fn hits(&self, rays: usize) -> &[Vec<RayHit>] {
         &self.hits[..rays.min(self.hits.len())]
+    }
+}
+
+/// Whether a grid pass leaves out packets that cannot change its answer.
+#[derive(Clone, Copy, Debug)]
+pub enum PacketSkip<'k> {
+    /// Every packet traced: the benches time the traversal like for like.
+    Never,
+    /// A packet's rays that can meet only settled casters ([`Settled`]:
+    /// proven useful by an earlier packet of the pass on any thread, in
+    /// `known`, or never useful, receiver-only) are left out, and the
+    /// packet whole when its beam reaches none other
+    /// (`Tracer::rays_reaching`). Such rays could only prove casters
+    /// already proven, so the answer OR `known` is the same whichever rays
+    /// the threads' timing leaves out.
+    Settled { known: Option<&'k CasterSet> },
+}
+
+/// The casters no ray of a grid pass can newly prove useful: proven so
+/// far by any of its threads, known before it, or receiver-only.
+struct Settled(Vec<AtomicU64>);
+
+impl Settled {
+    fn new(casters: &CasterTable, known: Option<&CasterSet>) -> Settled {
+        let mut words = known.map_or_else(|| vec![0; casters.len().div_ceil(64)], |k| k.0.clone());
+        for (id, caster) in casters.casters.iter().enumerate() {
+            if caster.receiver_only {
+                words[id / 64] |= 1 << (id % 64);
+            }
+        }
+        Settled(words.into_iter().map(AtomicU64::new).collect())
+    }
+
+    fn insert(&self, caster: u32) {
+        self.0[caster as usize / 64].fetch_or(1 << (caster % 64), Ordering::Relaxed);
+    }
+
+    fn contains(&self, caster: u32) -> bool {
+        self.0[caster as usize / 64].load(Ordering::Relaxed) & (1 << (caster % 64)) != 0
     }
 }
 
@@ -261,8 +308,13 @@ impl LightRays<'_> {
     /// Traces every texel of the grid with `samples`² rays each (1: the
     /// texel centre; k: a k×k pattern of sub-texel centres); `rays_done`
     /// hears of every finished tile so a caller can show progress.
-    pub fn trace_grid(&self, samples: u32, rays_done: &dyn RayCounter) -> CasterSet {
-        self.trace_tiles(0..self.tile_count(), samples, rays_done)
+    pub fn trace_grid(
+        &self,
+        samples: u32,
+        skip: PacketSkip,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        self.trace_tiles(0..self.tile_count(), samples, skip, rays_done)
     }
 
     /// Tiles of [`TILE`]² texels: faces, then rows of tiles, then columns
@@ -277,47 +329,57 @@ impl LightRays<'_> {
     /// a partition of `0..tile_count()` is the grid's. Tiles are traced as
     /// packets of coherent rays (`Tracer::for_each_packet_hit`; a
     /// directional light's rays more than [`MAX_PACKET_SPACING`] apart, ray
-    /// by ray): the answers are the single-ray ones either way.
+    /// by ray): the answers are the single-ray ones either way. With
+    /// [`PacketSkip::Settled`] the rays of a packet that cannot meet a
+    /// caster not yet proven are left out: the answer OR `known` is the
+    /// same.
     pub fn trace_tiles(
         &self,
         tiles: impl IntoParallelIterator<Item = u64>,
         samples: u32,
+        skip: PacketSkip,
         rays_done: &dyn RayCounter,
     ) -> CasterSet {
         let grid = self.grid;
         let casters = self.casters.len();
         let samples = samples.max(1);
         let side = self.packet_side(samples);
+        let settled = match skip {
+            PacketSkip::Never => None,
+            PacketSkip::Settled { known } => Some(Settled::new(self.casters, known)),
+        };
+        let settled = settled.as_ref();
         tiles
             .into_par_iter()
             .fold(
                 || (CasterSet::new(casters), PacketState::default()),
                 |(mut useful, mut state), tile| {
                     let (face, x0, y0, x1, y1) = tile_rect(grid, tile);
-                    if !self.tiles.may_hit((x0, y0, x1, y1)) {
-                        rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
-                        return (useful, state);
-                    }
-                    let Some(side) = side else {
-                        for y in y0..y1 {
-                            for x in x0..x1 {
-                                for ray in grid.texel_rays(face, x, y, samples) {
-                                    self.trace(&ray, &mut state.single, |c| useful.insert(c));
+                    let rect = (x0, y0, x1, y1);
+                    match side {
+                        _ if !self.tiles.may_hit(rect) => {}
+                        None => self.trace_tile_ray_by_ray(
+                            face,
+                            rect,
+                            samples,
+                            settled,
+                            &mut state,
+                            &mut useful,
+                        ),
+                        Some(side) => {
+                            for py in (y0..y1).step_by(side as usize) {
+                                for px in (x0..x1).step_by(side as usize) {
+                                    let texels = (px, py, (px + side).min(x1), (py + side).min(y1));
+                                    self.trace_tile_packet(
+                                        face,
+                                        texels,
+                                        samples,
+                                        settled,
+                                        &mut state,
+                                        &mut useful,
+                                    );
                                 }
                             }
-                        }
-                        rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
-                        return (useful, state);
-                    };
-                    for py in (y0..y1).step_by(side as usize) {
-                        for px in (x0..x1).step_by(side as usize) {
-                            state.rays.clear();
-                            for y in py..(py + side).min(y1) {
-                                for x in px..(px + side).min(x1) {
-                                    state.rays.extend(grid.texel_rays(face, x, y, samples));
-                                }
-                            }
-                            self.trace_packet(&mut state, |c| useful.insert(c));
                         }
                     }
                     rays_done.add(((x1 - x0) * (y1 - y0)) as u64 * (samples as u64).pow(2));
@@ -326,6 +388,101 @@ impl LightRays<'_> {
             )
             .map(|(useful, _)| useful)
             .reduce(|| CasterSet::new(casters), |a, b| a.union(&b))
+    }
+
+    /// The rays of the texels `x0..x1 × y0..y1` of `face` one by one; with
+    /// `settled`, only those that may meet a caster not yet settled (found
+    /// [`RAY_BY_RAY_GROUP`]² texels at a time, as a packet's would be).
+    fn trace_tile_ray_by_ray(
+        &self,
+        face: usize,
+        (x0, y0, x1, y1): (u32, u32, u32, u32),
+        samples: u32,
+        settled: Option<&Settled>,
+        state: &mut PacketState,
+        useful: &mut CasterSet,
+    ) {
+        let side = RAY_BY_RAY_GROUP;
+        for gy in (y0..y1).step_by(side as usize) {
+            for gx in (x0..x1).step_by(side as usize) {
+                state.rays.clear();
+                for y in gy..(gy + side).min(y1) {
+                    for x in gx..(gx + side).min(x1) {
+                        state.rays.extend(self.grid.texel_rays(face, x, y, samples));
+                    }
+                }
+                if let Some(settled) = settled {
+                    self.prepare_packet(state);
+                    if self.keep_unsettled(state, settled) == 0 {
+                        continue;
+                    }
+                }
+                let PacketState { rays, single, .. } = state;
+                for ray in rays.iter() {
+                    self.trace(ray, single, |c| {
+                        if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
+                            settled.insert(c);
+                        }
+                        useful.insert(c)
+                    });
+                }
+            }
+        }
+    }
+
+    /// The rays of the texels `x0..x1 × y0..y1` of `face` as one packet,
+    /// less those that can meet only `settled` casters (when given), which
+    /// hears of every caster proven.
+    fn trace_tile_packet(
+        &self,
+        face: usize,
+        (x0, y0, x1, y1): (u32, u32, u32, u32),
+        samples: u32,
+        settled: Option<&Settled>,
+        state: &mut PacketState,
+        useful: &mut CasterSet,
+    ) {
+        state.rays.clear();
+        for y in y0..y1 {
+            for x in x0..x1 {
+                state.rays.extend(self.grid.texel_rays(face, x, y, samples));
+            }
+        }
+        self.prepare_packet(state);
+        if let Some(settled) = settled {
+            if self.keep_unsettled(state, settled) == 0 {
+                return;
+            }
+        }
+        self.trace_prepared(state, |c| {
+            // Once per caster and thread: most proofs repeat one this
+            // thread already made.
+            if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
+                settled.insert(c);
+            }
+            useful.insert(c)
+        });
+    }
+
+    /// Keeps in `state` the prepared rays that may meet a caster not yet
+    /// settled (only those can change the answer); returns how many.
+    fn keep_unsettled(&self, state: &mut PacketState, settled: &Settled) -> usize {
+        let PacketState {
+            rays,
+            traced,
+            scratch,
+            keep,
+            ..
+        } = state;
+        let unsettled = |c: u32| !settled.contains(c);
+        let kept = self.tracer.rays_reaching(traced, scratch, &unsettled, keep);
+        if kept < rays.len() {
+            let mut k = keep.iter();
+            rays.retain(|_| k.next() == Some(&true));
+            let mut k = keep.iter();
+            traced.retain(|_| k.next() == Some(&true));
+        }
+        kept
     }
 
     /// Texels per packet side: about 64 rays (8×8 texels, fewer when
@@ -360,7 +517,20 @@ impl LightRays<'_> {
 
     /// [`Self::trace`] for each ray of `state.rays` (a tile of coherent
     /// rays), traced as packets: every ray gets the answer it gets alone.
-    pub fn trace_packet(&self, state: &mut PacketState, mut on_useful: impl FnMut(u32)) {
+    pub fn trace_packet(&self, state: &mut PacketState, on_useful: impl FnMut(u32)) {
+        self.prepare_packet(state);
+        self.trace_prepared(state, on_useful);
+    }
+
+    /// The light-relative rays of `state.rays`, into `state.traced`.
+    fn prepare_packet(&self, state: &mut PacketState) {
+        state.traced.clear();
+        let rays = state.rays.iter().map(|r| self.light_relative(r));
+        state.traced.extend(rays);
+    }
+
+    /// [`Self::trace_packet`] of rays [`Self::prepare_packet`] made.
+    fn trace_prepared(&self, state: &mut PacketState, mut on_useful: impl FnMut(u32)) {
         let PacketState {
             rays,
             traced,
@@ -369,8 +539,6 @@ impl LightRays<'_> {
             scratch,
             ..
         } = state;
-        traced.clear();
-        traced.extend(rays.iter().map(|r| self.light_relative(r)));
         if hits.len() < rays.len() {
             hits.resize_with(rays.len(), Vec::new);
         }

@@ -12,6 +12,9 @@ pub struct BottomLevels<'a> {
     /// Triangles each model's input held that were left out (not finite,
     /// beyond [`super::MAX_COORDINATE`] or of zero area in model space).
     pub(crate) models_left_out: Vec<usize>,
+    /// Per model, the groups (ascending) with a triangle built: the
+    /// casters a ray entering a placement of it can meet.
+    pub(crate) model_groups: Vec<Vec<u32>>,
     pub(crate) terrain: Vec<(HeightGrid<'a>, HeightField)>,
 }
 
@@ -23,7 +26,7 @@ impl<'a> BottomLevels<'a> {
         model_triangles: impl Fn(usize) -> Vec<TraceTriangle> + Sync,
         terrain: Vec<HeightGrid<'a>>,
     ) -> BottomLevels<'a> {
-        let (models, models_left_out): (Vec<Bvh>, Vec<usize>) = (0..models)
+        let (models, models_left_out): (Vec<Bvh>, Vec<(usize, Vec<u32>)>) = (0..models)
             .into_par_iter()
             .map(|i| {
                 let triangles = model_triangles(i);
@@ -33,9 +36,13 @@ impl<'a> BottomLevels<'a> {
                     .copied()
                     .collect();
                 let left_out = triangles.len() - usable.len();
-                (Bvh::build(&usable), left_out)
+                let mut groups: Vec<u32> = usable.iter().map(|t| t.caster).collect();
+                groups.sort_unstable();
+                groups.dedup();
+                (Bvh::build(&usable), (left_out, groups))
             })
             .unzip();
+        let (models_left_out, model_groups) = models_left_out.into_iter().unzip();
         let terrain = terrain
             .into_par_iter()
             .map(|grid| {
@@ -46,6 +53,7 @@ impl<'a> BottomLevels<'a> {
         BottomLevels {
             models,
             models_left_out,
+            model_groups,
             terrain,
         }
     }

@@ -158,6 +158,27 @@ impl Tracer<'_> {
         self.for_each_packet_hit_culled(rays, scratch, &FaceCull::default(), on_hit);
     }
 
+    /// Marks in `keep` the rays of `rays` (a packet, as
+    /// [`Self::for_each_packet_hit_culled`] takes them) that may meet a
+    /// caster `unsettled` accepts, and returns how many (see
+    /// [`TopLevel::rays_reaching`]); without the trees (brute force, ray
+    /// by ray) or for more than one packet's rays, every ray.
+    pub fn rays_reaching(
+        &self,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
+        keep: &mut Vec<bool>,
+    ) -> usize {
+        if self.mode != TraceMode::Trees || rays.len() > PACKET_RAYS {
+            keep.clear();
+            keep.resize(rays.len(), true);
+            return rays.len();
+        }
+        self.top
+            .rays_reaching(self.bottom, rays, scratch, unsettled, keep)
+    }
+
     /// [`Self::for_each_packet_hit`] for a caller that drops the hits
     /// `cull` says: those may not be reported (every other hit is).
     pub fn for_each_packet_hit_culled(

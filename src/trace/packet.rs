@@ -11,18 +11,29 @@
 //! falls below their t_min are settled and leave the packet. A packet the
 //! beam cannot bound (directions spread too wide, a ray not finite) is
 //! traced ray by ray.
+//!
+//! Before tracing, a caller may ask which of a packet's rays can meet a
+//! caster it has not settled yet ([`TopLevel::rays_reaching`]): the beam
+//! walks the top level alone, and each ray gets, against the few entries
+//! found, the box test the single-ray traversal gives it there.
 
 use super::beam::Beam;
 use super::blas::BottomLevels;
+use super::boxtree::BoxRay;
 use super::heightfield::Step;
 use super::instance::row_sum_norm;
-use super::tlas::{Entry, TopLevel};
+use super::tlas::{block_box, Entry, TopLevel};
 use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
 use super::{Bvh, FaceCull, Hit, ToModel, TraceRay, TraceTriangle};
 use glam::Vec3;
 
 /// Rays of one packet at most (lane numbers are u8).
 pub const PACKET_RAYS: usize = 256;
+
+/// Most entries with an unsettled caster [`TopLevel::rays_reaching`]
+/// tests each ray against (each test maps the ray into a model's space);
+/// a packet reaching more traces every ray.
+pub const MOST_OPEN_ENTRIES: usize = 8;
 
 /// The live rays of a packet in one frame (light-relative, or one
 /// instance's model space), grouped for the lane test. Scratch reused
@@ -450,6 +461,8 @@ pub struct PacketScratch {
     light: Frame,
     model: Frame,
     t_max: Vec<f32>,
+    /// [`TopLevel::rays_reaching`]'s entries with an unsettled caster.
+    open: Vec<u32>,
 }
 
 impl TopLevel {
@@ -472,6 +485,7 @@ impl TopLevel {
             light,
             model,
             t_max,
+            ..
         } = scratch;
         t_max.clear();
         t_max.extend(rays.iter().map(|r| r.t_max));
@@ -517,6 +531,104 @@ impl TopLevel {
             }
             true
         });
+    }
+
+    /// Marks in `keep` the rays of `rays` (at most [`PACKET_RAYS`]) that
+    /// may meet a caster `unsettled` accepts, and returns how many: 0 when
+    /// the packet's beam reaches no part or block holding one. Against up
+    /// to [`MOST_OPEN_ENTRIES`] such entries each ray gets the test the
+    /// single-ray traversal gives it before any hit there (a part: the ray
+    /// mapped into model space against its bottom level's box; a block:
+    /// the ray against its box; both padded, up to `node_t_max`); with
+    /// more, every live ray is kept. Only the top level is walked.
+    pub(crate) fn rays_reaching(
+        &self,
+        bottom: &BottomLevels,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
+        keep: &mut Vec<bool>,
+    ) -> usize {
+        keep.clear();
+        keep.resize(rays.len(), false);
+        let PacketScratch {
+            light, t_max, open, ..
+        } = scratch;
+        t_max.clear();
+        t_max.extend(rays.iter().map(|r| r.t_max));
+        light.fill(
+            live(rays.iter().copied().enumerate(), t_max),
+            self.tree.magnitude,
+        );
+        if light.is_empty() {
+            return 0;
+        }
+        // Every ray the packet traversal would trace.
+        let every_live = |keep: &mut Vec<bool>| {
+            for (k, ray) in keep.iter_mut().zip(rays) {
+                *k = ray.t_min <= ray.t_max;
+            }
+            keep.iter().filter(|&&k| k).count()
+        };
+        let Some(mut beam) = light.beam(t_max, self.tree.magnitude) else {
+            return every_live(keep);
+        };
+        open.clear();
+        self.tree
+            .visit_beam(&mut beam, light.direction(), |slot, _| {
+                let reaches = match self.entries[slot] {
+                    Entry::Part {
+                        model,
+                        first_caster,
+                        ..
+                    } => bottom.model_groups[model as usize]
+                        .iter()
+                        .any(|&group| unsettled(first_caster + group)),
+                    Entry::Block { caster, .. } => unsettled(caster),
+                };
+                if reaches {
+                    open.push(slot as u32);
+                }
+                open.len() <= MOST_OPEN_ENTRIES
+            });
+        if open.len() > MOST_OPEN_ENTRIES {
+            return every_live(keep);
+        }
+        let mut count = 0;
+        for (k, ray) in keep.iter_mut().zip(rays) {
+            *k = ray.t_min <= ray.t_max
+                && open
+                    .iter()
+                    .any(|&slot| self.ray_may_enter(bottom, &self.entries[slot as usize], ray));
+            count += usize::from(*k);
+        }
+        count
+    }
+
+    /// Whether the single-ray traversal's test before `entry`'s triangles
+    /// or cells lets `ray` through (see [`Self::rays_reaching`]).
+    fn ray_may_enter(&self, bottom: &BottomLevels, entry: &Entry, ray: &TraceRay) -> bool {
+        match *entry {
+            Entry::Part {
+                model, to_model, ..
+            } => {
+                let bvh = &bottom.models[model as usize];
+                let Some((lo, hi)) = bvh.bounds() else {
+                    return false;
+                };
+                let model_ray = to_model.ray(ray);
+                let test = BoxRay::new(&model_ray, bvh.tree.magnitude);
+                test.touches(lo, hi, model_ray.t_min, test.node_t_max(model_ray.t_max))
+            }
+            Entry::Block { block, .. } => {
+                let (grid, field) = &bottom.terrain[block as usize];
+                let Some((lo, hi)) = block_box(grid, field, self.reference) else {
+                    return true;
+                };
+                let test = BoxRay::new(ray, self.tree.magnitude);
+                test.touches(lo, hi, ray.t_min, test.node_t_max(ray.t_max))
+            }
+        }
     }
 
     /// The packet's rays one at a time through the single-ray traversal.

@@ -882,6 +882,59 @@ mod two_level {
     }
 
     #[test]
+    fn a_packet_keeps_the_rays_that_may_reach_an_unsettled_block() {
+        // Four 100 m blocks (2×2); rays straight down, 8×8 of them 0.5 m
+        // apart: over block 0 alone (x, z 10..13.5), or across the border
+        // of blocks 0 and 1 (x 98.25..101.75: four columns each side).
+        let (cells, size) = (4, 100.0);
+        let blocks = terrain(2, cells, size, false);
+        let bottom = BottomLevels::build(0, |_| Vec::new(), grids(&blocks, cells, size));
+        let placed = (0..4).map(|b| PlacedBlock {
+            block: b,
+            caster: b,
+        });
+        let top = TopLevel::build(&bottom, &[][..], placed, DVec3::ZERO);
+        let mut tracer = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let packet = |x0: f32, t_max: f32| -> Vec<TraceRay> {
+            (0..64)
+                .map(|i| TraceRay {
+                    origin: Vec3::new(x0 + (i % 8) as f32 * 0.5, 30.0, 10.0 + (i / 8) as f32 * 0.5),
+                    direction: Vec3::NEG_Y,
+                    t_min: 0.0,
+                    t_max,
+                })
+                .collect()
+        };
+        let (inside, across) = (packet(10.0, 100.0), packet(98.25, 100.0));
+        let mut scratch = PacketScratch::default();
+        let mut keep = Vec::new();
+        let mut kept = |tracer: &Tracer, rays: &[TraceRay], unsettled: &dyn Fn(u32) -> bool| {
+            let n = tracer.rays_reaching(rays, &mut scratch, unsettled, &mut keep);
+            assert_eq!(n, keep.iter().filter(|&&k| k).count());
+            (n, keep.clone())
+        };
+        assert_eq!(kept(&tracer, &inside, &|c| c == 0).0, 64);
+        assert_eq!(kept(&tracer, &inside, &|c| c != 0).0, 0);
+        assert_eq!(kept(&tracer, &inside, &|_| false).0, 0);
+        // Across the border: the rays over block 1 only.
+        let (n, keep_1) = kept(&tracer, &across, &|c| c == 1);
+        assert_eq!(n, 32);
+        for (ray, k) in across.iter().zip(&keep_1) {
+            assert_eq!(*k, ray.origin.x > 100.0, "{ray:?}");
+        }
+        assert_eq!(kept(&tracer, &across, &|c| c <= 1).0, 64);
+        // Rays ending above the ground reach nothing.
+        assert_eq!(kept(&tracer, &packet(10.0, 5.0), &|_| true).0, 0);
+        // Without the trees every ray is kept.
+        tracer.mode = TraceMode::BruteForce;
+        assert_eq!(kept(&tracer, &inside, &|_| false).0, 64);
+    }
+
+    #[test]
     fn holes_at_a_block_border_let_rays_through_and_match_the_oracle() {
         let (cells, size) = (4, 100.0);
         let blocks = terrain(2, cells, size, true);

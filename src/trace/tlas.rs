@@ -324,6 +324,16 @@ fn part_entry(part: &PlacedPart, reference: DVec3) -> Entry {
     }
 }
 
+/// A block's light-relative box, as the top level holds it.
+pub(crate) fn block_box(
+    grid: &HeightGrid,
+    field: &HeightField,
+    reference: DVec3,
+) -> Option<(Vec3, Vec3)> {
+    let (lo, hi) = grid_bounds(grid, field);
+    relative_box(lo, hi, reference)
+}
+
 /// World box of a block's visible vertices.
 fn grid_bounds(grid: &HeightGrid, field: &HeightField) -> (DVec3, DVec3) {
     let (lo, hi) = field.height_range();
