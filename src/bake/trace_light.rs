@@ -11,7 +11,7 @@ use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
 use crate::trace::texel_beam::{self, Rect};
-use crate::trace::{FaceCull, Hit, PacketScratch, TraceRay, Tracer};
+use crate::trace::{FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -449,12 +449,12 @@ impl LightRays<'_> {
             }
         }
         self.prepare_packet(state);
-        if let Some(settled) = settled {
-            if self.keep_unsettled(state, settled) == 0 {
-                return;
-            }
-        }
-        self.trace_prepared(state, |c| {
+        let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
+        let which = match settled {
+            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
+            None => PacketRays::All,
+        };
+        self.trace_prepared(state, which, |c| {
             // Once per caster and thread: most proofs repeat one this
             // thread already made.
             if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
@@ -519,7 +519,7 @@ impl LightRays<'_> {
     /// rays), traced as packets: every ray gets the answer it gets alone.
     pub fn trace_packet(&self, state: &mut PacketState, on_useful: impl FnMut(u32)) {
         self.prepare_packet(state);
-        self.trace_prepared(state, on_useful);
+        self.trace_prepared(state, PacketRays::All, on_useful);
     }
 
     /// The light-relative rays of `state.rays`, into `state.traced`.
@@ -529,8 +529,14 @@ impl LightRays<'_> {
         state.traced.extend(rays);
     }
 
-    /// [`Self::trace_packet`] of rays [`Self::prepare_packet`] made.
-    fn trace_prepared(&self, state: &mut PacketState, mut on_useful: impl FnMut(u32)) {
+    /// [`Self::trace_packet`] of rays [`Self::prepare_packet`] made, less
+    /// those `which` leaves out (they prove nothing).
+    fn trace_prepared(
+        &self,
+        state: &mut PacketState,
+        which: PacketRays,
+        mut on_useful: impl FnMut(u32),
+    ) {
         let PacketState {
             rays,
             traced,
@@ -547,10 +553,13 @@ impl LightRays<'_> {
         for list in hits.iter_mut() {
             list.clear();
         }
-        self.tracer
-            .for_each_packet_hit_culled(traced, scratch, &self.face_cull(), |lane, hit| {
-                self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
-            });
+        self.tracer.for_each_packet_hit_culled(
+            traced,
+            scratch,
+            &self.face_cull(),
+            which,
+            |lane, hit| self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane]),
+        );
         for (list, &limit) in hits.iter_mut().zip(limits.iter()) {
             self.conclude(list, limit, &mut on_useful);
         }

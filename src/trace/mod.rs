@@ -155,7 +155,8 @@ impl Tracer<'_> {
         scratch: &mut PacketScratch,
         on_hit: impl FnMut(usize, Hit) -> f32,
     ) {
-        self.for_each_packet_hit_culled(rays, scratch, &FaceCull::default(), on_hit);
+        let cull = FaceCull::default();
+        self.for_each_packet_hit_culled(rays, scratch, &cull, PacketRays::All, on_hit);
     }
 
     /// Marks in `keep` the rays of `rays` (a packet, as
@@ -175,17 +176,20 @@ impl Tracer<'_> {
             keep.resize(rays.len(), true);
             return rays.len();
         }
+        let open = scratch.open_entries();
         self.top
-            .rays_reaching(self.bottom, rays, scratch, unsettled, keep)
+            .rays_reaching(self.bottom, rays, open, unsettled, keep)
     }
 
     /// [`Self::for_each_packet_hit`] for a caller that drops the hits
-    /// `cull` says: those may not be reported (every other hit is).
+    /// `cull` says: those may not be reported (every other hit is), and
+    /// wants the hits of the rays `which` says (the others report none).
     pub fn for_each_packet_hit_culled(
         &self,
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
         cull: &FaceCull,
+        which: PacketRays,
         mut on_hit: impl FnMut(usize, Hit) -> f32,
     ) {
         if self.mode != TraceMode::Trees {
@@ -196,12 +200,22 @@ impl Tracer<'_> {
         }
         for (k, packet) in rays.chunks(PACKET_RAYS).enumerate() {
             let first = k * PACKET_RAYS;
+            let mut relay = |lane, hit| on_hit(first + lane, hit);
             self.top
-                .for_each_packet_hit(self.bottom, packet, scratch, cull, &mut |lane, hit| {
-                    on_hit(first + lane, hit)
-                });
+                .for_each_packet_hit(self.bottom, packet, scratch, cull, which, &mut relay);
         }
     }
+}
+
+/// Which rays of a packet a caller wants the hits of.
+#[derive(Clone, Copy)]
+pub enum PacketRays<'u> {
+    /// Every ray.
+    All,
+    /// The rays that may meet a caster `unsettled` accepts (see
+    /// [`Tracer::rays_reaching`]); the packet traversal may leave out the
+    /// others, which then report no hit.
+    MeetingUnsettled(&'u dyn Fn(u32) -> bool),
 }
 
 /// A ray segment: the points `origin + t·direction` for `t_min <= t <= t_max`.

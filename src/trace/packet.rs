@@ -24,7 +24,7 @@ use super::heightfield::Step;
 use super::instance::row_sum_norm;
 use super::tlas::{block_box, Entry, TopLevel};
 use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
-use super::{Bvh, FaceCull, Hit, ToModel, TraceRay, TraceTriangle};
+use super::{Bvh, FaceCull, Hit, PacketRays, ToModel, TraceRay, TraceTriangle};
 use glam::Vec3;
 
 /// Rays of one packet at most (lane numbers are u8).
@@ -299,6 +299,25 @@ impl Frame {
         true
     }
 
+    /// Keeps the rays `keep` accepts (their frame's copy).
+    fn retain_where(&mut self, keep: impl Fn(&TraceRay) -> bool) {
+        let mut kept = 0;
+        for i in 0..self.rays.len() {
+            if keep(&self.rays[i]) {
+                self.rays.swap(kept, i);
+                self.prepared.swap(kept, i);
+                self.lanes.swap(kept, i);
+                kept += 1;
+            }
+        }
+        if kept < self.rays.len() {
+            self.rays.truncate(kept);
+            self.prepared.truncate(kept);
+            self.lanes.truncate(kept);
+            self.group();
+        }
+    }
+
     fn group(&mut self) {
         self.groups.clear();
         self.group_boxes.clear();
@@ -461,8 +480,15 @@ pub struct PacketScratch {
     light: Frame,
     model: Frame,
     t_max: Vec<f32>,
-    /// [`TopLevel::rays_reaching`]'s entries with an unsettled caster.
+    /// The entries with an unsettled caster a packet's beam reaches
+    /// ([`PacketRays::MeetingUnsettled`], [`TopLevel::rays_reaching`]).
     open: Vec<u32>,
+}
+
+impl PacketScratch {
+    pub(crate) fn open_entries(&mut self) -> &mut Vec<u32> {
+        &mut self.open
+    }
 }
 
 impl TopLevel {
@@ -475,6 +501,7 @@ impl TopLevel {
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
         cull: &FaceCull,
+        which: PacketRays,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
         assert!(
@@ -485,7 +512,7 @@ impl TopLevel {
             light,
             model,
             t_max,
-            ..
+            open,
         } = scratch;
         t_max.clear();
         t_max.extend(rays.iter().map(|r| r.t_max));
@@ -500,6 +527,27 @@ impl TopLevel {
         let Some(mut beam) = light.beam(t_max, magnitude) else {
             return self.ray_by_ray(bottom, rays, on_hit);
         };
+        if let PacketRays::MeetingUnsettled(unsettled) = which {
+            if self.open_entries(bottom, &beam, light.direction(), unsettled, open) {
+                let before = light.rays.len();
+                light.retain_where(|ray| {
+                    let mut entries = open.iter().map(|&slot| &self.entries[slot as usize]);
+                    entries.any(|entry| self.ray_may_enter(bottom, entry, ray))
+                });
+                if light.is_empty() {
+                    return;
+                }
+                // Fewer rays, a narrower beam.
+                if light.rays.len() < before {
+                    let Some(narrower) = light.beam(t_max, magnitude) else {
+                        return self.ray_by_ray(bottom, rays, on_hit);
+                    };
+                    beam = narrower;
+                }
+            } else if open.is_empty() {
+                return;
+            }
+        }
         let direction = light.direction();
         let mut widest = reach_of(light, t_max);
         self.tree.visit_beam(&mut beam, direction, |slot, beam| {
@@ -545,64 +593,65 @@ impl TopLevel {
         &self,
         bottom: &BottomLevels,
         rays: &[TraceRay],
-        scratch: &mut PacketScratch,
+        open: &mut Vec<u32>,
         unsettled: &dyn Fn(u32) -> bool,
         keep: &mut Vec<bool>,
     ) -> usize {
         keep.clear();
-        keep.resize(rays.len(), false);
-        let PacketScratch {
-            light, t_max, open, ..
-        } = scratch;
-        t_max.clear();
-        t_max.extend(rays.iter().map(|r| r.t_max));
-        light.fill(
-            live(rays.iter().copied().enumerate(), t_max),
-            self.tree.magnitude,
-        );
-        if light.is_empty() {
-            return 0;
-        }
-        // Every ray the packet traversal would trace.
-        let every_live = |keep: &mut Vec<bool>| {
+        let live = |ray: &TraceRay| ray.t_min <= ray.t_max;
+        keep.extend(rays.iter().map(live));
+        let live_rays = rays.iter().copied().filter(live);
+        let (Some(first), Some(beam)) = (
+            rays.iter().find(|r| live(r)),
+            Beam::new(live_rays, self.tree.magnitude),
+        ) else {
+            return keep.iter().filter(|&&k| k).count();
+        };
+        if self.open_entries(bottom, &beam, first.direction, unsettled, open) {
             for (k, ray) in keep.iter_mut().zip(rays) {
-                *k = ray.t_min <= ray.t_max;
+                let entries = open.iter().map(|&slot| &self.entries[slot as usize]);
+                *k = *k
+                    && entries
+                        .clone()
+                        .any(|entry| self.ray_may_enter(bottom, entry, ray));
             }
-            keep.iter().filter(|&&k| k).count()
-        };
-        let Some(mut beam) = light.beam(t_max, self.tree.magnitude) else {
-            return every_live(keep);
-        };
+        } else if open.is_empty() {
+            keep.fill(false);
+        }
+        keep.iter().filter(|&&k| k).count()
+    }
+
+    /// The entries `beam` reaches that hold a caster `unsettled` accepts,
+    /// into `open`; true when there are at most [`MOST_OPEN_ENTRIES`] of
+    /// them (each ray is then worth testing against them), false when
+    /// there are none or more.
+    fn open_entries(
+        &self,
+        bottom: &BottomLevels,
+        beam: &Beam,
+        direction: Vec3,
+        unsettled: &dyn Fn(u32) -> bool,
+        open: &mut Vec<u32>,
+    ) -> bool {
         open.clear();
-        self.tree
-            .visit_beam(&mut beam, light.direction(), |slot, _| {
-                let reaches = match self.entries[slot] {
-                    Entry::Part {
-                        model,
-                        first_caster,
-                        ..
-                    } => bottom.model_groups[model as usize]
-                        .iter()
-                        .any(|&group| unsettled(first_caster + group)),
-                    Entry::Block { caster, .. } => unsettled(caster),
-                };
-                if reaches {
-                    open.push(slot as u32);
-                }
-                open.len() <= MOST_OPEN_ENTRIES
-            });
-        if open.len() > MOST_OPEN_ENTRIES {
-            return every_live(keep);
-        }
-        let mut count = 0;
-        for (k, ray) in keep.iter_mut().zip(rays) {
-            *k = ray.t_min <= ray.t_max
-                && open
+        let mut beam = beam.clone();
+        self.tree.visit_beam(&mut beam, direction, |slot, _| {
+            let reaches = match self.entries[slot] {
+                Entry::Part {
+                    model,
+                    first_caster,
+                    ..
+                } => bottom.model_groups[model as usize]
                     .iter()
-                    .any(|&slot| self.ray_may_enter(bottom, &self.entries[slot as usize], ray));
-            count += usize::from(*k);
-        }
-        count
+                    .any(|&group| unsettled(first_caster + group)),
+                Entry::Block { caster, .. } => unsettled(caster),
+            };
+            if reaches {
+                open.push(slot as u32);
+            }
+            open.len() <= MOST_OPEN_ENTRIES
+        });
+        !open.is_empty() && open.len() <= MOST_OPEN_ENTRIES
     }
 
     /// Whether the single-ray traversal's test before `entry`'s triangles

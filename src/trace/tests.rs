@@ -927,6 +927,20 @@ mod two_level {
             assert_eq!(*k, ray.origin.x > 100.0, "{ray:?}");
         }
         assert_eq!(kept(&tracer, &across, &|c| c <= 1).0, 64);
+        // Traced so, the rays over block 1 get their hits there, the
+        // others none.
+        let only_1 = |c: u32| c == 1;
+        let mut hit = vec![0; 64];
+        let mut scratch = PacketScratch::default();
+        let (cull, which) = (FaceCull::default(), PacketRays::MeetingUnsettled(&only_1));
+        tracer.for_each_packet_hit_culled(&across, &mut scratch, &cull, which, |lane, h| {
+            assert_eq!(h.caster, 1);
+            hit[lane] += 1;
+            f32::INFINITY
+        });
+        for (ray, n) in across.iter().zip(&hit) {
+            assert_eq!(*n, usize::from(ray.origin.x > 100.0), "{ray:?}");
+        }
         // Rays ending above the ground reach nothing.
         assert_eq!(kept(&tracer, &packet(10.0, 5.0), &|_| true).0, 0);
         // Without the trees every ray is kept.
@@ -1522,7 +1536,7 @@ mod two_level {
     fn assert_culled_packets_agree(tracer: &Tracer, rays: &[TraceRay], cull: &FaceCull) -> usize {
         let mut got = vec![Vec::new(); rays.len()];
         let mut scratch = PacketScratch::default();
-        tracer.for_each_packet_hit_culled(rays, &mut scratch, cull, |lane, h| {
+        tracer.for_each_packet_hit_culled(rays, &mut scratch, cull, PacketRays::All, |lane, h| {
             if !cull.drops(h.caster, h.back_facing) {
                 got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
             }
