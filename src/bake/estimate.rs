@@ -212,9 +212,15 @@ pub fn plan(
     let estimated_peak_bytes = baseline
         .peak_resident_bytes
         .max(baseline.resident_bytes + masks + light_peak.max(output));
+    // The bake keeps the first light's setup, built during the
+    // calibration, instead of building it again.
+    let kept_setup_seconds = kept
+        .as_ref()
+        .map_or(0.0, |s: &LightSetup| s.reach_seconds + s.top_seconds);
     let estimated_seconds = baseline.elapsed_seconds
         + calibration_seconds
         + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
+        - kept_setup_seconds
         + output as f64 / WRITE_BYTES_PER_SECOND;
     Ok(Plan {
         lights,

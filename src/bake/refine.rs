@@ -721,18 +721,7 @@ impl Footprint {
         if ni * nj <= BATCH as i64 {
             return self.whole_cell(sampler, lattice, (i0, j0, ni, nj));
         }
-        let (hi, hj) = ((ni + 1) / 2, (nj + 1) / 2);
-        for (a, b, na, nb) in [
-            (i0, j0, hi, hj),
-            (i0 + hi, j0, ni - hi, hj),
-            (i0, j0 + hj, hi, nj - hj),
-            (i0 + hi, j0 + hj, ni - hi, nj - hj),
-        ] {
-            if na > 0 && nb > 0 && self.lattice_batches(sampler, lattice, (a, b, na, nb)) {
-                return true;
-            }
-        }
-        false
+        quarters((i0, j0, ni, nj)).any(|quarter| self.lattice_batches(sampler, lattice, quarter))
     }
 
     /// Every lattice point of a small cell (within the top cell
@@ -861,19 +850,22 @@ impl Footprint {
                 return false;
             }
         }
-        let (hi, hj) = ((ni + 1) / 2, (nj + 1) / 2);
-        for (a, b, na, nb) in [
-            (i0, j0, hi, hj),
-            (i0 + hi, j0, ni - hi, hj),
-            (i0, j0 + hj, hi, nj - hj),
-            (i0 + hi, j0 + hj, ni - hi, nj - hj),
-        ] {
-            if na > 0 && nb > 0 && self.cell(sampler, near, (a, b, na, nb)) {
-                return true;
-            }
-        }
-        false
+        quarters((i0, j0, ni, nj)).any(|quarter| self.cell(sampler, near, quarter))
     }
+}
+
+/// The non-empty quarters of a cell `(i0, j0, ni, nj)` of lattice points,
+/// in the order cells are visited (the first ones the larger).
+fn quarters((i0, j0, ni, nj): (i64, i64, i64, i64)) -> impl Iterator<Item = (i64, i64, i64, i64)> {
+    let (hi, hj) = ((ni + 1) / 2, (nj + 1) / 2);
+    [
+        (i0, j0, hi, hj),
+        (i0 + hi, j0, ni - hi, hj),
+        (i0, j0 + hj, hi, nj - hj),
+        (i0 + hi, j0 + hj, ni - hi, nj - hj),
+    ]
+    .into_iter()
+    .filter(|&(_, _, na, nb)| na > 0 && nb > 0)
 }
 
 fn area(triangle: &TraceTriangle) -> f64 {

@@ -288,6 +288,16 @@ impl Settled {
     }
 }
 
+/// Caster `c` proven useful by a ray of a grid pass: into the thread's
+/// `useful`, and into the pass's `settled` set (once per caster and
+/// thread: most proofs repeat one the thread already made).
+fn prove(c: u32, settled: Option<&Settled>, useful: &mut CasterSet) {
+    if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
+        settled.insert(c);
+    }
+    useful.insert(c);
+}
+
 /// Everything one light's rays need: its grid, how to find hits, what the
 /// hits belong to, the ground and the rules. Made by
 /// [`super::setup::LightSetup::rays`]; the grid pass, refinement, the
@@ -405,12 +415,8 @@ impl LightRays<'_> {
         let side = RAY_BY_RAY_GROUP;
         for gy in (y0..y1).step_by(side as usize) {
             for gx in (x0..x1).step_by(side as usize) {
-                state.rays.clear();
-                for y in gy..(gy + side).min(y1) {
-                    for x in gx..(gx + side).min(x1) {
-                        state.rays.extend(self.grid.texel_rays(face, x, y, samples));
-                    }
-                }
+                let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));
+                self.texel_rays_into(state, face, group, samples);
                 if let Some(settled) = settled {
                     self.prepare_packet(state);
                     if self.keep_unsettled(state, settled) == 0 {
@@ -419,12 +425,7 @@ impl LightRays<'_> {
                 }
                 let PacketState { rays, single, .. } = state;
                 for ray in rays.iter() {
-                    self.trace(ray, single, |c| {
-                        if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
-                            settled.insert(c);
-                        }
-                        useful.insert(c)
-                    });
+                    self.trace(ray, single, |c| prove(c, settled, useful));
                 }
             }
         }
@@ -436,11 +437,30 @@ impl LightRays<'_> {
     fn trace_tile_packet(
         &self,
         face: usize,
-        (x0, y0, x1, y1): (u32, u32, u32, u32),
+        texels: (u32, u32, u32, u32),
         samples: u32,
         settled: Option<&Settled>,
         state: &mut PacketState,
         useful: &mut CasterSet,
+    ) {
+        self.texel_rays_into(state, face, texels, samples);
+        self.prepare_packet(state);
+        let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
+        let which = match settled {
+            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
+            None => PacketRays::All,
+        };
+        self.trace_prepared(state, which, |c| prove(c, settled, useful));
+    }
+
+    /// The rays of the texels `x0..x1 × y0..y1` of `face`, into
+    /// `state.rays`.
+    fn texel_rays_into(
+        &self,
+        state: &mut PacketState,
+        face: usize,
+        (x0, y0, x1, y1): (u32, u32, u32, u32),
+        samples: u32,
     ) {
         state.rays.clear();
         for y in y0..y1 {
@@ -448,20 +468,6 @@ impl LightRays<'_> {
                 state.rays.extend(self.grid.texel_rays(face, x, y, samples));
             }
         }
-        self.prepare_packet(state);
-        let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
-        let which = match settled {
-            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
-            None => PacketRays::All,
-        };
-        self.trace_prepared(state, which, |c| {
-            // Once per caster and thread: most proofs repeat one this
-            // thread already made.
-            if let Some(settled) = settled.filter(|_| !useful.contains(c)) {
-                settled.insert(c);
-            }
-            useful.insert(c)
-        });
     }
 
     /// Keeps in `state` the prepared rays that may meet a caster not yet
