@@ -37,7 +37,8 @@ pub trait RayCounter: Sync {
 pub const MAX_PACKET_SPACING: f64 = 0.5;
 
 /// Texels per side of the groups whose rays a ray-by-ray grid pass checks
-/// together for casters not yet settled ([`PacketSkip::Settled`]).
+/// together for casters not yet settled ([`PacketSkip::Settled`]), at one
+/// ray a texel (fewer when supersampled).
 pub const RAY_BY_RAY_GROUP: u32 = 8;
 
 /// Texels per tile side: big enough to amortise scheduling, small enough
@@ -402,7 +403,8 @@ impl LightRays<'_> {
 
     /// The rays of the texels `x0..x1 × y0..y1` of `face` one by one; with
     /// `settled`, only those that may meet a caster not yet settled (found
-    /// [`RAY_BY_RAY_GROUP`]² texels at a time, as a packet's would be).
+    /// a group of about [`RAY_BY_RAY_GROUP`]² rays at a time, as a
+    /// packet's would be).
     fn trace_tile_ray_by_ray(
         &self,
         face: usize,
@@ -412,7 +414,8 @@ impl LightRays<'_> {
         state: &mut PacketState,
         useful: &mut CasterSet,
     ) {
-        let side = RAY_BY_RAY_GROUP;
+        // About a packet's worth of rays a group, as `packet_side` makes.
+        let side = (RAY_BY_RAY_GROUP / samples).max(1);
         for gy in (y0..y1).step_by(side as usize) {
             for gx in (x0..x1).step_by(side as usize) {
                 let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));

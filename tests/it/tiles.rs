@@ -160,10 +160,12 @@ fn packets_of_settled_casters_are_left_out_and_lose_nothing() {
     // one thread and on two (which packets are left out depends on the
     // threads' timing), and with casters known before the pass (each run
     // ORs them in, as the plan's sample does). Every light kind, 1 and 2×2
-    // samples, the sun at 0.4 m (packets) and at twice the packet spacing
-    // (ray by ray, its rays checked in groups), on seeded small worlds
-    // (receiver-only placements among them).
-    let coarse = 2.0 * MAX_PACKET_SPACING;
+    // samples, the sun at 0.4 m (packets), at twice the packet spacing (ray
+    // by ray, its rays checked in groups) and wider (ray by ray also with
+    // 2×2 samples), on seeded small worlds (receiver-only placements among
+    // them).
+    // At `wide`, 2×2 samples still lie more than the packet spacing apart.
+    let (coarse, wide) = (2.0 * MAX_PACKET_SPACING, 4.4 * MAX_PACKET_SPACING);
     for (seed, texel) in [
         (3, 0.4),
         (8, 0.4),
@@ -171,6 +173,7 @@ fn packets_of_settled_casters_are_left_out_and_lose_nothing() {
         (5, coarse),
         (8, coarse),
         (11, coarse),
+        (5, wide),
     ] {
         let (_dir, scene, settings) = small_world(seed);
         let baked = BakeWorld::new(&scene);
