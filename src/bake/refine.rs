@@ -559,6 +559,14 @@ struct Near<'f> {
 }
 
 impl Footprint {
+    /// Lattice point `(i, j)` in texel units: the centre of that texel of
+    /// the grid `density` times denser.
+    #[inline]
+    fn point(&self, i: i64, j: i64) -> Point {
+        let d = self.density as f64;
+        ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d)
+    }
+
     /// Whether lattice point `p` lies on polygon `index` (within [`TOUCH`]).
     #[inline]
     fn touches(&self, index: u32, p: Point) -> bool {
@@ -644,7 +652,6 @@ impl Footprint {
     ) {
         let (i0, j0, ni, nj) = cell;
         let d = self.density as f64;
-        let point = |i: i64, j: i64| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
         // The lattice indices of a box's points within the cell (rounded
         // outward; every point in the range is tested).
         let range = |lo: f64, hi: f64, first: i64, n: i64| {
@@ -655,7 +662,6 @@ impl Footprint {
         lattice.cell = cell;
         lattice.on.clear();
         lattice.on.resize((ni * nj) as usize, false);
-        let at = |i: i64, j: i64| ((j - j0) * ni + (i - i0)) as usize;
         for &k in polygons {
             let Some(region) = &self.regions[k as usize] else {
                 continue;
@@ -663,8 +669,9 @@ impl Footprint {
             let b = region.bounds();
             for j in range(b.y0, b.y1, j0, nj) {
                 for i in range(b.x0, b.x1, i0, ni) {
-                    if !lattice.on[at(i, j)] && region.contains(point(i, j)) {
-                        lattice.on[at(i, j)] = true;
+                    let at = lattice.index(i, j);
+                    if !lattice.on[at] && region.contains(self.point(i, j)) {
+                        lattice.on[at] = true;
                     }
                 }
             }
@@ -687,9 +694,9 @@ impl Footprint {
             let ((b, plane), region) = (&self.planes[k as usize], &self.regions[k as usize]);
             for j in range(b.y0, b.y1, j0, nj) {
                 for i in range(b.x0, b.x1, i0, ni) {
-                    let p = point(i, j);
+                    let (p, at) = (self.point(i, j), lattice.index(i, j));
                     let outside = p.0 < b.x0 || p.0 > b.x1 || p.1 < b.y0 || p.1 > b.y1;
-                    if !lattice.on[at(i, j)]
+                    if !lattice.on[at]
                         || outside
                         || region
                             .as_ref()
@@ -698,7 +705,7 @@ impl Footprint {
                         continue;
                     }
                     let depth = plane.map_or(f64::NEG_INFINITY, |plane| plane.at(p));
-                    let near = &mut lattice.near[at(i, j)];
+                    let near = &mut lattice.near[at];
                     *near = near.min(if depth.is_nan() {
                         f64::NEG_INFINITY
                     } else {
@@ -735,14 +742,13 @@ impl Footprint {
         lattice: &LatticeCell,
         (i0, j0, ni, nj): (i64, i64, i64, i64),
     ) -> bool {
-        let d = self.density as f64;
         let grid = sampler.rays.grid;
         let mut rays: Vec<(TexelRay, Point, f64)> = Vec::new();
         for j in j0..j0 + nj {
             for i in i0..i0 + ni {
                 let at = lattice.index(i, j);
                 if lattice.on[at] {
-                    let p = ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
+                    let p = self.point(i, j);
                     rays.push((grid.ray_through(self.face, p.0, p.1), p, lattice.near[at]));
                 }
             }
@@ -773,10 +779,9 @@ impl Footprint {
         near: &Near<'_>,
         (i0, j0, ni, nj): (i64, i64, i64, i64),
     ) -> bool {
-        let d = self.density as f64;
         let grid = sampler.rays.grid;
         let rays: Vec<TexelRay> = (j0..j0 + nj)
-            .flat_map(|j| (i0..i0 + ni).map(move |i| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d)))
+            .flat_map(|j| (i0..i0 + ni).map(move |i| self.point(i, j)))
             .filter(|&p| near.polygons.iter().any(|&k| self.touches(k, p)))
             .map(|p| grid.ray_through(self.face, p.0, p.1))
             .collect();
@@ -798,7 +803,7 @@ impl Footprint {
             x1: (i0 + ni) as f64 / d,
             y1: (j0 + nj) as f64 / d,
         };
-        let point = |i: i64, j: i64| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d);
+        let point = |i: i64, j: i64| self.point(i, j);
         let grid = sampler.rays.grid;
         if ni == 1 && nj == 1 {
             let p = point(i0, j0);
@@ -816,18 +821,16 @@ impl Footprint {
         if polygons.is_empty() {
             return false;
         }
-        let edges: Vec<u32> = match &self.outline {
-            None => Vec::new(),
-            Some(all) => near
-                .edges
-                .iter()
-                .copied()
-                .filter(|&e| {
-                    let (a, b) = all[e as usize];
-                    beam::segment_meets_rect(a, b, grown)
-                })
-                .collect(),
-        };
+        let all = self.outline.as_deref().unwrap_or_default();
+        let edges: Vec<u32> = near
+            .edges
+            .iter()
+            .copied()
+            .filter(|&e| {
+                let (a, b) = all[e as usize];
+                beam::segment_meets_rect(a, b, grown)
+            })
+            .collect();
         let crossed = !edges.is_empty();
         let near = &Near {
             polygons: &polygons,

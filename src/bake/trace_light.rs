@@ -420,15 +420,20 @@ impl LightRays<'_> {
             for gx in (x0..x1).step_by(side as usize) {
                 let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));
                 self.texel_rays_into(state, face, group, samples);
+                self.prepare_packet(state);
                 if let Some(settled) = settled {
-                    self.prepare_packet(state);
                     if self.keep_unsettled(state, settled) == 0 {
                         continue;
                     }
                 }
-                let PacketState { rays, single, .. } = state;
-                for ray in rays.iter() {
-                    self.trace(ray, single, |c| prove(c, settled, useful));
+                let PacketState {
+                    rays,
+                    traced,
+                    single,
+                    ..
+                } = state;
+                for (ray, relative) in rays.iter().zip(traced.iter()) {
+                    self.trace_relative(ray, relative, single, |c| prove(c, settled, useful));
                 }
             }
         }
@@ -515,12 +520,22 @@ impl LightRays<'_> {
     /// below-ground test, classified, and each caster it proves useful handed
     /// to `on_useful` (a caster useful in both passes is handed twice).
     /// `hits` is scratch space reused across rays.
-    pub fn trace(&self, ray: &TexelRay, hits: &mut Vec<RayHit>, mut on_useful: impl FnMut(u32)) {
-        let traced = self.light_relative(ray);
+    pub fn trace(&self, ray: &TexelRay, hits: &mut Vec<RayHit>, on_useful: impl FnMut(u32)) {
+        self.trace_relative(ray, &self.light_relative(ray), hits, on_useful);
+    }
+
+    /// [`Self::trace`] of `ray` whose light-relative form `traced` is made.
+    fn trace_relative(
+        &self,
+        ray: &TexelRay,
+        traced: &TraceRay,
+        hits: &mut Vec<RayHit>,
+        mut on_useful: impl FnMut(u32),
+    ) {
         hits.clear();
         let mut limit = traced.t_max;
         self.tracer
-            .for_each_hit(&traced, |hit| self.offer(&hit, ray, hits, &mut limit));
+            .for_each_hit(traced, |hit| self.offer(&hit, ray, hits, &mut limit));
         self.conclude(hits, limit, &mut on_useful);
     }
 

@@ -55,7 +55,6 @@ impl ToModel {
         self.linear.inverse()
     }
 
-    /// The ray in model space, same t range.
     /// A light-relative point in model space (a ray's origin).
     #[inline]
     pub(crate) fn origin(&self, origin: Vec3) -> Vec3 {
@@ -78,6 +77,7 @@ impl ToModel {
         }
     }
 
+    /// The ray in model space, same t range.
     #[inline]
     pub fn ray(&self, ray: &TraceRay) -> TraceRay {
         self.ray_with(ray, self.direction(ray.direction))

@@ -276,16 +276,22 @@ impl Frame {
     /// Drops the rays whose running t_max fell below their t_min; true if
     /// any did.
     fn retain_live(&mut self, t_max: &[f32]) -> bool {
-        let live = |(r, &l): (&TraceRay, &u8)| r.t_min <= t_max[l as usize];
-        // Rays seldom settle (none of `bench`'s sun rays do), and this runs
+        self.retain_where(|ray, lane| ray.t_min <= t_max[lane as usize])
+    }
+
+    /// Keeps the rays (this frame's copy, and their lane) `keep` accepts;
+    /// true if it dropped any.
+    fn retain_where(&mut self, keep: impl Fn(&TraceRay, u8) -> bool) -> bool {
+        // Rays seldom go (none of `bench`'s sun rays settle), and this runs
         // after every entry that reported a hit: read before moving anything.
-        let Some(first_settled) = self.rays.iter().zip(&self.lanes).position(|p| !live(p)) else {
+        let Some(first_dropped) =
+            (0..self.rays.len()).position(|i| !keep(&self.rays[i], self.lanes[i]))
+        else {
             return false;
         };
-        let before = self.rays.len();
-        let mut kept = first_settled;
-        for i in first_settled + 1..before {
-            if self.rays[i].t_min <= t_max[self.lanes[i] as usize] {
+        let mut kept = first_dropped;
+        for i in first_dropped + 1..self.rays.len() {
+            if keep(&self.rays[i], self.lanes[i]) {
                 self.rays.swap(kept, i);
                 self.prepared.swap(kept, i);
                 self.lanes.swap(kept, i);
@@ -297,25 +303,6 @@ impl Frame {
         self.lanes.truncate(kept);
         self.group();
         true
-    }
-
-    /// Keeps the rays `keep` accepts (their frame's copy).
-    fn retain_where(&mut self, keep: impl Fn(&TraceRay) -> bool) {
-        let mut kept = 0;
-        for i in 0..self.rays.len() {
-            if keep(&self.rays[i]) {
-                self.rays.swap(kept, i);
-                self.prepared.swap(kept, i);
-                self.lanes.swap(kept, i);
-                kept += 1;
-            }
-        }
-        if kept < self.rays.len() {
-            self.rays.truncate(kept);
-            self.prepared.truncate(kept);
-            self.lanes.truncate(kept);
-            self.group();
-        }
     }
 
     fn group(&mut self) {
@@ -473,6 +460,16 @@ impl Culled<'_, '_> {
     }
 }
 
+/// How many entries with an unsettled caster a packet's beam reaches
+/// ([`TopLevel::rays_reaching`]): none (no ray of it can prove anything
+/// new), few (each ray is worth testing against them) or more than
+/// [`MOST_OPEN_ENTRIES`] (every ray is traced).
+enum OpenEntries {
+    None,
+    Few,
+    Many,
+}
+
 /// Scratch of packet traversals (the light-relative and the model-space
 /// frames), reused from packet to packet by one thread.
 #[derive(Default)]
@@ -528,24 +525,23 @@ impl TopLevel {
             return self.ray_by_ray(bottom, rays, on_hit);
         };
         if let PacketRays::MeetingUnsettled(unsettled) = which {
-            if self.open_entries(bottom, &beam, light.direction(), unsettled, open) {
-                let before = light.rays.len();
-                light.retain_where(|ray| {
-                    let mut entries = open.iter().map(|&slot| &self.entries[slot as usize]);
-                    entries.any(|entry| self.ray_may_enter(bottom, entry, ray))
-                });
-                if light.is_empty() {
-                    return;
+            match self.open_entries(bottom, &beam, light.direction(), unsettled, open) {
+                OpenEntries::None => return,
+                OpenEntries::Many => {}
+                OpenEntries::Few => {
+                    let dropped =
+                        light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray));
+                    if light.is_empty() {
+                        return;
+                    }
+                    // Fewer rays, a narrower beam.
+                    if dropped {
+                        let Some(narrower) = light.beam(t_max, magnitude) else {
+                            return self.ray_by_ray(bottom, rays, on_hit);
+                        };
+                        beam = narrower;
+                    }
                 }
-                // Fewer rays, a narrower beam.
-                if light.rays.len() < before {
-                    let Some(narrower) = light.beam(t_max, magnitude) else {
-                        return self.ray_by_ray(bottom, rays, on_hit);
-                    };
-                    beam = narrower;
-                }
-            } else if open.is_empty() {
-                return;
             }
         }
         let direction = light.direction();
@@ -607,24 +603,20 @@ impl TopLevel {
         ) else {
             return keep.iter().filter(|&&k| k).count();
         };
-        if self.open_entries(bottom, &beam, first.direction, unsettled, open) {
-            for (k, ray) in keep.iter_mut().zip(rays) {
-                let entries = open.iter().map(|&slot| &self.entries[slot as usize]);
-                *k = *k
-                    && entries
-                        .clone()
-                        .any(|entry| self.ray_may_enter(bottom, entry, ray));
+        match self.open_entries(bottom, &beam, first.direction, unsettled, open) {
+            OpenEntries::None => keep.fill(false),
+            OpenEntries::Many => {}
+            OpenEntries::Few => {
+                for (k, ray) in keep.iter_mut().zip(rays) {
+                    *k = *k && self.may_meet_open(bottom, open, ray);
+                }
             }
-        } else if open.is_empty() {
-            keep.fill(false);
         }
         keep.iter().filter(|&&k| k).count()
     }
 
     /// The entries `beam` reaches that hold a caster `unsettled` accepts,
-    /// into `open`; true when there are at most [`MOST_OPEN_ENTRIES`] of
-    /// them (each ray is then worth testing against them), false when
-    /// there are none or more.
+    /// into `open` (up to one more than [`MOST_OPEN_ENTRIES`]).
     fn open_entries(
         &self,
         bottom: &BottomLevels,
@@ -632,7 +624,7 @@ impl TopLevel {
         direction: Vec3,
         unsettled: &dyn Fn(u32) -> bool,
         open: &mut Vec<u32>,
-    ) -> bool {
+    ) -> OpenEntries {
         open.clear();
         let mut beam = beam.clone();
         self.tree.visit_beam(&mut beam, direction, |slot, _| {
@@ -651,7 +643,17 @@ impl TopLevel {
             }
             open.len() <= MOST_OPEN_ENTRIES
         });
-        !open.is_empty() && open.len() <= MOST_OPEN_ENTRIES
+        match open.len() {
+            0 => OpenEntries::None,
+            n if n <= MOST_OPEN_ENTRIES => OpenEntries::Few,
+            _ => OpenEntries::Many,
+        }
+    }
+
+    /// Whether `ray` may enter one of the entries `open` holds.
+    fn may_meet_open(&self, bottom: &BottomLevels, open: &[u32], ray: &TraceRay) -> bool {
+        open.iter()
+            .any(|&slot| self.ray_may_enter(bottom, &self.entries[slot as usize], ray))
     }
 
     /// Whether the single-ray traversal's test before `entry`'s triangles

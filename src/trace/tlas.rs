@@ -177,8 +177,7 @@ impl TopLevel {
             let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
                 continue;
             };
-            let (lo, hi) = grid_bounds(grid, field);
-            let Some(b) = relative_box(lo, hi, reference) else {
+            let Some(b) = block_box(grid, field, reference) else {
                 left_out_triangles += 2 * grid.cells_x * grid.cells_z;
                 continue;
             };
