@@ -513,37 +513,38 @@ impl TopLevel {
         } = scratch;
         t_max.clear();
         t_max.extend(rays.iter().map(|r| r.t_max));
-        light.fill(
-            live(rays.iter().copied().enumerate(), t_max),
-            self.tree.magnitude,
-        );
+        let magnitude = self.tree.magnitude;
+        // Whether the packet may meet an unsettled caster is asked of the
+        // beam of its live rays before the frame is made: most packets
+        // left out are left out whole, and then need no frame.
+        let live_rays = || rays.iter().copied().filter(|r| r.t_min <= r.t_max);
+        let mut open_beam = None;
+        let mut few = false;
+        if let PacketRays::MeetingUnsettled(unsettled) = which {
+            if let Some(beam) = Beam::new(live_rays(), magnitude) {
+                let direction = live_rays().next().map_or(Vec3::Y, |r| r.direction);
+                match self.open_entries(bottom, &beam, direction, unsettled, open) {
+                    OpenEntries::None => return,
+                    OpenEntries::Many => {}
+                    OpenEntries::Few => few = true,
+                }
+                open_beam = Some(beam);
+            }
+        }
+        light.fill(live(rays.iter().copied().enumerate(), t_max), magnitude);
+        if few {
+            // Fewer rays, a narrower beam.
+            if light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray)) {
+                open_beam = None;
+            }
+        }
         if light.is_empty() {
             return;
         }
-        let magnitude = self.tree.magnitude;
-        let Some(mut beam) = light.beam(t_max, magnitude) else {
+        let beam = open_beam.or_else(|| light.beam(t_max, magnitude));
+        let Some(mut beam) = beam else {
             return self.ray_by_ray(bottom, rays, on_hit);
         };
-        if let PacketRays::MeetingUnsettled(unsettled) = which {
-            match self.open_entries(bottom, &beam, light.direction(), unsettled, open) {
-                OpenEntries::None => return,
-                OpenEntries::Many => {}
-                OpenEntries::Few => {
-                    let dropped =
-                        light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray));
-                    if light.is_empty() {
-                        return;
-                    }
-                    // Fewer rays, a narrower beam.
-                    if dropped {
-                        let Some(narrower) = light.beam(t_max, magnitude) else {
-                            return self.ray_by_ray(bottom, rays, on_hit);
-                        };
-                        beam = narrower;
-                    }
-                }
-            }
-        }
         let direction = light.direction();
         let mut widest = reach_of(light, t_max);
         self.tree.visit_beam(&mut beam, direction, |slot, beam| {
