@@ -45,6 +45,13 @@ pub const RAY_BY_RAY_GROUP: u32 = 8;
 /// to balance 2–64 threads and to report progress often.
 pub const TILE: u32 = 32;
 
+/// Least step between neighbouring texels' directions (unit depth) for
+/// which a spot or point light's packets are gated by their corner rays
+/// (`LightRays::corners_hold_packets`): half of it, a texel centre's
+/// distance inside the corners' cone, is then over ten times the slope
+/// error of an f32 direction (below 1e-6 at the widest cube-face corner).
+const GRID_SLOPE_SLACK: f64 = 1e-4;
+
 /// Tiles of `grid`: faces × rows of tiles × columns of tiles.
 pub fn tile_count(grid: &TexelGrid) -> u64 {
     let (tiles_x, tiles_y) = tiles_per_face(grid);
@@ -265,6 +272,15 @@ pub enum PacketSkip<'k> {
     Settled { known: Option<&'k CasterSet> },
 }
 
+/// Where a group of rays checked ray by ray finds the entries holding an
+/// unsettled caster: what `Tracer::gate_packet` found from its corner
+/// rays just before, or a walk of the top level with its rays' own beam.
+#[derive(Clone, Copy)]
+enum OpenEntriesFrom {
+    Gate,
+    RaysBeam,
+}
+
 /// The casters no ray of a grid pass can newly prove useful: proven so
 /// far by any of its threads, known before it, or receiver-only.
 struct Settled(Vec<AtomicU64>);
@@ -419,10 +435,24 @@ impl LightRays<'_> {
         for gy in (y0..y1).step_by(side as usize) {
             for gx in (x0..x1).step_by(side as usize) {
                 let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));
+                let gated = match settled {
+                    Some(settled) if self.corners_hold_packets() => {
+                        let unsettled = |c: u32| !settled.contains(c);
+                        let corners = self.corner_rays(face, group);
+                        if !self
+                            .tracer
+                            .gate_packet(&corners, &mut state.scratch, &unsettled)
+                        {
+                            continue;
+                        }
+                        OpenEntriesFrom::Gate
+                    }
+                    _ => OpenEntriesFrom::RaysBeam,
+                };
                 self.texel_rays_into(state, face, group, samples);
                 self.prepare_packet(state);
                 if let Some(settled) = settled {
-                    if self.keep_unsettled(state, settled) == 0 {
+                    if self.keep_unsettled(state, settled, gated) == 0 {
                         continue;
                     }
                 }
@@ -451,14 +481,54 @@ impl LightRays<'_> {
         state: &mut PacketState,
         useful: &mut CasterSet,
     ) {
-        self.texel_rays_into(state, face, texels, samples);
-        self.prepare_packet(state);
         let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
         let which = match settled {
-            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
             None => PacketRays::All,
+            Some(_) if self.corners_hold_packets() => {
+                let corners = self.corner_rays(face, texels);
+                if !self
+                    .tracer
+                    .gate_packet(&corners, &mut state.scratch, &unsettled)
+                {
+                    return;
+                }
+                PacketRays::Gated
+            }
+            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
         };
+        self.texel_rays_into(state, face, texels, samples);
+        self.prepare_packet(state);
         self.trace_prepared(state, which, |c| prove(c, settled, useful));
+    }
+
+    /// Whether the rays through the corners of a packet's texel rectangle
+    /// bound its rays for `Tracer::gate_packet`: always for a directional
+    /// light (parallel rays, whose origins' rounding the beam allows for);
+    /// for a spot or point light when half a texel is far wider than the
+    /// f32 rounding of a direction ([`GRID_SLOPE_SLACK`]), so the rays
+    /// through texel centres stay inside the corners' cone.
+    fn corners_hold_packets(&self) -> bool {
+        let grid = self.grid;
+        if grid.direction().is_some() {
+            return true;
+        }
+        let at = |cx, cy| grid.unit_depth_direction(0, cx, cy);
+        let step_x = (at(1.0, 0.0) - at(0.0, 0.0)).length();
+        let step_y = (at(0.0, 1.0) - at(0.0, 0.0)).length();
+        step_x.min(step_y) >= GRID_SLOPE_SLACK
+    }
+
+    /// The light-relative rays through the four corners of the texels
+    /// `x0..x1 × y0..y1` of `face` (their edges, not their centres).
+    pub fn corner_rays(
+        &self,
+        face: usize,
+        (x0, y0, x1, y1): (u32, u32, u32, u32),
+    ) -> [TraceRay; 4] {
+        [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| {
+            let ray = self.grid.ray_through(face, f64::from(x), f64::from(y));
+            self.light_relative(&ray)
+        })
     }
 
     /// The rays of the texels `x0..x1 × y0..y1` of `face`, into
@@ -479,8 +549,14 @@ impl LightRays<'_> {
     }
 
     /// Keeps in `state` the prepared rays that may meet a caster not yet
-    /// settled (only those can change the answer); returns how many.
-    fn keep_unsettled(&self, state: &mut PacketState, settled: &Settled) -> usize {
+    /// settled (only those can change the answer), against the entries
+    /// `from` says; returns how many.
+    fn keep_unsettled(
+        &self,
+        state: &mut PacketState,
+        settled: &Settled,
+        from: OpenEntriesFrom,
+    ) -> usize {
         let PacketState {
             rays,
             traced,
@@ -489,7 +565,12 @@ impl LightRays<'_> {
             ..
         } = state;
         let unsettled = |c: u32| !settled.contains(c);
-        let kept = self.tracer.rays_reaching(traced, scratch, &unsettled, keep);
+        let kept = match from {
+            OpenEntriesFrom::Gate => self.tracer.rays_reaching_gated(traced, scratch, keep),
+            OpenEntriesFrom::RaysBeam => {
+                self.tracer.rays_reaching(traced, scratch, &unsettled, keep)
+            }
+        };
         if kept < rays.len() {
             let mut k = keep.iter();
             rays.retain(|_| k.next() == Some(&true));

@@ -25,6 +25,10 @@ use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 /// direction is not bundled (the side planes would bound little).
 const MIN_COSINE: f64 = 0.25;
 
+fn same_bits(a: Vec3, b: Vec3) -> bool {
+    a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)
+}
+
 /// Relative widening of the side planes' slopes: far beyond the f64
 /// rounding of the slopes and the f32 rounding of the normals (6e-8), so
 /// every ray direction stays within the planes that are actually tested.
@@ -211,6 +215,56 @@ impl Beam {
             limits,
             pad,
         }
+    }
+
+    /// A beam holding every ray of a packet of a light's grid, made from
+    /// only the rays through the corners of the packet's texel rectangle
+    /// (`corners`, light-relative; the packet's rays go through texel or
+    /// sub-texel centres inside it). `None` unless the corners share their
+    /// span and either their direction (a directional light: parallel
+    /// rays) or their origin (a spot or point light).
+    ///
+    /// Why it holds the packet's rays:
+    /// - parallel rays: an inside ray's exact origin is a convex
+    ///   combination of the corners' (the grid's origins are affine in the
+    ///   texel position), so every plane offset it reaches (n · o, and
+    ///   along the axis) is at most the corners' largest; each f32 origin
+    ///   is rounded on its own, by at most half an ulp of the largest
+    ///   coordinate per axis, which the planes are loosened by (four times
+    ///   over);
+    /// - rays from one origin: an inside ray's exact direction lies in the
+    ///   cone of the corners' (texel positions map to directions affinely
+    ///   before normalising), so its slopes against the axis are convex
+    ///   combinations of theirs, and it lies at least half a texel inside
+    ///   the corners' (the caller checks that this is far more than f32
+    ///   rounding of directions, see `GRID_SLOPE_SLACK`); its start along
+    ///   the axis is no nearer (the cosine to an axis inside the cone is
+    ///   least at a corner), but its end may be farther, so there is no far
+    ///   cap.
+    pub(crate) fn of_grid_corners(corners: &[TraceRay; 4], magnitude: f32) -> Option<Beam> {
+        let first = corners[0];
+        let alike = |f: fn(&TraceRay) -> Vec3| corners.iter().all(|r| same_bits(f(r), f(&first)));
+        let span = corners.iter().all(|r| {
+            r.t_min.to_bits() == first.t_min.to_bits() && r.t_max.to_bits() == first.t_max.to_bits()
+        });
+        let parallel = alike(|r| r.direction);
+        if !(span && (parallel || alike(|r| r.origin))) {
+            return None;
+        }
+        let mut beam = Beam::new(corners.iter().copied(), magnitude)?;
+        let origin_max = corners
+            .iter()
+            .fold(0.0f32, |m, r| m.max(r.origin.abs().max_element()));
+        let rounding = 4.0 * f64::from(f32::EPSILON) * f64::from(origin_max);
+        for (limit, n) in beam.limits.iter_mut().zip(beam.normals) {
+            let l1 = f64::from(n.abs().element_sum());
+            let value = f64::from(*limit) + l1 * rounding;
+            *limit = (value as f32).next_up();
+        }
+        if !parallel {
+            beam.limits[5] = f32::INFINITY;
+        }
+        Some(beam)
     }
 
     /// [`Beam::new`] for rays that share their direction `direction` (a
@@ -445,6 +499,98 @@ mod tests {
         assert!(beam.touches(vec3(1.0, 50.0 + 0.5 * pad, 1.0), vec3(2.0, 51.0, 2.0)));
         assert!(!beam.touches(vec3(1.0, 50.0 + 2.0 * pad, 1.0), vec3(2.0, 51.0, 2.0)));
         assert!(beam.touches(vec3(1.0, -80.0, 1.0), vec3(2.0, -79.0, 2.0)));
+    }
+
+    /// A light's packet of `side`² texels at `(x0, y0)`, `samples`² rays
+    /// a texel, as the grid makes them (f64, then rounded to f32), and the
+    /// rays through its rectangle's corners (`inset`: texels in from the
+    /// edges, 0 for the real corners). `frame`: the light's axes.
+    struct GridPacket {
+        perspective: bool,
+        frame: [DVec3; 3],
+        /// Directional: texel size and first origin; perspective: the
+        /// face's half extent and resolution.
+        scale: f64,
+        base: DVec3,
+        resolution: f64,
+    }
+
+    impl GridPacket {
+        fn ray_at(&self, cx: f64, cy: f64) -> TraceRay {
+            let [forward, u, v] = self.frame;
+            if self.perspective {
+                let s = self.scale * (cx / self.resolution * 2.0 - 1.0);
+                let t = self.scale * (cy / self.resolution * 2.0 - 1.0);
+                let d = (forward + u * s + v * t).normalize();
+                TraceRay {
+                    origin: Vec3::ZERO,
+                    direction: d.as_vec3(),
+                    t_min: 0.1,
+                    t_max: 80.0,
+                }
+            } else {
+                let o = self.base + u * (cx * self.scale) + v * (cy * self.scale);
+                TraceRay {
+                    origin: o.as_vec3(),
+                    direction: forward.as_vec3(),
+                    t_min: 0.0,
+                    t_max: 900.0,
+                }
+            }
+        }
+    }
+
+    /// Every ray of a grid packet (through texel or sub-texel centres)
+    /// lies in the beam of the rays through the packet's corners, out to
+    /// its far end: parallel rays (far from the origin) and rays from one
+    /// point (up to 45° off their face's axis). Keeping a far cap for rays
+    /// from one point fails this (the middle rays reach farther along the
+    /// axis than the corners), and so does taking the corners at the outer
+    /// texels' centres instead of their edges.
+    #[test]
+    fn a_grid_packets_rays_lie_in_the_beam_of_its_corners() {
+        let mut rng = crate::rng::Rng::new(41);
+        for case in 0..400 {
+            let perspective = case % 2 == 1;
+            let forward = rng.unit_vector();
+            let u = forward.any_orthonormal_vector();
+            let frame = [forward, u, forward.cross(u)];
+            let resolution = [16.0, 64.0, 256.0][rng.below(3)];
+            let grid = GridPacket {
+                perspective,
+                frame,
+                scale: if perspective {
+                    rng.range(0.2, 1.0)
+                } else {
+                    rng.range(0.5, 2.0)
+                },
+                base: DVec3::new(
+                    rng.range(-300.0, 300.0),
+                    rng.range(-300.0, 300.0),
+                    rng.range(-300.0, 300.0),
+                ),
+                resolution,
+            };
+            let side = [1, 3, 8][rng.below(3)];
+            let samples = 1 + rng.below(2);
+            let x0 = rng.below(resolution as usize - side) as f64;
+            let y0 = rng.below(resolution as usize - side) as f64;
+            let (x1, y1) = (x0 + side as f64, y0 + side as f64);
+            let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| grid.ray_at(x, y));
+            let beam = Beam::of_grid_corners(&corners, 100.0).expect("a grid packet's beam");
+            let step = 1.0 / samples as f64;
+            for j in 0..side * samples {
+                for i in 0..side * samples {
+                    let cx = x0 + (i as f64 + 0.5) * step;
+                    let cy = y0 + (j as f64 + 0.5) * step;
+                    let r = grid.ray_at(cx, cy);
+                    for t in [r.t_min, 0.5 * (r.t_min + r.t_max), r.t_max] {
+                        let p = r.origin + r.direction * t;
+                        assert!(beam.touches(p, p), "case {case}: {p} at t {t} of {r:?}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -159,6 +159,41 @@ impl Tracer<'_> {
         self.for_each_packet_hit_culled(rays, scratch, &cull, PacketRays::All, on_hit);
     }
 
+    /// Whether some ray of a packet of grid texels whose texel rectangle
+    /// has the corner rays `corners` may meet a caster `unsettled`
+    /// accepts ([`TopLevel::gate_packet`]); a packet it lets through is
+    /// traced next with [`PacketRays::Gated`] and the same `scratch`.
+    /// Without the trees every packet goes through.
+    pub fn gate_packet(
+        &self,
+        corners: &[TraceRay; 4],
+        scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
+    ) -> bool {
+        self.mode != TraceMode::Trees
+            || self
+                .top
+                .gate_packet(self.bottom, corners, scratch, unsettled)
+    }
+
+    /// [`Self::rays_reaching`] for the rays of a packet
+    /// [`Self::gate_packet`] let through, against what it found (no second
+    /// walk); without the trees, every ray.
+    pub fn rays_reaching_gated(
+        &self,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        keep: &mut Vec<bool>,
+    ) -> usize {
+        if self.mode != TraceMode::Trees {
+            keep.clear();
+            keep.resize(rays.len(), true);
+            return rays.len();
+        }
+        self.top
+            .rays_reaching_gated(self.bottom, rays, scratch, keep)
+    }
+
     /// Marks in `keep` the rays of `rays` (a packet, as
     /// [`Self::for_each_packet_hit_culled`] takes them) that may meet a
     /// caster `unsettled` accepts, and returns how many (see
@@ -216,6 +251,10 @@ pub enum PacketRays<'u> {
     /// [`Tracer::rays_reaching`]); the packet traversal may leave out the
     /// others, which then report no hit.
     MeetingUnsettled(&'u dyn Fn(u32) -> bool),
+    /// The rays that may enter the entries the latest
+    /// [`Tracer::gate_packet`] on the same scratch found (every ray when
+    /// it found many, or was not asked).
+    Gated,
 }
 
 /// A ray segment: the points `origin + t·direction` for `t_min <= t <= t_max`.

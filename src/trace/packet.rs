@@ -480,6 +480,9 @@ pub struct PacketScratch {
     /// The entries with an unsettled caster a packet's beam reaches
     /// ([`PacketRays::MeetingUnsettled`], [`TopLevel::rays_reaching`]).
     open: Vec<u32>,
+    /// What the latest [`TopLevel::gate_packet`] found, for
+    /// [`PacketRays::Gated`]: `open` holds the entries when few.
+    gate: Option<OpenEntries>,
 }
 
 impl PacketScratch {
@@ -510,6 +513,7 @@ impl TopLevel {
             model,
             t_max,
             open,
+            gate,
         } = scratch;
         t_max.clear();
         t_max.extend(rays.iter().map(|r| r.t_max));
@@ -520,6 +524,13 @@ impl TopLevel {
         let live_rays = || rays.iter().copied().filter(|r| r.t_min <= r.t_max);
         let mut open_beam = None;
         let mut few = false;
+        if let PacketRays::Gated = which {
+            match gate.take() {
+                Some(OpenEntries::None) => return,
+                Some(OpenEntries::Few) => few = true,
+                Some(OpenEntries::Many) | None => {}
+            }
+        }
         if let PacketRays::MeetingUnsettled(unsettled) = which {
             if let Some(beam) = Beam::new(live_rays(), magnitude) {
                 let direction = live_rays().next().map_or(Vec3::Y, |r| r.direction);
@@ -576,6 +587,56 @@ impl TopLevel {
             }
             true
         });
+    }
+
+    /// Whether any ray of a packet of grid texels, known by its corner
+    /// rays (see [`Beam::of_grid_corners`]), may meet a caster `unsettled`
+    /// accepts: false when the corners' beam reaches no part or block
+    /// holding one. Otherwise the entries it reaches are kept in `scratch`
+    /// for the packet's [`PacketRays::Gated`] traversal, which follows:
+    /// they hold every entry any ray of the packet may enter, so testing
+    /// the rays against them is exact. Only the top level is walked, and
+    /// no ray of the packet need be made when the answer is false.
+    pub(crate) fn gate_packet(
+        &self,
+        bottom: &BottomLevels,
+        corners: &[TraceRay; 4],
+        scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
+    ) -> bool {
+        let Some(beam) = Beam::of_grid_corners(corners, self.tree.magnitude) else {
+            scratch.gate = None;
+            return true;
+        };
+        let open = &mut scratch.open;
+        let found = self.open_entries(bottom, &beam, corners[0].direction, unsettled, open);
+        let meets = !matches!(found, OpenEntries::None);
+        scratch.gate = Some(found);
+        meets
+    }
+
+    /// [`Self::rays_reaching`] against the entries the latest
+    /// [`Self::gate_packet`] on `scratch` found (every live ray when it
+    /// found many or was not asked): no second walk of the top level.
+    pub(crate) fn rays_reaching_gated(
+        &self,
+        bottom: &BottomLevels,
+        rays: &[TraceRay],
+        scratch: &mut PacketScratch,
+        keep: &mut Vec<bool>,
+    ) -> usize {
+        keep.clear();
+        keep.extend(rays.iter().map(|ray| ray.t_min <= ray.t_max));
+        match scratch.gate.take() {
+            Some(OpenEntries::None) => keep.fill(false),
+            Some(OpenEntries::Few) => {
+                for (k, ray) in keep.iter_mut().zip(rays) {
+                    *k = *k && self.may_meet_open(bottom, &scratch.open, ray);
+                }
+            }
+            Some(OpenEntries::Many) | None => {}
+        }
+        keep.iter().filter(|&&k| k).count()
     }
 
     /// Marks in `keep` the rays of `rays` (at most [`PACKET_RAYS`]) that
