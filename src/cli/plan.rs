@@ -135,7 +135,7 @@ pub fn plan_lines(plan: &Plan) -> Vec<String> {
     }
     lines.push(format!(
         "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
-         Time is a calibration: {} tiles of 32×32 texels per light traced on this machine in {:.2} s; \
+         Time is a calibration: {} tiles of 32×32 texels per light and their neighbours traced on this machine in {:.2} s; \
          memory is what this process holds now plus the largest light's top level and tracing, the masks \
          and the chunk files",
         plan.estimated_seconds,
