@@ -435,19 +435,10 @@ impl LightRays<'_> {
         for gy in (y0..y1).step_by(side as usize) {
             for gx in (x0..x1).step_by(side as usize) {
                 let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));
-                let gated = match settled {
-                    Some(settled) if self.corners_hold_packets() => {
-                        let unsettled = |c: u32| !settled.contains(c);
-                        let corners = self.corner_rays(face, group);
-                        if !self
-                            .tracer
-                            .gate_packet(&corners, &mut state.scratch, &unsettled)
-                        {
-                            continue;
-                        }
-                        OpenEntriesFrom::Gate
-                    }
-                    _ => OpenEntriesFrom::RaysBeam,
+                let gated = match self.gate(face, group, settled, state) {
+                    Some(false) => continue,
+                    Some(true) => OpenEntriesFrom::Gate,
+                    None => OpenEntriesFrom::RaysBeam,
                 };
                 self.texel_rays_into(state, face, group, samples);
                 self.prepare_packet(state);
@@ -482,23 +473,35 @@ impl LightRays<'_> {
         useful: &mut CasterSet,
     ) {
         let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
-        let which = match settled {
-            None => PacketRays::All,
-            Some(_) if self.corners_hold_packets() => {
-                let corners = self.corner_rays(face, texels);
-                if !self
-                    .tracer
-                    .gate_packet(&corners, &mut state.scratch, &unsettled)
-                {
-                    return;
-                }
-                PacketRays::Gated
-            }
-            Some(_) => PacketRays::MeetingUnsettled(&unsettled),
+        let which = match (settled, self.gate(face, texels, settled, state)) {
+            (_, Some(false)) => return,
+            (None, _) => PacketRays::All,
+            (Some(_), Some(true)) => PacketRays::Gated,
+            (Some(_), None) => PacketRays::MeetingUnsettled(&unsettled),
         };
         self.texel_rays_into(state, face, texels, samples);
         self.prepare_packet(state);
         self.trace_prepared(state, which, |c| prove(c, settled, useful));
+    }
+
+    /// With `settled`, where the corner rays bound a packet's rays,
+    /// whether a ray of the texels `texels` of `face` may meet a caster
+    /// not yet settled (`Tracer::gate_packet`, which leaves what it found
+    /// in `state` for the packet); `None` when not asked.
+    fn gate(
+        &self,
+        face: usize,
+        texels: (u32, u32, u32, u32),
+        settled: Option<&Settled>,
+        state: &mut PacketState,
+    ) -> Option<bool> {
+        let settled = settled.filter(|_| self.corners_hold_packets())?;
+        let unsettled = |c: u32| !settled.contains(c);
+        let corners = self.corner_rays(face, texels);
+        Some(
+            self.tracer
+                .gate_packet(&corners, &mut state.scratch, &unsettled),
+        )
     }
 
     /// Whether the rays through the corners of a packet's texel rectangle
