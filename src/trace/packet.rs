@@ -482,7 +482,7 @@ pub struct PacketScratch {
     open: Vec<u32>,
     /// What the latest [`TopLevel::gate_packet`] found, for
     /// [`PacketRays::Gated`]: `open` holds the entries when few.
-    gate: Option<OpenEntries>,
+    gate: Option<(OpenEntries, Beam)>,
 }
 
 impl PacketScratch {
@@ -525,10 +525,15 @@ impl TopLevel {
         let mut open_beam = None;
         let mut few = false;
         if let PacketRays::Gated = which {
-            match gate.take() {
-                Some(OpenEntries::None) => return,
-                Some(OpenEntries::Few) => few = true,
-                Some(OpenEntries::Many) | None => {}
+            // The corners' beam holds the packet's rays: it serves the
+            // traversal too unless rays are dropped.
+            if let Some((found, beam)) = gate.take() {
+                match found {
+                    OpenEntries::None => return,
+                    OpenEntries::Few => few = true,
+                    OpenEntries::Many => {}
+                }
+                open_beam = Some(beam);
             }
         }
         if let PacketRays::MeetingUnsettled(unsettled) = which {
@@ -611,7 +616,7 @@ impl TopLevel {
         let open = &mut scratch.open;
         let found = self.open_entries(bottom, &beam, corners[0].direction, unsettled, open);
         let meets = !matches!(found, OpenEntries::None);
-        scratch.gate = Some(found);
+        scratch.gate = Some((found, beam));
         meets
     }
 
@@ -627,7 +632,7 @@ impl TopLevel {
     ) -> usize {
         keep.clear();
         keep.extend(rays.iter().map(|ray| ray.t_min <= ray.t_max));
-        match scratch.gate.take() {
+        match scratch.gate.take().map(|(found, _)| found) {
             Some(OpenEntries::None) => keep.fill(false),
             Some(OpenEntries::Few) => {
                 for (k, ray) in keep.iter_mut().zip(rays) {
