@@ -435,7 +435,7 @@ impl LightRays<'_> {
         for gy in (y0..y1).step_by(side as usize) {
             for gx in (x0..x1).step_by(side as usize) {
                 let group = (gx, gy, (gx + side).min(x1), (gy + side).min(y1));
-                let gated = match self.gate(face, group, settled, state) {
+                let gated = match self.gate(face, group, samples, settled, state) {
                     Some(false) => continue,
                     Some(true) => OpenEntriesFrom::Gate,
                     None => OpenEntriesFrom::RaysBeam,
@@ -473,7 +473,7 @@ impl LightRays<'_> {
         useful: &mut CasterSet,
     ) {
         let unsettled = |c: u32| settled.is_some_and(|s| !s.contains(c));
-        let which = match (settled, self.gate(face, texels, settled, state)) {
+        let which = match (settled, self.gate(face, texels, samples, settled, state)) {
             (_, Some(false)) => return,
             (None, _) => PacketRays::All,
             (Some(_), Some(true)) => PacketRays::Gated,
@@ -485,19 +485,21 @@ impl LightRays<'_> {
     }
 
     /// With `settled`, where the corner rays bound a packet's rays,
-    /// whether a ray of the texels `texels` of `face` may meet a caster
-    /// not yet settled (`Tracer::gate_packet`, which leaves what it found
-    /// in `state` for the packet); `None` when not asked.
+    /// whether a ray (`samples`² a texel) of the texels `texels` of `face`
+    /// may meet a caster not yet settled (`Tracer::gate_packet`, which
+    /// leaves what it found in `state` for the packet); `None` when not
+    /// asked.
     fn gate(
         &self,
         face: usize,
         texels: (u32, u32, u32, u32),
+        samples: u32,
         settled: Option<&Settled>,
         state: &mut PacketState,
     ) -> Option<bool> {
         let settled = settled.filter(|_| self.corners_hold_packets())?;
         let unsettled = |c: u32| !settled.contains(c);
-        let corners = self.corner_rays(face, texels);
+        let corners = self.corner_rays(face, texels, samples);
         Some(
             self.tracer
                 .gate_packet(&corners, &mut state.scratch, &unsettled),
@@ -521,15 +523,29 @@ impl LightRays<'_> {
         step_x.min(step_y) >= GRID_SLOPE_SLACK
     }
 
-    /// The light-relative rays through the four corners of the texels
-    /// `x0..x1 × y0..y1` of `face` (their edges, not their centres).
+    /// The light-relative rays through the four corners of a rectangle
+    /// holding the ray positions (`samples`² a texel) of the texels `x0..x1
+    /// × y0..y1` of `face`, for `Tracer::gate_packet`: a directional
+    /// light's through the outermost positions themselves (its beam allows
+    /// for the rounding of every origin), a spot or point light's through
+    /// the texels' edges (half a texel out, which covers the rounding of
+    /// every direction, see [`Self::corners_hold_packets`]).
     pub fn corner_rays(
         &self,
         face: usize,
         (x0, y0, x1, y1): (u32, u32, u32, u32),
+        samples: u32,
     ) -> [TraceRay; 4] {
-        [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| {
-            let ray = self.grid.ray_through(face, f64::from(x), f64::from(y));
+        let inset = match self.grid.direction() {
+            Some(_) => 0.5 / f64::from(samples.max(1)),
+            None => 0.0,
+        };
+        let (lo, hi) = (
+            (f64::from(x0) + inset, f64::from(y0) + inset),
+            (f64::from(x1) - inset, f64::from(y1) - inset),
+        );
+        [(lo.0, lo.1), (hi.0, lo.1), (lo.0, hi.1), (hi.0, hi.1)].map(|(x, y)| {
+            let ray = self.grid.ray_through(face, x, y);
             self.light_relative(&ray)
         })
     }

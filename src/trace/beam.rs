@@ -218,11 +218,11 @@ impl Beam {
     }
 
     /// A beam holding every ray of a packet of a light's grid, made from
-    /// only the rays through the corners of the packet's texel rectangle
-    /// (`corners`, light-relative; the packet's rays go through texel or
-    /// sub-texel centres inside it). `None` unless the corners share their
-    /// span and either their direction (a directional light: parallel
-    /// rays) or their origin (a spot or point light).
+    /// only the rays through the corners of a rectangle of grid positions
+    /// holding the packet's (`corners`, light-relative; the packet's rays
+    /// go through texel or sub-texel centres inside it). `None` unless the
+    /// corners share their span and either their direction (a directional
+    /// light: parallel rays) or their origin (a spot or point light).
     ///
     /// Why it holds the packet's rays:
     /// - parallel rays: an inside ray's exact origin is a convex
@@ -235,9 +235,10 @@ impl Beam {
     /// - rays from one origin: an inside ray's exact direction lies in the
     ///   cone of the corners' (texel positions map to directions affinely
     ///   before normalising), so its slopes against the axis are convex
-    ///   combinations of theirs, and it lies at least half a texel inside
-    ///   the corners' (the caller checks that this is far more than f32
-    ///   rounding of directions, see `GRID_SLOPE_SLACK`); its start along
+    ///   combinations of theirs, and the caller keeps the rectangle half
+    ///   a texel out from the rays' positions (its texels' edges), far
+    ///   more than the f32 rounding of directions (`GRID_SLOPE_SLACK`);
+    ///   its start along
     ///   the axis is no nearer (the cosine to an axis inside the cone is
     ///   least at a corner), but its end may be farther, so there is no far
     ///   cap.
@@ -542,11 +543,13 @@ mod tests {
 
     /// Every ray of a grid packet (through texel or sub-texel centres)
     /// lies in the beam of the rays through the packet's corners, out to
-    /// its far end: parallel rays (far from the origin) and rays from one
-    /// point (up to 45° off their face's axis). Keeping a far cap for rays
-    /// from one point fails this (the middle rays reach farther along the
-    /// axis than the corners), and so does taking the corners at the outer
-    /// texels' centres instead of their edges.
+    /// its far end: parallel rays (far from the origin; corners at the
+    /// outermost ray positions) and rays from one point (up to 45° off
+    /// their face's axis; corners at the texels' edges). Keeping a far cap
+    /// for rays from one point fails this (the middle rays reach farther
+    /// along the axis than the corners), and so does taking their corners
+    /// at the texels' centres, or a directional light's a sample further
+    /// in.
     #[test]
     fn a_grid_packets_rays_lie_in_the_beam_of_its_corners() {
         let mut rng = crate::rng::Rng::new(41);
@@ -576,7 +579,17 @@ mod tests {
             let x0 = rng.below(resolution as usize - side) as f64;
             let y0 = rng.below(resolution as usize - side) as f64;
             let (x1, y1) = (x0 + side as f64, y0 + side as f64);
-            let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| grid.ray_at(x, y));
+            // As the bake takes them: a directional light's through the
+            // outermost ray positions, a perspective light's through the
+            // texels' edges.
+            let inset = if perspective {
+                0.0
+            } else {
+                0.5 / samples as f64
+            };
+            let (lo, hi) = ((x0 + inset, y0 + inset), (x1 - inset, y1 - inset));
+            let corners = [(lo.0, lo.1), (hi.0, lo.1), (lo.0, hi.1), (hi.0, hi.1)]
+                .map(|(x, y)| grid.ray_at(x, y));
             let beam = Beam::of_grid_corners(&corners, 100.0).expect("a grid packet's beam");
             let step = 1.0 / samples as f64;
             for j in 0..side * samples {

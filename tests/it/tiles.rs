@@ -226,12 +226,12 @@ fn packets_of_settled_casters_are_left_out_and_lose_nothing() {
 #[test]
 fn a_packet_its_corner_rays_leave_out_has_no_ray_that_meets_an_unsettled_caster() {
     // The bake asks the top level first with the beam of the rays through
-    // a packet's texel corners (`Tracer::gate_packet`) and makes no ray of
-    // a packet it leaves out. With every model caster unsettled, no ray of
-    // such a packet (texel centres, and 2×2 sub-texel centres) may hit a
+    // the corners of a packet's rectangle (`LightRays::corner_rays`,
+    // `Tracer::gate_packet`) and makes no ray of a packet it leaves out.
+    // With every model caster unsettled, no ray of such a packet (texel
+    // centres, and 2×2 sub-texel centres with their own corners) may hit a
     // model: every light kind, the sun at 0.4 m, on seeded small worlds.
-    // Shrinking the corners' rectangle by its last column and row fails
-    // this.
+    // Shrinking the bake's corner rectangle by a sample fails this.
     let mut left_out = 0;
     let mut let_through = 0;
     for seed in [3, 5, 8] {
@@ -254,20 +254,20 @@ fn a_packet_its_corner_rays_leave_out_has_no_ray_that_meets_an_unsettled_caster(
                 for y0 in (0..grid.height()).step_by(8) {
                     for x0 in (0..grid.width()).step_by(8) {
                         let (x1, y1) = ((x0 + 8).min(grid.width()), (y0 + 8).min(grid.height()));
-                        let corners = rays.corner_rays(face, (x0, y0, x1, y1));
-                        if rays.tracer.gate_packet(&corners, &mut scratch, &model) {
-                            let_through += 1;
-                            continue;
-                        }
-                        left_out += 1;
                         for samples in [1, 2] {
+                            let corners = rays.corner_rays(face, (x0, y0, x1, y1), samples);
+                            if rays.tracer.gate_packet(&corners, &mut scratch, &model) {
+                                let_through += 1;
+                                continue;
+                            }
+                            left_out += 1;
                             for (x, y) in (y0..y1).flat_map(|y| (x0..x1).map(move |x| (x, y))) {
                                 for ray in grid.texel_rays(face, x, y, samples) {
                                     let traced = rays.light_relative(&ray);
                                     rays.tracer.for_each_hit(&traced, |hit| {
                                         assert!(
                                             !model(hit.caster),
-                                            "seed {seed}, {kind}: texel ({face}, {x}, {y}) hits model caster {} in a packet left out",
+                                            "seed {seed}, {kind}, {samples}² samples: texel ({face}, {x}, {y}) hits model caster {} in a packet left out",
                                             hit.caster
                                         );
                                         traced.t_max
