@@ -476,7 +476,7 @@ impl LightRays<'_> {
         let which = match (settled, self.gate(face, texels, samples, settled, state)) {
             (_, Some(false)) => return,
             (None, _) => PacketRays::All,
-            (Some(_), Some(true)) => PacketRays::Gated,
+            (Some(_), Some(true)) => PacketRays::Gated(&unsettled),
             (Some(_), None) => PacketRays::MeetingUnsettled(&unsettled),
         };
         self.texel_rays_into(state, face, texels, samples);
@@ -585,7 +585,9 @@ impl LightRays<'_> {
         } = state;
         let unsettled = |c: u32| !settled.contains(c);
         let kept = match from {
-            OpenEntriesFrom::Gate => self.tracer.rays_reaching_gated(traced, scratch, keep),
+            OpenEntriesFrom::Gate => self
+                .tracer
+                .rays_reaching_gated(traced, scratch, &unsettled, keep),
             OpenEntriesFrom::RaysBeam => {
                 self.tracer.rays_reaching(traced, scratch, &unsettled, keep)
             }

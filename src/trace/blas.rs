@@ -5,6 +5,7 @@
 
 use super::heightfield::{HeightField, HeightGrid};
 use super::{Bvh, TraceTriangle};
+use glam::Vec3;
 use rayon::prelude::*;
 
 pub struct BottomLevels<'a> {
@@ -13,9 +14,45 @@ pub struct BottomLevels<'a> {
     /// beyond [`super::MAX_COORDINATE`] or of zero area in model space).
     pub(crate) models_left_out: Vec<usize>,
     /// Per model, the groups (ascending) with a triangle built: the
-    /// casters a ray entering a placement of it can meet.
-    pub(crate) model_groups: Vec<Vec<u32>>,
+    /// casters a ray entering a placement of it can meet, each with the
+    /// box of its triangles.
+    pub(crate) model_groups: Vec<Vec<ModelGroup>>,
     pub(crate) terrain: Vec<(HeightGrid<'a>, HeightField)>,
+}
+
+/// One group of a model's triangles: its index within the model and the
+/// box of its triangles (model space): a ray that misses the box, padded
+/// as the node test pads, meets none of them.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ModelGroup {
+    pub(crate) group: u32,
+    pub(crate) lo: Vec3,
+    pub(crate) hi: Vec3,
+}
+
+impl ModelGroup {
+    /// The groups of `triangles` (their `caster` is the group), ascending.
+    fn of(triangles: &[TraceTriangle]) -> Vec<ModelGroup> {
+        let mut groups: Vec<ModelGroup> = Vec::new();
+        let mut sorted: Vec<&TraceTriangle> = triangles.iter().collect();
+        sorted.sort_by_key(|t| t.caster);
+        for t in sorted {
+            let [a, b, c] = t.vertices;
+            let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+            match groups.last_mut() {
+                Some(g) if g.group == t.caster => {
+                    g.lo = g.lo.min(lo);
+                    g.hi = g.hi.max(hi);
+                }
+                _ => groups.push(ModelGroup {
+                    group: t.caster,
+                    lo,
+                    hi,
+                }),
+            }
+        }
+        groups
+    }
 }
 
 impl<'a> BottomLevels<'a> {
@@ -26,7 +63,7 @@ impl<'a> BottomLevels<'a> {
         model_triangles: impl Fn(usize) -> Vec<TraceTriangle> + Sync,
         terrain: Vec<HeightGrid<'a>>,
     ) -> BottomLevels<'a> {
-        let (models, models_left_out): (Vec<Bvh>, Vec<(usize, Vec<u32>)>) = (0..models)
+        let (models, models_left_out): (Vec<Bvh>, Vec<(usize, Vec<ModelGroup>)>) = (0..models)
             .into_par_iter()
             .map(|i| {
                 let triangles = model_triangles(i);
@@ -36,10 +73,7 @@ impl<'a> BottomLevels<'a> {
                     .copied()
                     .collect();
                 let left_out = triangles.len() - usable.len();
-                let mut groups: Vec<u32> = usable.iter().map(|t| t.caster).collect();
-                groups.sort_unstable();
-                groups.dedup();
-                (Bvh::build(&usable), (left_out, groups))
+                (Bvh::build(&usable), (left_out, ModelGroup::of(&usable)))
             })
             .unzip();
         let (models_left_out, model_groups) = models_left_out.into_iter().unzip();

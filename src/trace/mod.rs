@@ -183,6 +183,7 @@ impl Tracer<'_> {
         &self,
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
         keep: &mut Vec<bool>,
     ) -> usize {
         if self.mode != TraceMode::Trees {
@@ -191,7 +192,7 @@ impl Tracer<'_> {
             return rays.len();
         }
         self.top
-            .rays_reaching_gated(self.bottom, rays, scratch, keep)
+            .rays_reaching_gated(self.bottom, rays, scratch, unsettled, keep)
     }
 
     /// Marks in `keep` the rays of `rays` (a packet, as
@@ -251,10 +252,11 @@ pub enum PacketRays<'u> {
     /// [`Tracer::rays_reaching`]); the packet traversal may leave out the
     /// others, which then report no hit.
     MeetingUnsettled(&'u dyn Fn(u32) -> bool),
-    /// The rays that may enter the entries the latest
+    /// The rays that may meet a caster the closure accepts (the one the
+    /// gate was asked with) in the entries the latest
     /// [`Tracer::gate_packet`] on the same scratch found (every ray when
     /// it found many, or was not asked).
-    Gated,
+    Gated(&'u dyn Fn(u32) -> bool),
 }
 
 /// A ray segment: the points `origin + t·direction` for `t_min <= t <= t_max`.

@@ -524,7 +524,7 @@ impl TopLevel {
         let live_rays = || rays.iter().copied().filter(|r| r.t_min <= r.t_max);
         let mut open_beam = None;
         let mut few = false;
-        if let PacketRays::Gated = which {
+        if let PacketRays::Gated(_) = which {
             // The corners' beam holds the packet's rays: it serves the
             // traversal too unless rays are dropped.
             if let Some((found, beam)) = gate.take() {
@@ -549,8 +549,12 @@ impl TopLevel {
         }
         light.fill(live(rays.iter().copied().enumerate(), t_max), magnitude);
         if few {
+            let unsettled = match which {
+                PacketRays::MeetingUnsettled(unsettled) | PacketRays::Gated(unsettled) => unsettled,
+                PacketRays::All => &|_| true,
+            };
             // Fewer rays, a narrower beam.
-            if light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray)) {
+            if light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray, unsettled)) {
                 open_beam = None;
             }
         }
@@ -628,6 +632,7 @@ impl TopLevel {
         bottom: &BottomLevels,
         rays: &[TraceRay],
         scratch: &mut PacketScratch,
+        unsettled: &dyn Fn(u32) -> bool,
         keep: &mut Vec<bool>,
     ) -> usize {
         keep.clear();
@@ -636,7 +641,7 @@ impl TopLevel {
             Some(OpenEntries::None) => keep.fill(false),
             Some(OpenEntries::Few) => {
                 for (k, ray) in keep.iter_mut().zip(rays) {
-                    *k = *k && self.may_meet_open(bottom, &scratch.open, ray);
+                    *k = *k && self.may_meet_open(bottom, &scratch.open, ray, unsettled);
                 }
             }
             Some(OpenEntries::Many) | None => {}
@@ -647,11 +652,12 @@ impl TopLevel {
     /// Marks in `keep` the rays of `rays` (at most [`PACKET_RAYS`]) that
     /// may meet a caster `unsettled` accepts, and returns how many: 0 when
     /// the packet's beam reaches no part or block holding one. Against up
-    /// to [`MOST_OPEN_ENTRIES`] such entries each ray gets the test the
-    /// single-ray traversal gives it before any hit there (a part: the ray
-    /// mapped into model space against its bottom level's box; a block:
-    /// the ray against its box; both padded, up to `node_t_max`); with
-    /// more, every live ray is kept. Only the top level is walked.
+    /// to [`MOST_OPEN_ENTRIES`] such entries each ray gets a box test
+    /// padded as the single-ray node test pads (up to `node_t_max`), which
+    /// a ray hitting anything inside the box passes: a part's, the ray
+    /// mapped into model space against the box of each unsettled group's
+    /// triangles (`ModelGroup`); a block's, the ray against its box. With
+    /// more entries, every live ray is kept. Only the top level is walked.
     pub(crate) fn rays_reaching(
         &self,
         bottom: &BottomLevels,
@@ -675,7 +681,7 @@ impl TopLevel {
             OpenEntries::Many => {}
             OpenEntries::Few => {
                 for (k, ray) in keep.iter_mut().zip(rays) {
-                    *k = *k && self.may_meet_open(bottom, open, ray);
+                    *k = *k && self.may_meet_open(bottom, open, ray, unsettled);
                 }
             }
         }
@@ -702,7 +708,7 @@ impl TopLevel {
                     ..
                 } => bottom.model_groups[model as usize]
                     .iter()
-                    .any(|&group| unsettled(first_caster + group)),
+                    .any(|g| unsettled(first_caster + g.group)),
                 Entry::Block { caster, .. } => unsettled(caster),
             };
             if reaches {
@@ -717,26 +723,45 @@ impl TopLevel {
         }
     }
 
-    /// Whether `ray` may enter one of the entries `open` holds.
-    fn may_meet_open(&self, bottom: &BottomLevels, open: &[u32], ray: &TraceRay) -> bool {
+    /// Whether `ray` may meet a caster `unsettled` accepts in one of the
+    /// entries `open` holds.
+    fn may_meet_open(
+        &self,
+        bottom: &BottomLevels,
+        open: &[u32],
+        ray: &TraceRay,
+        unsettled: &dyn Fn(u32) -> bool,
+    ) -> bool {
         open.iter()
-            .any(|&slot| self.ray_may_enter(bottom, &self.entries[slot as usize], ray))
+            .any(|&slot| self.ray_may_meet(bottom, &self.entries[slot as usize], ray, unsettled))
     }
 
-    /// Whether the single-ray traversal's test before `entry`'s triangles
-    /// or cells lets `ray` through (see [`Self::rays_reaching`]).
-    fn ray_may_enter(&self, bottom: &BottomLevels, entry: &Entry, ray: &TraceRay) -> bool {
+    /// Whether `ray` may hit a caster `unsettled` accepts in `entry`: a
+    /// part's, the ray mapped into model space against the box of each
+    /// such group's triangles; a block's, against its box; both padded as
+    /// the single-ray node test pads, up to `node_t_max` (see
+    /// [`Self::rays_reaching`]), so a ray they turn away hits none of them.
+    fn ray_may_meet(
+        &self,
+        bottom: &BottomLevels,
+        entry: &Entry,
+        ray: &TraceRay,
+        unsettled: &dyn Fn(u32) -> bool,
+    ) -> bool {
         match *entry {
             Entry::Part {
-                model, to_model, ..
+                model,
+                first_caster,
+                to_model,
             } => {
                 let bvh = &bottom.models[model as usize];
-                let Some((lo, hi)) = bvh.bounds() else {
-                    return false;
-                };
                 let model_ray = to_model.ray(ray);
                 let test = BoxRay::new(&model_ray, bvh.tree.magnitude);
-                test.touches(lo, hi, model_ray.t_min, test.node_t_max(model_ray.t_max))
+                let t_max = test.node_t_max(model_ray.t_max);
+                bottom.model_groups[model as usize].iter().any(|g| {
+                    unsettled(first_caster + g.group)
+                        && test.touches(g.lo, g.hi, model_ray.t_min, t_max)
+                })
             }
             Entry::Block { block, .. } => {
                 let (grid, field) = &bottom.terrain[block as usize];

@@ -882,6 +882,76 @@ mod two_level {
     }
 
     #[test]
+    fn a_packet_keeps_the_rays_that_may_reach_an_unsettled_group_of_a_part() {
+        // One model, two groups: a 2 m card round x = 0 (group 0) and one
+        // round x = 10 (group 1), placed once (casters 0 and 1). A packet
+        // of rays straight down, eight columns 0.5 m apart over the first
+        // card (x −1.75..1.75). With only caster 1 unsettled no ray can meet
+        // it, though every ray crosses the model's box; with caster 0, the
+        // rays over its card (|x| < 1) are kept and only they get hits.
+        let card = |x: f32, group: u32| {
+            let p = |dx: f32, dz: f32| Vec3::new(x + dx, 0.0, dz);
+            [
+                TraceTriangle {
+                    vertices: [p(-1.0, -1.0), p(-1.0, 1.0), p(1.0, 1.0)],
+                    caster: group,
+                },
+                TraceTriangle {
+                    vertices: [p(1.0, 1.0), p(1.0, -1.0), p(-1.0, -1.0)],
+                    caster: group,
+                },
+            ]
+        };
+        let model: Vec<TraceTriangle> = card(0.0, 0).into_iter().chain(card(10.0, 1)).collect();
+        let bottom = BottomLevels::build(1, |_| model.clone(), Vec::new());
+        let parts = [PlacedPart {
+            model: 0,
+            world: DMat4::IDENTITY,
+            first_caster: 0,
+        }];
+        let top = TopLevel::build(&bottom, &parts[..], std::iter::empty(), DVec3::ZERO);
+        let tracer = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        let rays: Vec<TraceRay> = (0..64)
+            .map(|i| TraceRay {
+                origin: Vec3::new(
+                    -1.75 + (i % 8) as f32 * 0.5,
+                    30.0,
+                    -0.75 + (i / 8) as f32 * 0.2,
+                ),
+                direction: Vec3::NEG_Y,
+                t_min: 0.0,
+                t_max: 100.0,
+            })
+            .collect();
+        let mut scratch = PacketScratch::default();
+        let mut keep = Vec::new();
+        assert_eq!(
+            tracer.rays_reaching(&rays, &mut scratch, &|c| c == 1, &mut keep),
+            0
+        );
+        let kept = tracer.rays_reaching(&rays, &mut scratch, &|c| c == 0, &mut keep);
+        assert_eq!(kept, 32);
+        for (ray, k) in rays.iter().zip(&keep) {
+            assert_eq!(*k, ray.origin.x.abs() < 1.0, "{ray:?}");
+        }
+        let only_0 = |c: u32| c == 0;
+        let mut hit = vec![0; 64];
+        let (cull, which) = (FaceCull::default(), PacketRays::MeetingUnsettled(&only_0));
+        tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, which, |lane, h| {
+            assert_eq!(h.caster, 0);
+            hit[lane] += 1;
+            f32::INFINITY
+        });
+        for (ray, n) in rays.iter().zip(&hit) {
+            assert_eq!(*n, usize::from(ray.origin.x.abs() < 1.0), "{ray:?}");
+        }
+    }
+
+    #[test]
     fn a_packet_keeps_the_rays_that_may_reach_an_unsettled_block() {
         // Four 100 m blocks (2×2); rays straight down, 8×8 of them 0.5 m
         // apart: over block 0 alone (x, z 10..13.5), or across the border
