@@ -187,9 +187,7 @@ impl Tracer<'_> {
         keep: &mut Vec<bool>,
     ) -> usize {
         if self.mode != TraceMode::Trees {
-            keep.clear();
-            keep.resize(rays.len(), true);
-            return rays.len();
+            return keep_every_ray(keep, rays.len());
         }
         self.top
             .rays_reaching_gated(self.bottom, rays, scratch, unsettled, keep)
@@ -208,9 +206,7 @@ impl Tracer<'_> {
         keep: &mut Vec<bool>,
     ) -> usize {
         if self.mode != TraceMode::Trees || rays.len() > PACKET_RAYS {
-            keep.clear();
-            keep.resize(rays.len(), true);
-            return rays.len();
+            return keep_every_ray(keep, rays.len());
         }
         let open = scratch.open_entries();
         self.top
@@ -241,6 +237,14 @@ impl Tracer<'_> {
                 .for_each_packet_hit(self.bottom, packet, scratch, cull, which, &mut relay);
         }
     }
+}
+
+/// `keep` marking all of `rays` rays, and their count: the answer of the
+/// ray filters where they cannot tell (no trees, too many rays).
+fn keep_every_ray(keep: &mut Vec<bool>, rays: usize) -> usize {
+    keep.clear();
+    keep.resize(rays, true);
+    rays
 }
 
 /// Which rays of a packet a caller wants the hits of.
