@@ -318,20 +318,12 @@ fn plan_light(
     let mut warm = cold;
     if held == 2 {
         let next = (0..sampled_tiles)
+            .into_par_iter()
             .map(|n| n * every + 1)
             .filter(|&t| t < tiles);
         let warm_started = Instant::now();
-        let next: Vec<u64> = next.collect();
         let known = Some(&useful);
-        let found = grid_pass::trace_tiles(
-            world,
-            &setup,
-            &rays,
-            config,
-            next.into_par_iter(),
-            known,
-            &counter,
-        );
+        let found = grid_pass::trace_tiles(world, &setup, &rays, config, next, known, &counter);
         warm = (
             warm_started.elapsed().as_secs_f64(),
             counter.done() - cold.1,

@@ -282,26 +282,34 @@ enum OpenEntriesFrom {
 }
 
 /// The casters no ray of a grid pass can newly prove useful: proven so
-/// far by any of its threads, known before it, or receiver-only.
-struct Settled(Vec<AtomicU64>);
+/// far by any of its threads, known before it, or receiver-only; and
+/// whether the pass asks each packet's corner rays first
+/// ([`LightRays::corners_hold_packets`], decided once a pass).
+struct Settled {
+    casters: Vec<AtomicU64>,
+    by_corners: bool,
+}
 
 impl Settled {
-    fn new(casters: &CasterTable, known: Option<&CasterSet>) -> Settled {
+    fn new(casters: &CasterTable, known: Option<&CasterSet>, by_corners: bool) -> Settled {
         let mut words = known.map_or_else(|| vec![0; casters.len().div_ceil(64)], |k| k.0.clone());
         for (id, caster) in casters.casters.iter().enumerate() {
             if caster.receiver_only {
                 words[id / 64] |= 1 << (id % 64);
             }
         }
-        Settled(words.into_iter().map(AtomicU64::new).collect())
+        Settled {
+            casters: words.into_iter().map(AtomicU64::new).collect(),
+            by_corners,
+        }
     }
 
     fn insert(&self, caster: u32) {
-        self.0[caster as usize / 64].fetch_or(1 << (caster % 64), Ordering::Relaxed);
+        self.casters[caster as usize / 64].fetch_or(1 << (caster % 64), Ordering::Relaxed);
     }
 
     fn contains(&self, caster: u32) -> bool {
-        self.0[caster as usize / 64].load(Ordering::Relaxed) & (1 << (caster % 64)) != 0
+        self.casters[caster as usize / 64].load(Ordering::Relaxed) & (1 << (caster % 64)) != 0
     }
 }
 
@@ -373,7 +381,11 @@ impl LightRays<'_> {
         let side = self.packet_side(samples);
         let settled = match skip {
             PacketSkip::Never => None,
-            PacketSkip::Settled { known } => Some(Settled::new(self.casters, known)),
+            PacketSkip::Settled { known } => Some(Settled::new(
+                self.casters,
+                known,
+                self.corners_hold_packets(),
+            )),
         };
         let settled = settled.as_ref();
         tiles
@@ -484,7 +496,7 @@ impl LightRays<'_> {
         self.trace_prepared(state, which, |c| prove(c, settled, useful));
     }
 
-    /// With `settled`, where the corner rays bound a packet's rays,
+    /// With `settled`, when its pass asks corner rays first,
     /// whether a ray (`samples`² a texel) of the texels `texels` of `face`
     /// may meet a caster not yet settled (`Tracer::gate_packet`, which
     /// leaves what it found in `state` for the packet); `None` when not
@@ -497,7 +509,7 @@ impl LightRays<'_> {
         settled: Option<&Settled>,
         state: &mut PacketState,
     ) -> Option<bool> {
-        let settled = settled.filter(|_| self.corners_hold_packets())?;
+        let settled = settled.filter(|s| s.by_corners)?;
         let unsettled = |c: u32| !settled.contains(c);
         let corners = self.corner_rays(face, texels, samples);
         Some(

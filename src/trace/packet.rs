@@ -522,37 +522,34 @@ impl TopLevel {
         // beam of its live rays before the frame is made: most packets
         // left out are left out whole, and then need no frame.
         let live_rays = || rays.iter().copied().filter(|r| r.t_min <= r.t_max);
+        // The open entries and the beam they were found with, from the
+        // gate (whose corners' beam holds the packet's rays and serves the
+        // traversal too unless rays are dropped) or from the rays' own.
+        let found = match which {
+            PacketRays::All => None,
+            PacketRays::Gated(unsettled) => {
+                gate.take().map(|(found, beam)| (found, beam, unsettled))
+            }
+            PacketRays::MeetingUnsettled(unsettled) => {
+                Beam::new(live_rays(), magnitude).map(|beam| {
+                    let direction = live_rays().next().map_or(Vec3::Y, |r| r.direction);
+                    let found = self.open_entries(bottom, &beam, direction, unsettled, open);
+                    (found, beam, unsettled)
+                })
+            }
+        };
+        let mut few = None;
         let mut open_beam = None;
-        let mut few = false;
-        if let PacketRays::Gated(_) = which {
-            // The corners' beam holds the packet's rays: it serves the
-            // traversal too unless rays are dropped.
-            if let Some((found, beam)) = gate.take() {
-                match found {
-                    OpenEntries::None => return,
-                    OpenEntries::Few => few = true,
-                    OpenEntries::Many => {}
-                }
-                open_beam = Some(beam);
+        if let Some((found, beam, unsettled)) = found {
+            match found {
+                OpenEntries::None => return,
+                OpenEntries::Few => few = Some(unsettled),
+                OpenEntries::Many => {}
             }
-        }
-        if let PacketRays::MeetingUnsettled(unsettled) = which {
-            if let Some(beam) = Beam::new(live_rays(), magnitude) {
-                let direction = live_rays().next().map_or(Vec3::Y, |r| r.direction);
-                match self.open_entries(bottom, &beam, direction, unsettled, open) {
-                    OpenEntries::None => return,
-                    OpenEntries::Many => {}
-                    OpenEntries::Few => few = true,
-                }
-                open_beam = Some(beam);
-            }
+            open_beam = Some(beam);
         }
         light.fill(live(rays.iter().copied().enumerate(), t_max), magnitude);
-        if few {
-            let unsettled = match which {
-                PacketRays::MeetingUnsettled(unsettled) | PacketRays::Gated(unsettled) => unsettled,
-                PacketRays::All => &|_| true,
-            };
+        if let Some(unsettled) = few {
             // Fewer rays, a narrower beam.
             if light.retain_where(|ray, _| self.may_meet_open(bottom, open, ray, unsettled)) {
                 open_beam = None;
@@ -635,13 +632,30 @@ impl TopLevel {
         unsettled: &dyn Fn(u32) -> bool,
         keep: &mut Vec<bool>,
     ) -> usize {
+        let found = scratch.gate.take().map(|(found, _)| found);
+        self.keep_reaching(bottom, rays, found, &scratch.open, unsettled, keep)
+    }
+
+    /// Marks in `keep` the live rays of `rays` that `found` (what a walk
+    /// found, `None`: not asked) lets through: none, all, or with few open
+    /// entries those that may meet a caster `unsettled` accepts in one of
+    /// `open`; returns how many.
+    fn keep_reaching(
+        &self,
+        bottom: &BottomLevels,
+        rays: &[TraceRay],
+        found: Option<OpenEntries>,
+        open: &[u32],
+        unsettled: &dyn Fn(u32) -> bool,
+        keep: &mut Vec<bool>,
+    ) -> usize {
         keep.clear();
         keep.extend(rays.iter().map(|ray| ray.t_min <= ray.t_max));
-        match scratch.gate.take().map(|(found, _)| found) {
+        match found {
             Some(OpenEntries::None) => keep.fill(false),
             Some(OpenEntries::Few) => {
                 for (k, ray) in keep.iter_mut().zip(rays) {
-                    *k = *k && self.may_meet_open(bottom, &scratch.open, ray, unsettled);
+                    *k = *k && self.may_meet_open(bottom, open, ray, unsettled);
                 }
             }
             Some(OpenEntries::Many) | None => {}
@@ -666,26 +680,18 @@ impl TopLevel {
         unsettled: &dyn Fn(u32) -> bool,
         keep: &mut Vec<bool>,
     ) -> usize {
-        keep.clear();
         let live = |ray: &TraceRay| ray.t_min <= ray.t_max;
-        keep.extend(rays.iter().map(live));
         let live_rays = rays.iter().copied().filter(live);
-        let (Some(first), Some(beam)) = (
+        let found = match (
             rays.iter().find(|r| live(r)),
             Beam::new(live_rays, self.tree.magnitude),
-        ) else {
-            return keep.iter().filter(|&&k| k).count();
-        };
-        match self.open_entries(bottom, &beam, first.direction, unsettled, open) {
-            OpenEntries::None => keep.fill(false),
-            OpenEntries::Many => {}
-            OpenEntries::Few => {
-                for (k, ray) in keep.iter_mut().zip(rays) {
-                    *k = *k && self.may_meet_open(bottom, open, ray, unsettled);
-                }
+        ) {
+            (Some(first), Some(beam)) => {
+                Some(self.open_entries(bottom, &beam, first.direction, unsettled, open))
             }
-        }
-        keep.iter().filter(|&&k| k).count()
+            _ => None,
+        };
+        self.keep_reaching(bottom, rays, found, open, unsettled, keep)
     }
 
     /// The entries `beam` reaches that hold a caster `unsettled` accepts,
