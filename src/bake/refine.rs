@@ -340,8 +340,17 @@ fn surface_points(
     light: usize,
     samples: u32,
 ) -> bool {
-    let areas: Vec<f64> = run.iter().map(area).collect();
-    let total: f64 = areas.iter().sum();
+    // The running sums of the triangles' areas, so a pick is a binary
+    // search, not a walk of every triangle (a tree's canopy has hundreds).
+    let mut sum = 0.0;
+    let running: Vec<f64> = run
+        .iter()
+        .map(|t| {
+            sum += area(t);
+            sum
+        })
+        .collect();
+    let total = sum;
     if samples == 0 || run.is_empty() || total.is_nan() || total <= 0.0 {
         return false;
     }
@@ -350,16 +359,7 @@ fn surface_points(
     let mut rng = Rng::new(mix(((light as u64) << 32) | sampler.caster as u64));
     let mut points = Vec::with_capacity(samples as usize);
     for _ in 0..samples {
-        let pick = rng.unit() * total;
-        let mut chosen = run.len() - 1;
-        let mut sum = 0.0;
-        for (i, a) in areas.iter().enumerate() {
-            sum += a;
-            if pick < sum {
-                chosen = i;
-                break;
-            }
-        }
+        let chosen = pick_triangle(&running, rng.unit() * total);
         let p = reference + sample_point(&run[chosen], &mut rng);
         points.extend(grid.ray_toward(p));
     }
@@ -871,6 +871,15 @@ fn quarters((i0, j0, ni, nj): (i64, i64, i64, i64)) -> impl Iterator<Item = (i64
     .filter(|&(_, _, na, nb)| na > 0 && nb > 0)
 }
 
+/// The triangle an area-weighted `pick` in `[0, total)` falls on, from
+/// the running sums of the areas: the first whose sum exceeds it (the last
+/// when none does, as for a NaN pick).
+fn pick_triangle(running: &[f64], pick: f64) -> usize {
+    running
+        .partition_point(|&s| pick.partial_cmp(&s) != Some(std::cmp::Ordering::Less))
+        .min(running.len().saturating_sub(1))
+}
+
 fn area(triangle: &TraceTriangle) -> f64 {
     let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
     0.5 * (b - a).cross(c - a).length()
@@ -882,4 +891,59 @@ fn sample_point(triangle: &TraceTriangle, rng: &mut Rng) -> DVec3 {
     let squeeze = |r: f64| EDGE_MARGIN + (1.0 - 2.0 * EDGE_MARGIN) * r;
     let (r1, r2) = (squeeze(rng.unit()).sqrt(), squeeze(rng.unit()));
     a * (1.0 - r1) + b * (r1 * (1.0 - r2)) + c * (r1 * r2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The walk `pick_triangle` replaced: the first triangle whose running
+    /// sum exceeds the pick, else the last.
+    fn pick_by_walk(areas: &[f64], pick: f64) -> usize {
+        let mut sum = 0.0;
+        for (i, a) in areas.iter().enumerate() {
+            sum += a;
+            if pick < sum {
+                return i;
+            }
+        }
+        areas.len() - 1
+    }
+
+    #[test]
+    fn a_pick_falls_on_the_triangle_the_walk_over_areas_finds() {
+        let mut rng = Rng::new(17);
+        for round in 0..2000 {
+            let n = 1 + rng.below(40);
+            // Some zero areas (degenerate triangles), which no pick may land on
+            // unless it is the last.
+            let areas: Vec<f64> = (0..n)
+                .map(|_| {
+                    if rng.below(4) == 0 {
+                        0.0
+                    } else {
+                        rng.range(0.0, 3.0)
+                    }
+                })
+                .collect();
+            let mut sum = 0.0;
+            let running: Vec<f64> = areas
+                .iter()
+                .map(|a| {
+                    sum += a;
+                    sum
+                })
+                .collect();
+            let pick = match round % 50 {
+                0 => f64::NAN,
+                1 => sum,
+                _ => rng.unit() * sum,
+            };
+            assert_eq!(
+                pick_triangle(&running, pick),
+                pick_by_walk(&areas, pick),
+                "{areas:?} {pick}"
+            );
+        }
+    }
 }
