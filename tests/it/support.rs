@@ -19,7 +19,10 @@ pub fn realdata(test: &str) -> Option<PathBuf> {
                 "{REALDATA_VAR}={} is not a folder",
                 dir.display()
             );
-            Some(dir)
+            // Absolute, so that tests which write the path into a settings
+            // file in a temporary folder (read from there) find it when the
+            // variable is relative, as the message below suggests.
+            Some(dir.canonicalize().unwrap_or(dir))
         }
         None => {
             assert!(
