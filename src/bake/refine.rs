@@ -342,15 +342,8 @@ fn surface_points(
 ) -> bool {
     // The running sums of the triangles' areas, so a pick is a binary
     // search, not a walk of every triangle (a tree's canopy has hundreds).
-    let mut sum = 0.0;
-    let running: Vec<f64> = run
-        .iter()
-        .map(|t| {
-            sum += area(t);
-            sum
-        })
-        .collect();
-    let total = sum;
+    let running = running_sums(run.iter().map(area));
+    let total = running.last().copied().unwrap_or(0.0);
     if samples == 0 || run.is_empty() || total.is_nan() || total <= 0.0 {
         return false;
     }
@@ -880,6 +873,17 @@ fn pick_triangle(running: &[f64], pick: f64) -> usize {
         .min(running.len().saturating_sub(1))
 }
 
+/// Each value's sum with those before it, added in order.
+fn running_sums(values: impl Iterator<Item = f64>) -> Vec<f64> {
+    let mut sum = 0.0;
+    values
+        .map(|v| {
+            sum += v;
+            sum
+        })
+        .collect()
+}
+
 fn area(triangle: &TraceTriangle) -> f64 {
     let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
     0.5 * (b - a).cross(c - a).length()
@@ -926,14 +930,8 @@ mod tests {
                     }
                 })
                 .collect();
-            let mut sum = 0.0;
-            let running: Vec<f64> = areas
-                .iter()
-                .map(|a| {
-                    sum += a;
-                    sum
-                })
-                .collect();
+            let running = running_sums(areas.iter().copied());
+            let sum = running[n - 1];
             let pick = match round % 50 {
                 0 => f64::NAN,
                 1 => sum,

@@ -881,6 +881,24 @@ mod two_level {
         }
     }
 
+    /// Per ray of `rays` (one packet), how many hits it gets when traced
+    /// with only caster `only` unsettled, each hit asserted to be on it.
+    fn hits_meeting_only(tracer: &Tracer, rays: &[TraceRay], only: u32) -> Vec<usize> {
+        let unsettled = |c: u32| c == only;
+        let mut hit = vec![0; rays.len()];
+        let mut scratch = PacketScratch::default();
+        let (cull, which) = (
+            FaceCull::default(),
+            PacketRays::MeetingUnsettled(&unsettled),
+        );
+        tracer.for_each_packet_hit_culled(rays, &mut scratch, &cull, which, |lane, h| {
+            assert_eq!(h.caster, only);
+            hit[lane] += 1;
+            f32::INFINITY
+        });
+        hit
+    }
+
     #[test]
     fn a_packet_keeps_the_rays_that_may_reach_an_unsettled_group_of_a_part() {
         // One model, two groups: a 2 m card round x = 0 (group 0) and one
@@ -938,14 +956,7 @@ mod two_level {
         for (ray, k) in rays.iter().zip(&keep) {
             assert_eq!(*k, ray.origin.x.abs() < 1.0, "{ray:?}");
         }
-        let only_0 = |c: u32| c == 0;
-        let mut hit = vec![0; 64];
-        let (cull, which) = (FaceCull::default(), PacketRays::MeetingUnsettled(&only_0));
-        tracer.for_each_packet_hit_culled(&rays, &mut scratch, &cull, which, |lane, h| {
-            assert_eq!(h.caster, 0);
-            hit[lane] += 1;
-            f32::INFINITY
-        });
+        let hit = hits_meeting_only(&tracer, &rays, 0);
         for (ray, n) in rays.iter().zip(&hit) {
             assert_eq!(*n, usize::from(ray.origin.x.abs() < 1.0), "{ray:?}");
         }
@@ -999,15 +1010,7 @@ mod two_level {
         assert_eq!(kept(&tracer, &across, &|c| c <= 1).0, 64);
         // Traced so, the rays over block 1 get their hits there, the
         // others none.
-        let only_1 = |c: u32| c == 1;
-        let mut hit = vec![0; 64];
-        let mut scratch = PacketScratch::default();
-        let (cull, which) = (FaceCull::default(), PacketRays::MeetingUnsettled(&only_1));
-        tracer.for_each_packet_hit_culled(&across, &mut scratch, &cull, which, |lane, h| {
-            assert_eq!(h.caster, 1);
-            hit[lane] += 1;
-            f32::INFINITY
-        });
+        let hit = hits_meeting_only(&tracer, &across, 1);
         for (ray, n) in across.iter().zip(&hit) {
             assert_eq!(*n, usize::from(ray.origin.x > 100.0), "{ray:?}");
         }
