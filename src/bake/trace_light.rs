@@ -660,6 +660,19 @@ impl LightRays<'_> {
         self.trace_prepared(state, PacketRays::All, on_useful);
     }
 
+    /// [`Self::trace_packet`] of only the rays that may meet a caster
+    /// `unsettled` accepts: the others may be left out, and then have no
+    /// hits (they could prove only casters `unsettled` turns away).
+    pub fn trace_packet_meeting(
+        &self,
+        state: &mut PacketState,
+        unsettled: &dyn Fn(u32) -> bool,
+        on_useful: impl FnMut(u32),
+    ) {
+        self.prepare_packet(state);
+        self.trace_prepared(state, PacketRays::MeetingUnsettled(unsettled), on_useful);
+    }
+
     /// The light-relative rays of `state.rays`, into `state.traced`.
     fn prepare_packet(&self, state: &mut PacketState) {
         state.traced.clear();

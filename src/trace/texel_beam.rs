@@ -52,6 +52,16 @@ impl Rect {
         }
     }
 
+    /// The smallest rectangle holding both.
+    pub fn union(self, other: Rect) -> Rect {
+        Rect {
+            x0: self.x0.min(other.x0),
+            y0: self.y0.min(other.y0),
+            x1: self.x1.max(other.x1),
+            y1: self.y1.max(other.y1),
+        }
+    }
+
     /// Whether the two closed rectangles share a point.
     pub fn meets(self, other: Rect) -> bool {
         self.x0 <= other.x1 && self.x1 >= other.x0 && self.y0 <= other.y1 && self.y1 >= other.y0
@@ -100,7 +110,7 @@ fn cross(o: Point, a: Point, b: Point) -> f64 {
 pub struct ConvexRegion {
     /// Per edge: its start, its direction (end − start), how far outside
     /// (a cross product, negative) a point may lie, and its length.
-    edges: Vec<(Point, Point, f64, f64)>,
+    edges: Edges,
     /// The winding's sign, so "inside" is a non-negative cross product.
     sign: f64,
     /// A box holding every point the test accepts (a quick reject).
@@ -115,13 +125,15 @@ impl ConvexRegion {
         if polygon.len() < 3 || sign == 0.0 || sign.is_nan() {
             return None;
         }
-        let edges = (0..polygon.len())
-            .map(|i| {
-                let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
-                let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-                (a, (b.0 - a.0, b.1 - a.1), -tolerance * length, length)
-            })
-            .collect();
+        let edge = |i: usize| {
+            let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+            let length = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+            (a, (b.0 - a.0, b.1 - a.1), -tolerance * length, length)
+        };
+        let edges = match polygon.len() {
+            3 => Edges::Triangle([0, 1, 2].map(edge)),
+            n => Edges::Polygon((0..n).map(edge).collect()),
+        };
         let bounds = grown_bounds(polygon, tolerance.max(0.0));
         Some(ConvexRegion {
             edges,
@@ -134,9 +146,12 @@ impl ConvexRegion {
     /// the polygon (each edge moved out by `extra` more; no quick reject by
     /// box, which does not hold the grown corners).
     pub fn contains_grown(&self, p: Point, extra: f64) -> bool {
-        self.edges.iter().all(|&(a, e, allowance, length)| {
-            self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance - extra * length
-        })
+        self.edges
+            .as_slice()
+            .iter()
+            .all(|&(a, e, allowance, length)| {
+                self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance - extra * length
+            })
     }
 
     /// A box holding every point [`Self::contains`] accepts.
@@ -151,9 +166,28 @@ impl ConvexRegion {
         if !(p.0 >= b.x0 && p.0 <= b.x1 && p.1 >= b.y0 && p.1 <= b.y1) {
             return false;
         }
-        self.edges.iter().all(|&(a, e, allowance, _)| {
+        self.edges.as_slice().iter().all(|&(a, e, allowance, _)| {
             self.sign * (e.0 * (p.1 - a.1) - e.1 * (p.0 - a.0)) >= allowance
         })
+    }
+}
+
+/// A region's edges (start, direction, allowance, length): a triangle's
+/// held inline, since refinement makes one per triangle of every caster
+/// it looks at, and most are triangles.
+#[derive(Debug, Clone)]
+enum Edges {
+    Triangle([(Point, Point, f64, f64); 3]),
+    Polygon(Vec<(Point, Point, f64, f64)>),
+}
+
+impl Edges {
+    #[inline]
+    fn as_slice(&self) -> &[(Point, Point, f64, f64)] {
+        match self {
+            Edges::Triangle(edges) => edges,
+            Edges::Polygon(edges) => edges,
+        }
     }
 }
 
@@ -196,8 +230,15 @@ fn grown_bounds(polygon: &[Point], by: f64) -> Rect {
         y1: f64::NEG_INFINITY,
     };
     let mut scale: f64 = 0.0;
+    // Each edge's line is worked out once, carried to its next vertex.
+    let Some(last) = n.checked_sub(1) else {
+        return everywhere;
+    };
+    let mut previous = line(last);
     for i in 0..n {
-        let ((n1, c1), (n2, c2)) = (line((i + n - 1) % n), line(i));
+        let current = line(i);
+        let ((n1, c1), (n2, c2)) = (previous, current);
+        previous = current;
         let det = n1.0 * n2.1 - n1.1 * n2.0;
         if det.is_nan() || det.abs() <= 1e-9 {
             return everywhere;

@@ -459,3 +459,48 @@ fn conservative_culls_what_the_terrain_covers() {
     assert_eq!(instance_masks(&result, &world, b), vec![0]);
     assert_eq!(instance_masks(&result, &world, c), vec![0]);
 }
+
+/// A caster shown only through another's surface points: a 35 × 10 cm
+/// sliver (y 2.5, z 0.7..0.8) across a small slab A (x, z 0.6..0.95,
+/// y 2), both between the texel centres of a 1 m grid (light straight
+/// down, receiver-only ground at y 0 from x, z 0, so centres lie at
+/// k + 0.5). The sliver shares its group B with an 84 m² triangle (y 5)
+/// under an opaque roof (y 10, x 2..16): B's own area-weighted points
+/// miss the sliver (0.04 % of its area), so its rays all meet the roof
+/// first. A's first two points (z 0.93 and 0.63: the points are fixed per
+/// light and caster) miss the sliver and prove A (ground behind); three of
+/// its later ones cross the sliver and prove B (A and the ground behind),
+/// so refinement must go on tracing them once A is proven. The lattice is
+/// off: it would find the sliver by itself.
+#[test]
+fn a_sliver_proven_only_by_another_casters_surface_points_is_kept() {
+    let mut world = World::new(1, 1);
+    let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
+    let roof = one(&mut world, quad_up(2.0, 0.0, 16.0, 16.0, 10.0), OPAQUE);
+    let slab = one(&mut world, quad_up(0.6, 0.6, 0.95, 0.95, 2.0), OPAQUE);
+    let mut sliver = quad_up(0.6, 0.7, 0.95, 0.8, 2.5);
+    sliver.push([
+        Vec3::new(3.0, 5.0, 1.0),
+        Vec3::new(3.0, 5.0, 15.0),
+        Vec3::new(15.0, 5.0, 15.0),
+    ]);
+    let sliver = one(&mut world, sliver, OPAQUE);
+    world.place((0, 0), &[ground], DMat4::IDENTITY, false);
+    let roof = world.place((0, 0), &[roof], DMat4::IDENTITY, true);
+    let slab = world.place((0, 0), &[slab], DMat4::IDENTITY, true);
+    let sliver = world.place((0, 0), &[sliver], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    // The grid: no centre lands on the slab or the sliver; the roof's
+    // centres have ground behind.
+    let result = run(&world, &settings);
+    let masks = |result: &bake::BakeResult| {
+        [roof, slab, sliver].map(|i| instance_masks(result, &world, i)[0])
+    };
+    assert_eq!(masks(&result), [1, 0, 0]);
+    settings.refine_samples = 16;
+    let result = run(&world, &settings);
+    assert_eq!(masks(&result), [1, 1, 1]);
+    // Every point of both is traced (32 rays), though the rays after the
+    // slab's proof that meet only settled casters may be left out.
+    assert_eq!(result.lights[0].refine_rays, 32);
+}
