@@ -275,10 +275,11 @@ impl Sampler<'_, '_> {
         proven
     }
 
-    /// Traces `rays` as [`Self::trace_batch`] does, once the caster is
-    /// proven: only the rays that may meet a caster neither proven by the
-    /// grid, nor this one, nor receiver-only (the others could prove
-    /// nothing new) are traced.
+    /// Traces `rays`, which cannot prove the caster (it is proven, or they
+    /// are surely hidden from it), as [`Self::trace_batch`] does: only
+    /// those that may meet a caster neither proven by the grid, nor this
+    /// one, nor receiver-only are traced (the others could prove nothing
+    /// new).
     fn trace_batch_for_others(&mut self, rays: &[TexelRay]) {
         self.traced += rays.len() as u64;
         self.packet.rays.clear();
@@ -290,6 +291,47 @@ impl Sampler<'_, '_> {
         let useful = &mut *self.useful;
         self.rays
             .trace_packet_meeting(self.packet, &unsettled, |c| useful.insert(c));
+        if let Some(hidden) = &mut self.hidden {
+            let hits = self.packet.hits(rays.len()).iter().flatten();
+            hidden.note(caster, casters, hits);
+        }
+    }
+
+    /// The caster's surface rays `rays` (through the points `at`) split
+    /// into those that may prove it and those its occluders so far surely
+    /// hide from it (`Occlusion::hidden`, taking `nearest`, no deeper than
+    /// the caster anywhere, as its depth at every point), which can prove
+    /// only other casters. Everything may prove it without the occlusion
+    /// test (`nearest` `None`: a spot or point light).
+    fn split_hidden(
+        &mut self,
+        rays: &[TexelRay],
+        at: &[DVec3],
+        nearest: Option<f64>,
+    ) -> (Vec<TexelRay>, Vec<TexelRay>) {
+        let alpha_tested = self.rays.casters.casters[self.caster as usize].alpha_tested;
+        let grid = self.rays.grid;
+        let (Some(hidden), Some(nearest)) = (&mut self.hidden, nearest) else {
+            return (rays.to_vec(), Vec::new());
+        };
+        if rays.len() <= FEW_POINTS {
+            return (rays.to_vec(), Vec::new());
+        }
+        // A point off the face is never hidden (NaN lies in no region).
+        let points: Vec<Point> = at
+            .iter()
+            .map(|&p| grid.project_point(0, p).unwrap_or((f64::NAN, f64::NAN)))
+            .collect();
+        let near = vec![nearest; points.len()];
+        let hidden = hidden.hidden(&points, &near, alpha_tested);
+        let (mut open, mut surely_hidden) = (Vec::new(), Vec::new());
+        for (&ray, hidden) in rays.iter().zip(hidden) {
+            match hidden {
+                true => surely_hidden.push(ray),
+                false => open.push(ray),
+            }
+        }
+        (open, surely_hidden)
     }
 
     /// `rays` (with their points in texel units and the caster's nearest
@@ -386,28 +428,56 @@ fn surface_points(
     let reference = grid.reference_point();
     let mut rng = Rng::new(mix(((light as u64) << 32) | sampler.caster as u64));
     let mut points = Vec::with_capacity(samples as usize);
+    let mut at = Vec::with_capacity(samples as usize);
     for _ in 0..samples {
         let chosen = pick_triangle(&running, rng.unit() * total);
         let p = reference + sample_point(&run[chosen], &mut rng);
-        points.extend(grid.ray_toward(p));
+        if let Some(ray) = grid.ray_toward(p) {
+            points.push(ray);
+            at.push(p);
+        }
     }
     // Every point traced, a packet at a time, even once one proves the
     // caster: the others may prove other casters, which their own rays can
-    // miss. Once it is proven they go only where such a caster may be met.
-    // (Tracing the first 8 alone, and the rest only when they proved
-    // nothing, saved 5 % of a refined bake on `bench` but left 3 casters of
-    // `village` culled at ×¼ that the ×8 reference keeps; leaving out the
-    // points occluders hide lost one of `bench`'s.)
+    // miss. The points that cannot prove it (once it is proven, and before
+    // that those its occluders so far surely hide from it) go only where
+    // such a caster may be met. (Tracing the first 8 alone, and the rest
+    // only when they proved nothing, saved 5 % of a refined bake on `bench`
+    // but left 3 casters of `village` culled at ×¼ that the ×8 reference
+    // keeps; leaving out the points occluders hide lost one of `bench`'s.)
     let first = points.len().min(FIRST_POINTS);
     let mut proven = sampler.trace_batch(&points[..first]);
-    for batch in points[first..].chunks(BATCH) {
+    let (open, hidden) = match proven {
+        true => (Vec::new(), points[first..].to_vec()),
+        false => {
+            let nearest = nearest_depth(run, grid.direction(), reference);
+            sampler.split_hidden(&points[first..], &at[first..], nearest)
+        }
+    };
+    for batch in open.chunks(BATCH) {
         if proven {
             sampler.trace_batch_for_others(batch);
         } else {
             proven = sampler.trace_batch(batch);
         }
     }
+    for batch in hidden.chunks(BATCH) {
+        sampler.trace_batch_for_others(batch);
+    }
     proven
+}
+
+/// The least depth (as the occlusion test's: `p·direction`) of any vertex
+/// of `run` (light-relative to `reference`) under a directional light: no
+/// deeper than the caster's nearest depth on any ray. `None` for a spot or
+/// point light, or when it is not finite.
+fn nearest_depth(run: &[TraceTriangle], direction: Option<DVec3>, reference: DVec3) -> Option<f64> {
+    let direction = direction?;
+    let depths = run
+        .iter()
+        .flat_map(|t| t.vertices)
+        .map(|v| (reference + v.as_dvec3()).dot(direction));
+    Some(depths.fold(f64::INFINITY, f64::min)).filter(|d| d.is_finite())
 }
 
 /// Texels per side of the footprint's first cells.

@@ -504,3 +504,64 @@ fn a_sliver_proven_only_by_another_casters_surface_points_is_kept() {
     // slab's proof that meet only settled casters may be left out.
     assert_eq!(result.lights[0].refine_rays, 32);
 }
+
+/// The same sliver group B, now over an opaque roof R (y 10, the whole
+/// chunk; the sliver at y 12, its big triangle under the roof) above the
+/// slab A (y 2), which the roof hides everywhere. A's first two points
+/// meet only the roof; the roof then surely hides A's other points from
+/// A, so they cannot prove A, but three of them cross the sliver, which is
+/// front-most there with the roof behind: they must still be traced, for
+/// B. B's own points miss the sliver and meet the roof first.
+#[test]
+fn a_sliver_proven_only_through_a_hidden_casters_surface_points_is_kept() {
+    let mut world = World::new(1, 1);
+    let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
+    let roof = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 10.0), OPAQUE);
+    let slab = one(&mut world, quad_up(0.6, 0.6, 0.95, 0.95, 2.0), OPAQUE);
+    let mut sliver = quad_up(0.6, 0.7, 0.95, 0.8, 12.0);
+    sliver.push([
+        Vec3::new(3.0, 5.0, 1.0),
+        Vec3::new(3.0, 5.0, 15.0),
+        Vec3::new(15.0, 5.0, 15.0),
+    ]);
+    let sliver = one(&mut world, sliver, OPAQUE);
+    world.place((0, 0), &[ground], DMat4::IDENTITY, false);
+    let roof = world.place((0, 0), &[roof], DMat4::IDENTITY, true);
+    let slab = world.place((0, 0), &[slab], DMat4::IDENTITY, true);
+    let sliver = world.place((0, 0), &[sliver], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    let masks = |result: &bake::BakeResult| {
+        [roof, slab, sliver].map(|i| instance_masks(result, &world, i)[0])
+    };
+    assert_eq!(masks(&run(&world, &settings)), [1, 0, 0]);
+    settings.refine_samples = 16;
+    assert_eq!(masks(&run(&world, &settings)), [1, 0, 1]);
+}
+
+/// A caster in two steps, as one group: a low quad (x, z 0.1..0.9, y 2)
+/// under an opaque shelf S (y 4, the whole chunk) and a high quad (x, z
+/// 0.6..0.95, y 6) above it, between texel centres. Its first two points
+/// fall on the low step and meet the shelf first; its later points on the
+/// high step are front-most with the shelf behind. The shelf lies nearer
+/// than the low step but deeper than the high one, so it does not hide
+/// those points: the occlusion test must take the caster's nearest
+/// depth (its top), not the depth of the step a point lies on, or the
+/// caster is lost.
+#[test]
+fn a_caster_poking_out_above_its_occluder_is_kept() {
+    let mut world = World::new(1, 1);
+    let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
+    let shelf = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 4.0), OPAQUE);
+    let mut steps = quad_up(0.1, 0.1, 0.9, 0.9, 2.0);
+    steps.extend(quad_up(0.6, 0.6, 0.95, 0.95, 6.0));
+    let steps = one(&mut world, steps, OPAQUE);
+    world.place((0, 0), &[ground], DMat4::IDENTITY, false);
+    let shelf = world.place((0, 0), &[shelf], DMat4::IDENTITY, true);
+    let steps = world.place((0, 0), &[steps], DMat4::IDENTITY, true);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    let masks =
+        |result: &bake::BakeResult| [shelf, steps].map(|i| instance_masks(result, &world, i)[0]);
+    assert_eq!(masks(&run(&world, &settings)), [1, 0]);
+    settings.refine_samples = 16;
+    assert_eq!(masks(&run(&world, &settings)), [1, 1]);
+}
