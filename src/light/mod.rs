@@ -605,6 +605,26 @@ impl TexelGrid {
         Some(polygon.into_iter().map(|(x, y, _)| (x, y)).collect())
     }
 
+    /// A directional light's image position (texel units) of `p`, as
+    /// [`Self::project_triangle`] gives a vertex's, without making a
+    /// polygon; `None` for a spot or point light or a point not finite.
+    pub fn project_point_directional(&self, p: DVec3) -> Option<(f64, f64)> {
+        match &self.projection {
+            Projection::Orthographic {
+                u,
+                v,
+                u_min,
+                v_min,
+                texel_size,
+                ..
+            } if p.is_finite() => Some((
+                (p.dot(*u) - u_min) / texel_size - self.offset.0,
+                (p.dot(*v) - v_min) / texel_size - self.offset.1,
+            )),
+            _ => None,
+        }
+    }
+
     /// [`Self::project_triangle`] with each vertex's depth: `p·direction`
     /// for a directional light (t plus a constant), the depth `z` along
     /// the face's axis for a perspective face.

@@ -709,3 +709,27 @@ fn texel_indices_run_over_faces_rows_and_columns() {
     }
     assert_eq!(seen.len(), 54);
 }
+
+#[test]
+fn a_directional_point_projects_as_a_triangle_corner_does() {
+    // Refinement's footprint box takes a caster's corners one at a time;
+    // they must land bit for bit where its triangles' polygons do, with
+    // the grid's sub-texel offset too.
+    let mut rng = Rng::new(23);
+    for _ in 0..200 {
+        let bounds = random_bounds(&mut rng);
+        let direction = DVec3::new(rng.unit() - 0.5, -rng.unit() - 0.1, rng.unit() - 0.5);
+        let grid = TexelGrid::new(&directional(direction, 0.3 + rng.unit()), bounds)
+            .unwrap()
+            .with_offset((rng.unit(), rng.unit()));
+        let p = bounds.0 + (bounds.1 - bounds.0) * DVec3::new(rng.unit(), rng.unit(), rng.unit());
+        let corner = grid.project_triangle(0, [p, p, p]).unwrap()[0];
+        assert_eq!(grid.project_point_directional(p), Some(corner));
+    }
+    let point_light = TexelGrid::new(
+        &point(DVec3::ZERO, 0.1, 10.0, 64),
+        (DVec3::splat(-1.0), DVec3::splat(1.0)),
+    )
+    .unwrap();
+    assert_eq!(point_light.project_point_directional(DVec3::X), None);
+}

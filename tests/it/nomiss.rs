@@ -538,22 +538,23 @@ fn a_sliver_proven_only_through_a_hidden_casters_surface_points_is_kept() {
     assert_eq!(masks(&run(&world, &settings)), [1, 0, 1]);
 }
 
-/// A caster in two steps, as one group: a low quad (x, z 0.1..0.9, y 2)
-/// under an opaque shelf S (y 4, the whole chunk) and a high quad (x, z
-/// 0.6..0.95, y 6) above it, between texel centres. Its first two points
+/// A caster in two steps, as one group: a low quad (x 2.1..2.9, z
+/// 5.1..5.9, y 2) under an opaque shelf S (y 4, the whole chunk; its
+/// diagonal x = z, where no point is surely inside, lies away) and a high
+/// quad (x 2.6..2.95, z 5.6..5.95, y 6) above it, between texel centres. Its first two points
 /// fall on the low step and meet the shelf first; its later points on the
 /// high step are front-most with the shelf behind. The shelf lies nearer
 /// than the low step but deeper than the high one, so it does not hide
 /// those points: the occlusion test must take the caster's nearest
 /// depth (its top), not the depth of the step a point lies on, or the
-/// caster is lost.
+/// caster is lost; so must the check of its whole footprint's lattice.
 #[test]
 fn a_caster_poking_out_above_its_occluder_is_kept() {
     let mut world = World::new(1, 1);
     let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
     let shelf = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 4.0), OPAQUE);
-    let mut steps = quad_up(0.1, 0.1, 0.9, 0.9, 2.0);
-    steps.extend(quad_up(0.6, 0.6, 0.95, 0.95, 6.0));
+    let mut steps = quad_up(2.1, 5.1, 2.9, 5.9, 2.0);
+    steps.extend(quad_up(2.6, 5.6, 2.95, 5.95, 6.0));
     let steps = one(&mut world, steps, OPAQUE);
     world.place((0, 0), &[ground], DMat4::IDENTITY, false);
     let shelf = world.place((0, 0), &[shelf], DMat4::IDENTITY, true);
@@ -563,5 +564,11 @@ fn a_caster_poking_out_above_its_occluder_is_kept() {
         |result: &bake::BakeResult| [shelf, steps].map(|i| instance_masks(result, &world, i)[0]);
     assert_eq!(masks(&run(&world, &settings)), [1, 0]);
     settings.refine_samples = 16;
+    assert_eq!(masks(&run(&world, &settings)), [1, 1]);
+    // Two surface points (both on the low step) and the footprint
+    // lattice, which finds the high step: the shelf the points met must
+    // not count as hiding the whole footprint either.
+    settings.refine_samples = 2;
+    settings.refine_density = 8;
     assert_eq!(masks(&run(&world, &settings)), [1, 1]);
 }
