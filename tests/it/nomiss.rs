@@ -460,25 +460,26 @@ fn conservative_culls_what_the_terrain_covers() {
     assert_eq!(instance_masks(&result, &world, c), vec![0]);
 }
 
-/// A caster shown only through another's surface points: a 35 × 10 cm
-/// sliver (y 2.5, z 0.7..0.8) across a small slab A (x, z 0.6..0.95,
-/// y 2), both between the texel centres of a 1 m grid (light straight
-/// down, receiver-only ground at y 0 from x, z 0, so centres lie at
-/// k + 0.5). The sliver shares its group B with an 84 m² triangle (y 5)
-/// under an opaque roof (y 10, x 2..16): B's own area-weighted points
-/// miss the sliver (0.04 % of its area), so its rays all meet the roof
-/// first. A's first two points (z 0.93 and 0.63: the points are fixed per
-/// light and caster) miss the sliver and prove A (ground behind); three of
-/// its later ones cross the sliver and prove B (A and the ground behind),
-/// so refinement must go on tracing them once A is proven. The lattice is
-/// off: it would find the sliver by itself.
-#[test]
-fn a_sliver_proven_only_by_another_casters_surface_points_is_kept() {
+/// Receiver-only ground (y 0, from x, z 0, so a 1 m grid's centres lie
+/// at k + 0.5), an opaque roof R (y 10, from x `roof_from` to 16), a
+/// small slab A (x, z 0.6..0.95, y 2) and a group B: a 35 × 10 cm sliver
+/// (x 0.6..0.95, z 0.7..0.8, at `sliver_y`) and an 84 m² triangle (y 5)
+/// under the roof. A and the sliver lie between texel centres. B's own
+/// area-weighted points miss the sliver (0.04 % of its area), so its rays
+/// all meet the roof first; A's first two points (z 0.93 and 0.63: the
+/// points are fixed per light and caster) miss the sliver, and three of
+/// its later ones cross it. Returns the world and R's, A's and B's
+/// instances.
+fn roof_slab_sliver(roof_from: f32, sliver_y: f32) -> (World, [usize; 3]) {
     let mut world = World::new(1, 1);
     let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
-    let roof = one(&mut world, quad_up(2.0, 0.0, 16.0, 16.0, 10.0), OPAQUE);
+    let roof = one(
+        &mut world,
+        quad_up(roof_from, 0.0, 16.0, 16.0, 10.0),
+        OPAQUE,
+    );
     let slab = one(&mut world, quad_up(0.6, 0.6, 0.95, 0.95, 2.0), OPAQUE);
-    let mut sliver = quad_up(0.6, 0.7, 0.95, 0.8, 2.5);
+    let mut sliver = quad_up(0.6, 0.7, 0.95, 0.8, sliver_y);
     sliver.push([
         Vec3::new(3.0, 5.0, 1.0),
         Vec3::new(3.0, 5.0, 15.0),
@@ -486,68 +487,75 @@ fn a_sliver_proven_only_by_another_casters_surface_points_is_kept() {
     ]);
     let sliver = one(&mut world, sliver, OPAQUE);
     world.place((0, 0), &[ground], DMat4::IDENTITY, false);
-    let roof = world.place((0, 0), &[roof], DMat4::IDENTITY, true);
-    let slab = world.place((0, 0), &[slab], DMat4::IDENTITY, true);
-    let sliver = world.place((0, 0), &[sliver], DMat4::IDENTITY, true);
+    let placed = [roof, slab, sliver].map(|m| world.place((0, 0), &[m], DMat4::IDENTITY, true));
+    (world, placed)
+}
+
+/// The first masks of `instances`.
+fn first_masks<const N: usize>(
+    result: &bake::BakeResult,
+    world: &World,
+    instances: [usize; N],
+) -> [u32; N] {
+    instances.map(|i| instance_masks(result, world, i)[0])
+}
+
+/// A caster shown only through another's surface points: the roof stops
+/// at x 2, the sliver (y 2.5) lies over the slab A in the open. A's first
+/// two points prove A (ground behind); its later ones that cross the
+/// sliver prove B (A and the ground behind), so refinement must go on
+/// tracing them once A is proven. The lattice is off: it would find the
+/// sliver by itself.
+#[test]
+fn a_sliver_proven_only_by_another_casters_surface_points_is_kept() {
+    let (world, casters) = roof_slab_sliver(2.0, 2.5);
     let mut settings = config(vec![directional(DOWN, 1.0)]);
     // The grid: no centre lands on the slab or the sliver; the roof's
     // centres have ground behind.
-    let result = run(&world, &settings);
-    let masks = |result: &bake::BakeResult| {
-        [roof, slab, sliver].map(|i| instance_masks(result, &world, i)[0])
-    };
-    assert_eq!(masks(&result), [1, 0, 0]);
+    assert_eq!(
+        first_masks(&run(&world, &settings), &world, casters),
+        [1, 0, 0]
+    );
     settings.refine_samples = 16;
     let result = run(&world, &settings);
-    assert_eq!(masks(&result), [1, 1, 1]);
+    assert_eq!(first_masks(&result, &world, casters), [1, 1, 1]);
     // Every point of both is traced (32 rays), though the rays after the
     // slab's proof that meet only settled casters may be left out.
     assert_eq!(result.lights[0].refine_rays, 32);
 }
 
-/// The same sliver group B, now over an opaque roof R (y 10, the whole
-/// chunk; the sliver at y 12, its big triangle under the roof) above the
-/// slab A (y 2), which the roof hides everywhere. A's first two points
-/// meet only the roof; the roof then surely hides A's other points from
-/// A, so they cannot prove A, but three of them cross the sliver, which is
+/// The same group B with the roof over the whole chunk and the sliver
+/// above it (y 12): the roof hides the slab A everywhere. A's first two
+/// points meet only the roof, which then surely hides A's other points
+/// from A, so they cannot prove A; but three of them cross the sliver,
 /// front-most there with the roof behind: they must still be traced, for
-/// B. B's own points miss the sliver and meet the roof first.
+/// B.
 #[test]
 fn a_sliver_proven_only_through_a_hidden_casters_surface_points_is_kept() {
-    let mut world = World::new(1, 1);
-    let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
-    let roof = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 10.0), OPAQUE);
-    let slab = one(&mut world, quad_up(0.6, 0.6, 0.95, 0.95, 2.0), OPAQUE);
-    let mut sliver = quad_up(0.6, 0.7, 0.95, 0.8, 12.0);
-    sliver.push([
-        Vec3::new(3.0, 5.0, 1.0),
-        Vec3::new(3.0, 5.0, 15.0),
-        Vec3::new(15.0, 5.0, 15.0),
-    ]);
-    let sliver = one(&mut world, sliver, OPAQUE);
-    world.place((0, 0), &[ground], DMat4::IDENTITY, false);
-    let roof = world.place((0, 0), &[roof], DMat4::IDENTITY, true);
-    let slab = world.place((0, 0), &[slab], DMat4::IDENTITY, true);
-    let sliver = world.place((0, 0), &[sliver], DMat4::IDENTITY, true);
+    let (world, casters) = roof_slab_sliver(0.0, 12.0);
     let mut settings = config(vec![directional(DOWN, 1.0)]);
-    let masks = |result: &bake::BakeResult| {
-        [roof, slab, sliver].map(|i| instance_masks(result, &world, i)[0])
-    };
-    assert_eq!(masks(&run(&world, &settings)), [1, 0, 0]);
+    assert_eq!(
+        first_masks(&run(&world, &settings), &world, casters),
+        [1, 0, 0]
+    );
     settings.refine_samples = 16;
-    assert_eq!(masks(&run(&world, &settings)), [1, 0, 1]);
+    assert_eq!(
+        first_masks(&run(&world, &settings), &world, casters),
+        [1, 0, 1]
+    );
 }
 
 /// A caster in two steps, as one group: a low quad (x 2.1..2.9, z
 /// 5.1..5.9, y 2) under an opaque shelf S (y 4, the whole chunk; its
 /// diagonal x = z, where no point is surely inside, lies away) and a high
-/// quad (x 2.6..2.95, z 5.6..5.95, y 6) above it, between texel centres. Its first two points
-/// fall on the low step and meet the shelf first; its later points on the
-/// high step are front-most with the shelf behind. The shelf lies nearer
-/// than the low step but deeper than the high one, so it does not hide
-/// those points: the occlusion test must take the caster's nearest
-/// depth (its top), not the depth of the step a point lies on, or the
-/// caster is lost; so must the check of its whole footprint's lattice.
+/// quad (x 2.6..2.95, z 5.6..5.95, y 6) above it, between texel centres.
+/// Its first two points fall on the low step and meet the shelf first;
+/// its later points on the high step are front-most with the shelf
+/// behind. The shelf lies nearer than the low step but deeper than the
+/// high one, so it does not hide those points: the occlusion test must
+/// take the caster's nearest depth (its top), not the depth of the step a
+/// point lies on, or the caster is lost; so must the check of its whole
+/// footprint's lattice.
 #[test]
 fn a_caster_poking_out_above_its_occluder_is_kept() {
     let mut world = World::new(1, 1);
@@ -560,8 +568,7 @@ fn a_caster_poking_out_above_its_occluder_is_kept() {
     let shelf = world.place((0, 0), &[shelf], DMat4::IDENTITY, true);
     let steps = world.place((0, 0), &[steps], DMat4::IDENTITY, true);
     let mut settings = config(vec![directional(DOWN, 1.0)]);
-    let masks =
-        |result: &bake::BakeResult| [shelf, steps].map(|i| instance_masks(result, &world, i)[0]);
+    let masks = |result: &bake::BakeResult| first_masks(result, &world, [shelf, steps]);
     assert_eq!(masks(&run(&world, &settings)), [1, 0]);
     settings.refine_samples = 16;
     assert_eq!(masks(&run(&world, &settings)), [1, 1]);
