@@ -28,14 +28,23 @@
 //!   lattice for terrain cost 3.6× the plain bake on `village`.
 //!
 //! Whole-lattice cells leave out the lattice rays that cannot prove the
-//! caster: each cell's middle point is traced alone (a probe), the casters
-//! the caster's rays met so far are its occluders, and a point where they
-//! surely keep the caster out of the front set is not traced
-//! (`bake::occlusion`). On `bench` most remaining casters lie under trees
-//! and stay culled: this cut the sun's refinement rays from 1.0 M to 0.49 M
-//! with the same masks. A whole-lattice top cell works out which of its
-//! points lie on the footprint, and the caster's depth at each, once
-//! ([`LatticeCell`]); its cells of at most [`BATCH`] points read them.
+//! caster: the casters the caster's rays met so far are its occluders, a
+//! point where they surely keep the caster out of the front set is not
+//! traced (`bake::occlusion`), and each cell's middle point among the rest
+//! is traced alone first (a probe, for more occluders). On `bench` most
+//! remaining casters lie under trees and stay culled: this cut the sun's
+//! refinement rays from 1.0 M to 0.49 M with the same masks. When the
+//! occluders hide every lattice point in the box of the footprint (taking
+//! the caster's least depth anywhere), the lattice is skipped whole. A
+//! whole-lattice top cell works out which of its points lie on the
+//! footprint, and the caster's depth at each, once ([`LatticeCell`]); its
+//! cells of at most [`BATCH`] points read them.
+//!
+//! Surface points that cannot prove their caster (once it is proven, and
+//! before that those its occluders surely hide from it) may still prove
+//! others, so they are traced, but only where they may meet a caster the
+//! grid has not proven: a set fixed before refinement, so which rays go
+//! does not depend on threads.
 //!
 //! Rays go as packets wherever they lie near each other (surface points,
 //! a cell's corner probes, a small outline cell, a whole-lattice cell
