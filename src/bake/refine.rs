@@ -65,6 +65,7 @@ use crate::trace::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use rayon::prelude::*;
+use std::cell::OnceCell;
 use std::collections::HashMap;
 
 /// Barycentric coordinates stay this far from the edges, so a sample lies
@@ -125,6 +126,8 @@ pub fn refine(
                             occlusion,
                             images: &mut scratch.images,
                             occluders: &mut scratch.occluders,
+                            alpha_tested: casters.casters[caster as usize].alpha_tested,
+                            least_depth: OnceCell::new(),
                         }),
                     traced: 0,
                 };
@@ -183,6 +186,16 @@ impl Scratch {
 /// Rays traced together ([`Sampler::trace_batch`]): a packet's worth.
 const BATCH: usize = 64;
 
+/// What a batch of a caster's rays is traced for.
+#[derive(Clone, Copy)]
+enum Aim {
+    /// Proving the caster (and any other caster its rays prove).
+    Caster,
+    /// Proving other casters only: rays that can meet none not yet proven
+    /// may be left out.
+    Others,
+}
+
 /// Traces refinement rays for one caster, recording what they prove.
 struct Sampler<'r, 'a> {
     rays: &'r LightRays<'a>,
@@ -212,6 +225,10 @@ struct Hidden<'r> {
     images: &'r mut Images,
     /// The casters its traced rays met in front of it, latest last.
     occluders: &'r mut Vec<u32>,
+    /// Whether the caster is alpha-tested (in no Opaque pass).
+    alpha_tested: bool,
+    /// [`nearest_depth`] of the caster, worked out when first asked.
+    least_depth: OnceCell<Option<f64>>,
 }
 
 impl Hidden<'_> {
@@ -241,10 +258,18 @@ impl Hidden<'_> {
         met_new
     }
 
+    /// [`nearest_depth`] of the caster (its triangles `run`), worked out
+    /// once.
+    fn least_depth(&self, run: &[TraceTriangle], grid: &crate::light::TexelGrid) -> Option<f64> {
+        *self
+            .least_depth
+            .get_or_init(|| nearest_depth(run, grid.direction(), grid.reference_point()))
+    }
+
     /// Which of `points` (texel units of the light's one face; the refined
     /// caster's nearest depth at each `near`) the occluders surely hide
     /// (`Occlusion::hidden`).
-    fn hidden(&mut self, points: &[Point], near: &[f64], alpha_tested: bool) -> Vec<bool> {
+    fn hidden(&mut self, points: &[Point], near: &[f64]) -> Vec<bool> {
         if self.occluders.is_empty() {
             return vec![false; points.len()];
         }
@@ -258,7 +283,7 @@ impl Hidden<'_> {
                 .or_insert_with(|| occlusion.image(0, c));
         }
         let occluders: Vec<&CasterImage> = self.occluders.iter().map(|c| &self.images[c]).collect();
-        occlusion.hidden(points, near, alpha_tested, &occluders)
+        occlusion.hidden(points, near, self.alpha_tested, &occluders)
     }
 }
 
@@ -268,20 +293,7 @@ impl Sampler<'_, '_> {
     /// with the answer it gets alone; returns whether any proves the caster
     /// useful.
     fn trace_batch(&mut self, rays: &[TexelRay]) -> bool {
-        self.traced += rays.len() as u64;
-        self.packet.rays.clear();
-        self.packet.rays.extend_from_slice(rays);
-        let mut proven = false;
-        let (caster, useful) = (self.caster, &mut *self.useful);
-        self.rays.trace_packet(self.packet, |c| {
-            proven |= c == caster;
-            useful.insert(c);
-        });
-        if let Some(hidden) = &mut self.hidden {
-            let hits = self.packet.hits(rays.len()).iter().flatten();
-            hidden.note(caster, self.rays.casters, hits);
-        }
-        proven
+        self.trace_aimed(rays, Aim::Caster)
     }
 
     /// Traces `rays`, which cannot prove the caster (it is proven, or they
@@ -290,36 +302,53 @@ impl Sampler<'_, '_> {
     /// one, nor receiver-only are traced (the others could prove nothing
     /// new).
     fn trace_batch_for_others(&mut self, rays: &[TexelRay]) {
+        self.trace_aimed(rays, Aim::Others);
+    }
+
+    /// [`Self::trace_batch`] or [`Self::trace_batch_for_others`], as `aim`
+    /// says; returns whether a ray proves the caster.
+    fn trace_aimed(&mut self, rays: &[TexelRay], aim: Aim) -> bool {
         self.traced += rays.len() as u64;
         self.packet.rays.clear();
         self.packet.rays.extend_from_slice(rays);
         let (caster, known, casters) = (self.caster, self.known, self.rays.casters);
-        let unsettled = |c: u32| {
-            c != caster && !known.contains(c) && !casters.casters[c as usize].receiver_only
-        };
+        let mut proven = false;
         let useful = &mut *self.useful;
-        self.rays
-            .trace_packet_meeting(self.packet, &unsettled, |c| useful.insert(c));
+        let on_useful = |c: u32| {
+            proven |= c == caster;
+            useful.insert(c);
+        };
+        match aim {
+            Aim::Caster => self.rays.trace_packet(self.packet, on_useful),
+            Aim::Others => {
+                let unsettled = |c: u32| {
+                    c != caster && !known.contains(c) && !casters.casters[c as usize].receiver_only
+                };
+                self.rays
+                    .trace_packet_meeting(self.packet, &unsettled, on_useful)
+            }
+        }
         if let Some(hidden) = &mut self.hidden {
             let hits = self.packet.hits(rays.len()).iter().flatten();
             hidden.note(caster, casters, hits);
         }
+        proven
     }
 
-    /// The caster's surface rays `rays` (through the points `at`) split
-    /// into those that may prove it and those its occluders so far surely
-    /// hide from it (`Occlusion::hidden`, taking `nearest`, no deeper than
-    /// the caster anywhere, as its depth at every point), which can prove
-    /// only other casters. Everything may prove it without the occlusion
-    /// test (`nearest` `None`: a spot or point light).
+    /// The caster's surface rays `rays` (through the points `at`; `run`
+    /// its triangles) split into those that may prove it and those its
+    /// occluders so far surely hide from it (`Occlusion::hidden`, taking
+    /// its least depth anywhere as its depth at every point), which can
+    /// prove only other casters. Everything may prove it without the
+    /// occlusion test (a spot or point light, a terrain block).
     fn split_hidden(
         &mut self,
         rays: &[TexelRay],
         at: &[DVec3],
-        nearest: Option<f64>,
+        run: &[TraceTriangle],
     ) -> (Vec<TexelRay>, Vec<TexelRay>) {
-        let alpha_tested = self.rays.casters.casters[self.caster as usize].alpha_tested;
         let grid = self.rays.grid;
+        let nearest = self.hidden.as_ref().and_then(|h| h.least_depth(run, grid));
         let (Some(hidden), Some(nearest)) = (&mut self.hidden, nearest) else {
             return (rays.to_vec(), Vec::new());
         };
@@ -332,7 +361,7 @@ impl Sampler<'_, '_> {
             .map(|&p| grid.project_point(0, p).unwrap_or((f64::NAN, f64::NAN)))
             .collect();
         let near = vec![nearest; points.len()];
-        let hidden = hidden.hidden(&points, &near, alpha_tested);
+        let hidden = hidden.hidden(&points, &near);
         let (mut open, mut surely_hidden) = (Vec::new(), Vec::new());
         for (&ray, hidden) in rays.iter().zip(hidden) {
             match hidden {
@@ -353,11 +382,8 @@ impl Sampler<'_, '_> {
     fn lattice_surely_hidden(&mut self, run: &[TraceTriangle], density: u32) -> bool {
         let grid = self.rays.grid;
         let reference = grid.reference_point();
-        let alpha_tested = self.rays.casters.casters[self.caster as usize].alpha_tested;
-        let (Some(hidden), Some(nearest)) = (
-            &mut self.hidden,
-            nearest_depth(run, grid.direction(), reference),
-        ) else {
+        let nearest = self.hidden.as_ref().and_then(|h| h.least_depth(run, grid));
+        let (Some(hidden), Some(nearest)) = (&mut self.hidden, nearest) else {
             return false;
         };
         let d = f64::from(density);
@@ -380,47 +406,25 @@ impl Sampler<'_, '_> {
         if density == 0 || ni < 1.0 || nj < 1.0 || ni * nj > MOST_BOX_POINTS {
             return false;
         }
-        let row: Vec<f64> = vec![nearest; (i1 - i0) as usize + 1];
-        let mut j = j0;
-        while j <= j1 {
+        let row: Vec<f64> = vec![nearest; ni as usize];
+        (j0 as i64..=j1 as i64).all(|j| {
             let points: Vec<Point> = (i0 as i64..=i1 as i64)
-                .map(|i| ((i as f64 + 0.5) / d, (j + 0.5) / d))
+                .map(|i| ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d))
                 .collect();
-            if !hidden
-                .hidden(&points, &row, alpha_tested)
-                .into_iter()
-                .all(|h| h)
-            {
-                return false;
-            }
-            j += 1.0;
-        }
-        true
+            hidden.hidden(&points, &row).into_iter().all(|h| h)
+        })
     }
 
-    /// `rays` (with their points in texel units and the caster's nearest
-    /// depth there) less those the caster's occluders surely hide, traced
-    /// as [`Self::trace_batch`] does.
-    fn trace_unhidden(&mut self, rays: &[(TexelRay, Point, f64)]) -> bool {
-        let batch: Vec<TexelRay> = if rays.len() > FEW_POINTS {
-            let unhidden = self.unhidden(rays.to_vec());
-            unhidden.into_iter().map(|(ray, _, _)| ray).collect()
-        } else {
-            rays.iter().map(|&(ray, _, _)| ray).collect()
-        };
-        self.trace_batch(&batch)
-    }
-
-    /// `rays` (as [`Self::trace_unhidden`] takes them) less those the
-    /// caster's occluders so far surely hide.
+    /// `rays` (a whole cell's: each with its point in texel units and the
+    /// caster's nearest depth there) less those the caster's occluders so
+    /// far surely hide.
     fn unhidden(&mut self, mut rays: Vec<(TexelRay, Point, f64)>) -> Vec<(TexelRay, Point, f64)> {
-        let alpha_tested = self.rays.casters.casters[self.caster as usize].alpha_tested;
         let Some(hidden) = &mut self.hidden else {
             return rays;
         };
         let points: Vec<Point> = rays.iter().map(|&(_, p, _)| p).collect();
         let near: Vec<f64> = rays.iter().map(|&(_, _, near)| near).collect();
-        let mut hidden = hidden.hidden(&points, &near, alpha_tested).into_iter();
+        let mut hidden = hidden.hidden(&points, &near).into_iter();
         rays.retain(|_| hidden.next() == Some(false));
         rays
     }
@@ -511,13 +515,13 @@ fn surface_points(
     // keeps; leaving out the points occluders hide lost one of `bench`'s.)
     let first = points.len().min(FIRST_POINTS);
     let mut proven = sampler.trace_batch(&points[..first]);
-    let (open, hidden) = match proven {
-        true => (Vec::new(), points[first..].to_vec()),
-        false => {
-            let nearest = nearest_depth(run, grid.direction(), reference);
-            sampler.split_hidden(&points[first..], &at[first..], nearest)
+    if proven {
+        for batch in points[first..].chunks(BATCH) {
+            sampler.trace_batch_for_others(batch);
         }
-    };
+        return true;
+    }
+    let (open, hidden) = sampler.split_hidden(&points[first..], &at[first..], run);
     for batch in open.chunks(BATCH) {
         if proven {
             sampler.trace_batch_for_others(batch);
@@ -988,13 +992,13 @@ impl Footprint {
                 .hidden
                 .as_mut()
                 .is_some_and(|hidden| hidden.note(caster, casters, sampler.hits.iter()));
-            if !met_new {
-                // The rest were tested against these occluders already.
-                let batch: Vec<TexelRay> = rays.iter().map(|&(ray, _, _)| ray).collect();
-                return sampler.trace_batch(&batch);
+            // Else the rest were tested against these occluders already.
+            if met_new && rays.len() > FEW_POINTS {
+                rays = sampler.unhidden(rays);
             }
         }
-        sampler.trace_unhidden(&rays)
+        let batch: Vec<TexelRay> = rays.iter().map(|&(ray, _, _)| ray).collect();
+        sampler.trace_batch(&batch)
     }
 
     /// Every lattice point of a small cell the outline crosses that lies

@@ -637,26 +637,13 @@ impl TexelGrid {
             return None;
         }
         match &self.projection {
-            Projection::Orthographic {
-                direction,
-                u,
-                v,
-                u_min,
-                v_min,
-                texel_size,
-                ..
-            } => Some(
-                triangle
-                    .iter()
-                    .map(|p| {
-                        (
-                            (p.dot(*u) - u_min) / texel_size - self.offset.0,
-                            (p.dot(*v) - v_min) / texel_size - self.offset.1,
-                            p.dot(*direction),
-                        )
-                    })
-                    .collect(),
-            ),
+            Projection::Orthographic { direction, .. } => triangle
+                .iter()
+                .map(|&p| {
+                    let (x, y) = self.project_point_directional(p)?;
+                    Some((x, y, p.dot(*direction)))
+                })
+                .collect(),
             Projection::Perspective {
                 position,
                 near,

@@ -713,8 +713,8 @@ fn texel_indices_run_over_faces_rows_and_columns() {
 #[test]
 fn a_directional_point_projects_as_a_triangle_corner_does() {
     // Refinement's footprint box takes a caster's corners one at a time;
-    // they must land bit for bit where its triangles' polygons do, with
-    // the grid's sub-texel offset too.
+    // they must land where its triangles' polygons do (one formula serves
+    // both), with the grid's sub-texel offset too.
     let mut rng = Rng::new(23);
     for _ in 0..200 {
         let bounds = random_bounds(&mut rng);
