@@ -184,7 +184,10 @@ pub struct LightReport {
     /// Building the light's top level (the bottom levels are shared: see
     /// [`BakeResult::bottom_level_seconds`]).
     pub bvh_seconds: f64,
+    /// Tracing: the grid pass and refinement.
     pub trace_seconds: f64,
+    /// Of `trace_seconds`, refinement's (`--refine`).
+    pub refine_seconds: f64,
     pub useful_casters: usize,
     pub culled_casters: usize,
     /// Triangles in the light's reach (placed model triangles plus two per
@@ -525,6 +528,7 @@ fn bake_light_from(
     let supersample = config.supersample.max(1);
     let mut rays = setup.grid.texel_count() * (supersample as u64).pow(2);
     let mut refine_rays = 0;
+    let mut refine_seconds = 0.0;
     let trace_started = Instant::now();
     let useful = if setup.top.is_empty() {
         skipped.push(Skipped::info(
@@ -539,8 +543,10 @@ fn bake_light_from(
         let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
         counter.finish();
         if config.refine_samples > 0 || config.refine_density > 0 {
+            let refine_started = Instant::now();
             let (refined, traced) =
                 refine::refine(world, setup, &rays_of_light, &useful, config, progress);
+            refine_seconds = refine_started.elapsed().as_secs_f64();
             useful = useful.union(&refined);
             refine_rays = traced;
             rays += traced;
@@ -569,6 +575,7 @@ fn bake_light_from(
         geometry_seconds: setup.reach_seconds,
         bvh_seconds: setup.top_seconds,
         trace_seconds,
+        refine_seconds,
         useful_casters,
         culled_casters: world.casters.real_casters() - useful_casters,
         triangles: reach.triangles as usize,

@@ -230,6 +230,12 @@ impl Tracer<'_> {
             }
             return;
         }
+        if rays.len() <= LONE_RAYS && matches!(which, PacketRays::All) {
+            for (lane, ray) in rays.iter().enumerate() {
+                self.for_each_hit(ray, |hit| on_hit(lane, hit));
+            }
+            return;
+        }
         for (k, packet) in rays.chunks(PACKET_RAYS).enumerate() {
             let first = k * PACKET_RAYS;
             let mut relay = |lane, hit| on_hit(first + lane, hit);
@@ -238,6 +244,11 @@ impl Tracer<'_> {
         }
     }
 }
+
+/// Packets of at most this many rays go ray by ray: a packet's frame and
+/// beam cost more than they save over so few rays (refinement's first
+/// surface points: on `bench`, one thread, 4.3 µs a ray as packets of two).
+const LONE_RAYS: usize = 2;
 
 /// `keep` marking all of `rays` rays, and their count: the answer of the
 /// ray filters where they cannot tell (no trees, too many rays).
