@@ -579,3 +579,57 @@ fn a_caster_poking_out_above_its_occluder_is_kept() {
     settings.refine_density = 8;
     assert_eq!(masks(&run(&world, &settings)), [1, 1]);
 }
+
+/// Refinement's deferred surface points go a chunk of candidates at a time
+/// (65 536 points over `refine_samples` casters: 32 at 2 048), each chunk's
+/// after its casters' own rays, where they may meet a caster not proven by
+/// then. The sliver world of [`roof_slab_sliver`] (roof from x 2), with B's
+/// strip 2 cm wide over A and its big part eight 12 × 14 m layers under
+/// the roof, so B's own 2 048 points miss the strip while a hundred of A's
+/// cross it (A's first two do not: the points are fixed per light and
+/// caster); 100 crates under the roof, which stay culled, are refined too.
+/// B comes first, A is the 43rd candidate: in the second chunk of four,
+/// so A's points that prove B go in a later chunk than B's own.
+#[test]
+fn a_sliver_proven_by_a_later_chunks_surface_points_is_kept() {
+    let mut world = World::new(1, 1);
+    let ground = one(&mut world, quad_up(0.0, 0.0, 16.0, 16.0, 0.0), OPAQUE);
+    let roof = one(&mut world, quad_up(2.0, 0.0, 16.0, 16.0, 10.0), OPAQUE);
+    let slab = one(&mut world, quad_up(0.6, 0.6, 0.95, 0.95, 2.0), OPAQUE);
+    let mut sliver = quad_up(0.6, 0.75, 0.95, 0.77, 2.5);
+    for layer in 0..8 {
+        sliver.extend(quad_up(3.0, 1.0, 15.0, 15.0, 4.0 + 0.5 * layer as f32));
+    }
+    let sliver = one(&mut world, sliver, OPAQUE);
+    world.place((0, 0), &[ground], DMat4::IDENTITY, false);
+    let roof = world.place((0, 0), &[roof], DMat4::IDENTITY, true);
+    let b = world.place((0, 0), &[sliver], DMat4::IDENTITY, true);
+    let crates = |world: &mut World, ks: std::ops::Range<usize>| {
+        for k in ks {
+            let min = Vec3::new(
+                3.5 + (k % 10) as f32 * 1.1,
+                1.0,
+                1.5 + (k / 10 % 10) as f32 * 1.3,
+            );
+            let model = one(world, cube(min, min + 0.5), OPAQUE);
+            world.place((0, 0), &[model], DMat4::IDENTITY, true);
+        }
+    };
+    crates(&mut world, 0..41);
+    let a = world.place((0, 0), &[slab], DMat4::IDENTITY, true);
+    crates(&mut world, 41..100);
+    let mut settings = config(vec![directional(DOWN, 1.0)]);
+    assert_eq!(
+        first_masks(&run(&world, &settings), &world, [roof, a, b]),
+        [1, 0, 0]
+    );
+    settings.refine_samples = 2048;
+    settings.refine_density = 0;
+    let result = run(&world, &settings);
+    assert_eq!(first_masks(&result, &world, [roof, a, b]), [1, 1, 1]);
+    let refined = result.lights[0].refine_rays;
+    assert!(
+        refined > 3 * 65536,
+        "{refined} refinement rays: fewer than four chunks"
+    );
+}
