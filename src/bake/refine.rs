@@ -90,19 +90,20 @@ pub fn refine(
     progress: &dyn Progress,
 ) -> (CasterSet, u64) {
     let casters = &world.casters;
-    let mut candidates: Vec<u32> = Vec::new();
+    // Terrain blocks first: the costliest to refine (each as large as a
+    // chunk), so the threads share them out early instead of waiting on
+    // them at the end.
+    let mut candidates: Vec<u32> = setup
+        .reach
+        .blocks
+        .iter()
+        .map(|&b| casters.of_block[b as usize])
+        .collect();
     for &p in &setup.reach.parts {
         let part = &world.parts[p as usize];
         let groups = world.scene.models[part.model].groups.len() as u32;
         candidates.extend(part.first_caster..part.first_caster + groups);
     }
-    candidates.extend(
-        setup
-            .reach
-            .blocks
-            .iter()
-            .map(|&b| casters.of_block[b as usize]),
-    );
     candidates.retain(|&caster| {
         !already_useful.contains(caster) && !casters.casters[caster as usize].receiver_only
     });
