@@ -144,7 +144,10 @@ fn a_caster_between_texel_centres_is_kept_by_conservative_and_refine() {
     settings.refine_density = 8;
     let result = run(&world, &settings);
     assert_eq!(instance_masks(&result, &world, small), vec![1]);
-    assert!(result.lights[0].refine_rays > 0);
+    let light = &result.lights[0];
+    assert!(light.refine_rays > 0);
+    // The report says how much of the tracing was refinement's.
+    assert!(light.refine_seconds > 0.0 && light.refine_seconds <= light.trace_seconds);
     assert_eq!(terrain_mask(&result, 0), 0);
 }
 
