@@ -89,10 +89,41 @@ pub fn refine(
     config: &BakeConfig,
     progress: &dyn Progress,
 ) -> (CasterSet, u64) {
+    let candidates = candidates(world, setup, already_useful);
+    let light = Some(config.lights[setup.index].name.as_str());
+    let occlusion = Occlusion::new(world, setup, rays_of_light, config);
+    let counter = Counter::begin(progress, Phase::Refining, light, candidates.len() as u64);
+    let refining = Refining {
+        world,
+        setup,
+        rays: rays_of_light,
+        config,
+        occlusion: occlusion.as_ref(),
+    };
+    let mut useful = CasterSet::new(world.casters.len());
+    let mut traced = 0;
+    let chunk = (DEFERRED_RAYS / config.refine_samples.max(1) as usize).max(1);
+    for candidates in candidates.chunks(chunk) {
+        let own = refining.own_rays(candidates, already_useful, &counter);
+        useful = useful.union(&own.useful);
+        // The deferred points go only where they may meet a caster still
+        // unproven now that the chunk's own rays are traced: a set fixed
+        // before they go, so which rays go does not depend on threads.
+        let settled = useful.clone().union(already_useful);
+        let others = refining.deferred_rays(&own.deferred, &settled);
+        useful = useful.union(&others.useful);
+        traced += own.rays + others.rays;
+    }
+    counter.finish();
+    (useful, traced)
+}
+
+/// The casters in the light's reach neither useful yet nor receiver-only,
+/// terrain blocks first: the costliest to refine (each as large as a
+/// chunk), so the threads share them out early instead of waiting on them
+/// at the end.
+fn candidates(world: &BakeWorld, setup: &LightSetup, already_useful: &CasterSet) -> Vec<u32> {
     let casters = &world.casters;
-    // Terrain blocks first: the costliest to refine (each as large as a
-    // chunk), so the threads share them out early instead of waiting on
-    // them at the end.
     let mut candidates: Vec<u32> = setup
         .reach
         .blocks
@@ -107,31 +138,43 @@ pub fn refine(
     candidates.retain(|&caster| {
         !already_useful.contains(caster) && !casters.casters[caster as usize].receiver_only
     });
-    let light = Some(config.lights[setup.index].name.as_str());
-    let occlusion = Occlusion::new(world, setup, rays_of_light, config);
-    let counter = Counter::begin(progress, Phase::Refining, light, candidates.len() as u64);
-    let mut useful = CasterSet::new(casters.len());
-    let mut traced = 0;
-    let chunk = (DEFERRED_RAYS / config.refine_samples.max(1) as usize).max(1);
-    for candidates in candidates.chunks(chunk) {
-        let own = candidates
+    candidates
+}
+
+/// One light's refinement: what its threads share.
+struct Refining<'r, 'a> {
+    world: &'r BakeWorld<'a>,
+    setup: &'r LightSetup,
+    rays: &'r LightRays<'a>,
+    config: &'r BakeConfig,
+    /// A directional light's occlusion test (`None`: a spot or point
+    /// light).
+    occlusion: Option<&'r Occlusion<'r, 'r>>,
+}
+
+impl Refining<'_, '_> {
+    /// Each of `candidates`' own rays, in parallel: its surface points
+    /// that may prove it, then its footprint lattice unless they did. The
+    /// points that cannot prove it are deferred (`Scratch::deferred`).
+    /// Whether a caster goes on is decided by its own rays only (not by
+    /// what its thread's other casters proved), so the rays traced, and
+    /// what they prove, do not depend on threads.
+    fn own_rays(&self, candidates: &[u32], known: &CasterSet, counter: &Counter) -> Scratch {
+        let casters = &self.world.casters;
+        candidates
             .par_iter()
             .fold(
                 || Scratch::new(casters.len()),
                 |mut scratch, &caster| {
-                    let run = setup.caster_triangles(world, caster);
-                    let info = &casters.casters[caster as usize];
-                    let hidden = occlusion.as_ref().filter(|_| !info.is_terrain());
-                    let mut sampler =
-                        scratch.sampler(rays_of_light, already_useful, caster, hidden);
-                    // Whether to go on is decided by the caster's own rays
-                    // only (not by what this thread's other casters
-                    // proved), so the rays traced, and what they prove, do
-                    // not depend on threads.
+                    let run = self.setup.caster_triangles(self.world, caster);
+                    let is_terrain = casters.casters[caster as usize].is_terrain();
+                    let hidden = self.occlusion.filter(|_| !is_terrain);
+                    let mut sampler = scratch.sampler(self.rays, known, caster, hidden);
+                    let samples = self.config.refine_samples;
                     let (proven, deferred) =
-                        surface_points(&mut sampler, &run, setup.index, config.refine_samples);
-                    if config.refine_density > 0 && !proven {
-                        footprint_lattice(&mut sampler, &run, config);
+                        surface_points(&mut sampler, &run, self.setup.index, samples);
+                    if self.config.refine_density > 0 && !proven {
+                        footprint_lattice(&mut sampler, &run, self.config);
                     }
                     scratch.rays += sampler.traced;
                     if !deferred.is_empty() {
@@ -141,20 +184,19 @@ pub fn refine(
                     scratch
                 },
             )
-            .reduce(|| Scratch::new(casters.len()), Scratch::merge);
-        useful = useful.union(&own.useful);
-        traced += own.rays;
-        // The deferred points go only where they may meet a caster still
-        // unproven now that the chunk's own rays are traced: a set fixed
-        // before they go, so which rays go does not depend on threads.
-        let settled = useful.clone().union(already_useful);
-        let others = own
-            .deferred
+            .reduce(|| Scratch::new(casters.len()), Scratch::merge)
+    }
+
+    /// The `deferred` surface points (per caster), in parallel, each only
+    /// where it may meet a caster not in `settled`.
+    fn deferred_rays(&self, deferred: &[(u32, Vec<TexelRay>)], settled: &CasterSet) -> Scratch {
+        let casters = self.world.casters.len();
+        deferred
             .par_iter()
             .fold(
-                || Scratch::new(casters.len()),
+                || Scratch::new(casters),
                 |mut scratch, (caster, rays)| {
-                    let mut sampler = scratch.sampler(rays_of_light, &settled, *caster, None);
+                    let mut sampler = scratch.sampler(self.rays, settled, *caster, None);
                     for batch in rays.chunks(BATCH) {
                         sampler.trace_batch_for_others(batch);
                     }
@@ -162,12 +204,8 @@ pub fn refine(
                     scratch
                 },
             )
-            .reduce(|| Scratch::new(casters.len()), Scratch::merge);
-        useful = useful.union(&others.useful);
-        traced += others.rays;
+            .reduce(|| Scratch::new(casters), Scratch::merge)
     }
-    counter.finish();
-    (useful, traced)
 }
 
 /// Surface points deferred (see [`surface_points`]) are held for at most
