@@ -394,7 +394,7 @@ impl Hidden<'_> {
     }
 }
 
-impl Sampler<'_, '_> {
+impl<'r> Sampler<'r, '_> {
     /// Traces `rays` (at most a packet's worth, near each other: one
     /// caster's surface points or a patch of its footprint) together, each
     /// with the answer it gets alone; returns whether any proves the caster
@@ -441,6 +441,16 @@ impl Sampler<'_, '_> {
         proven
     }
 
+    /// The occlusion state and the caster's least depth anywhere (its
+    /// triangles `run`), when there is an occlusion test (a model under a
+    /// directional light) and that depth is finite.
+    fn hidden_at_least_depth(&mut self, run: &[TraceTriangle]) -> Option<(&mut Hidden<'r>, f64)> {
+        let grid = self.rays.grid;
+        let hidden = self.hidden.as_mut()?;
+        let nearest = hidden.least_depth(run, grid)?;
+        Some((hidden, nearest))
+    }
+
     /// The caster's surface rays `rays` (through the points `at`; `run`
     /// its triangles) split into those that may prove it and those its
     /// occluders so far surely hide from it (`Occlusion::hidden`, taking
@@ -454,8 +464,7 @@ impl Sampler<'_, '_> {
         run: &[TraceTriangle],
     ) -> (Vec<TexelRay>, Vec<TexelRay>) {
         let grid = self.rays.grid;
-        let nearest = self.hidden.as_ref().and_then(|h| h.least_depth(run, grid));
-        let (Some(hidden), Some(nearest)) = (&mut self.hidden, nearest) else {
+        let Some((hidden, nearest)) = self.hidden_at_least_depth(run) else {
             return (rays.to_vec(), Vec::new());
         };
         if rays.len() <= FEW_POINTS {
@@ -488,8 +497,7 @@ impl Sampler<'_, '_> {
     fn lattice_surely_hidden(&mut self, run: &[TraceTriangle], density: u32) -> bool {
         let grid = self.rays.grid;
         let reference = grid.reference_point();
-        let nearest = self.hidden.as_ref().and_then(|h| h.least_depth(run, grid));
-        let (Some(hidden), Some(nearest)) = (&mut self.hidden, nearest) else {
+        let Some((hidden, nearest)) = self.hidden_at_least_depth(run) else {
             return false;
         };
         let d = f64::from(density);
