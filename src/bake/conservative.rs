@@ -509,19 +509,38 @@ impl<'w, 'a> Light<'w, 'a> {
     pub(super) fn surely_above(&self, f: &Fragment) -> bool {
         *f.above_ground.get_or_init(|| {
             self.rays.casters.casters[f.caster as usize].is_terrain()
-                || self.surely_above_ground(&f.vertices)
+                || self.surely_above_ground(f.vertices)
         })
     }
 
-    /// No point of the triangle can be dropped by the below-ground test:
-    /// its lowest point is at least the highest terrain under its box
-    /// minus heightBias, with [`ABOVE_GROUND_MARGIN`] to spare.
-    fn surely_above_ground(&self, v: &[DVec3; 3]) -> bool {
+    /// Whether no hit on any triangle of caster `caster` with vertices
+    /// among `vertices` (world points) can be dropped by the below-ground
+    /// test, asked once for their box: then [`Self::surely_above`] holds
+    /// for each (a triangle's box lies in theirs and its lowest point is
+    /// no lower, and the ground test only grows more sure as the box
+    /// shrinks and the level rises). `false` leaves each to be asked.
+    pub(super) fn all_surely_above(
+        &self,
+        caster: u32,
+        vertices: impl IntoIterator<Item = DVec3>,
+    ) -> bool {
+        self.rays.casters.casters[caster as usize].is_terrain()
+            || self.surely_above_ground(vertices)
+    }
+
+    /// No point of the triangle (or triangles) with `vertices` can be
+    /// dropped by the below-ground test: its lowest point is at least the
+    /// highest terrain under its box minus heightBias, with
+    /// [`ABOVE_GROUND_MARGIN`] to spare.
+    fn surely_above_ground(&self, vertices: impl IntoIterator<Item = DVec3>) -> bool {
         let Some(ground) = &self.world.ground else {
             return true;
         };
-        let lowest = v.iter().map(|p| p.y).fold(f64::INFINITY, f64::min);
-        let (lo, hi) = (v[0].min(v[1]).min(v[2]), v[0].max(v[1]).max(v[2]));
+        let (mut lo, mut hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
+        for p in vertices {
+            (lo, hi) = (lo.min(p), hi.max(p));
+        }
+        let lowest = lo.y;
         if !(lo.is_finite() && hi.is_finite()) {
             return false;
         }

@@ -32,6 +32,7 @@ use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::LightRays;
 use super::BakeConfig;
 use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
+use crate::trace::TraceTriangle;
 
 /// How far inside (metres on the light's image plane) an occluder triangle
 /// must contain a lattice point to count: far more than the `f32` ray test
@@ -102,14 +103,16 @@ impl<'w, 'a> Occlusion<'w, 'a> {
     pub fn image(&self, face: usize, caster: u32) -> CasterImage {
         let light = &self.light;
         let reference = light.grid().reference_point();
-        let triangles = light
-            .setup()
-            .caster_triangles(light.world(), caster)
+        let run = light.setup().caster_triangles(light.world(), caster);
+        let world_vertices = |t: &TraceTriangle| t.vertices.map(|v| reference + v.as_dvec3());
+        // Asked once for the whole caster (a tree's canopy stands clear of
+        // the ground); else triangle by triangle.
+        let above = light.all_surely_above(caster, run.iter().flat_map(world_vertices));
+        let triangles = run
             .iter()
             .filter_map(|t| {
-                let vertices = t.vertices.map(|v| reference + v.as_dvec3());
-                let fragment = light.fragment(face, caster, vertices, None)?;
-                if !light.surely_above(&fragment) {
+                let fragment = light.fragment(face, caster, world_vertices(t), None)?;
+                if !above && !light.surely_above(&fragment) {
                     return None;
                 }
                 let region = ConvexRegion::new(&fragment.polygon, -self.inside_margin)?;
@@ -137,49 +140,61 @@ impl<'w, 'a> Occlusion<'w, 'a> {
         } else {
             1
         };
-        // Per point and pass, the nearest occluder's depth.
-        let mut cover = vec![[f64::INFINITY; 2]; points.len()];
+        // Per point, the depth an occluder must lie nearer than, and the
+        // passes (bit 0: All, bit 1: Opaque) where none found so far does:
+        // a point is hidden once none is left. (The nearest such occluder
+        // per pass need not be found: any one hides it.)
+        let threshold: Vec<f64> = target_near
+            .iter()
+            .map(|&near| near - (self.epsilon + ROUNDING + ROUNDING_RELATIVE * near.abs()))
+            .collect();
+        let all_passes = (1u8 << passes) - 1;
+        // Not hittable there at all: hidden without an occluder.
+        let mut open: Vec<u8> = target_near
+            .iter()
+            .map(|&near| if near == f64::INFINITY { 0 } else { all_passes })
+            .collect();
+        let mut active: Vec<usize> = (0..points.len()).filter(|&k| open[k] != 0).collect();
         let (first, last) = self.depths;
         for image in occluders {
-            nearest(points, image, |k, t, depth| {
+            if active.is_empty() {
+                break;
+            }
+            covering(points, &active, image, |k, t, depth| {
                 let margin = ROUNDING + ROUNDING_RELATIVE * depth.abs();
-                if t.fragment.receiver_only || depth < first + margin || depth > last - margin {
-                    return;
-                }
-                cover[k][0] = cover[k][0].min(depth);
-                if !t.fragment.alpha_tested {
-                    cover[k][1] = cover[k][1].min(depth);
+                let hides = !t.fragment.receiver_only
+                    && depth >= first + margin
+                    && depth <= last - margin
+                    && depth < threshold[k];
+                if hides {
+                    open[k] &= if t.fragment.alpha_tested { !1 } else { 0 };
                 }
             });
+            active.retain(|&k| open[k] != 0);
         }
-        (0..points.len())
-            .map(|k| {
-                let near = target_near[k];
-                let margin = self.epsilon + ROUNDING + ROUNDING_RELATIVE * near.abs();
-                // Not hittable there at all, or hidden in every pass where
-                // the target counts.
-                near == f64::INFINITY || (0..passes).all(|pass| cover[k][pass] < near - margin)
-            })
-            .collect()
+        open.into_iter().map(|passes| passes == 0).collect()
     }
 }
 
-/// Calls `found(k, triangle, depth)` for every point `k` of `points` that
-/// lies in a triangle's region, with the triangle's depth there.
-fn nearest(
+/// Calls `found(k, triangle, depth)` for every point `k` among `active`
+/// (indices into `points`) that lies in a triangle's region, with the
+/// triangle's depth there.
+fn covering(
     points: &[Point],
+    active: &[usize],
     image: &CasterImage,
     mut found: impl FnMut(usize, &ImageTriangle, f64),
 ) {
-    if points.is_empty() {
+    if active.is_empty() {
         return;
     }
-    let all = Rect::around(points.iter().copied());
+    let all = Rect::around(active.iter().map(|&k| points[k]));
     for t in &image.triangles {
         if !t.region.bounds().meets(all) {
             continue;
         }
-        for (k, &p) in points.iter().enumerate() {
+        for &k in active {
+            let p = points[k];
             if !t.region.contains(p) {
                 continue;
             }

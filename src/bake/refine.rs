@@ -62,7 +62,7 @@ use super::trace_light::{CasterSet, LightRays, PacketState};
 use super::BakeConfig;
 use crate::classify::{self, RayHit};
 use crate::formats::bake_settings::FaceCulling;
-use crate::light::TexelRay;
+use crate::light::{ProjectedPolygon, TexelRay};
 use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
 use crate::trace::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
@@ -489,25 +489,25 @@ impl<'r> Sampler<'r, '_> {
 
     /// Under a directional light, for a model: whether its occluders so
     /// far surely hide from it every lattice point (`density` per texel
-    /// side) in the box of its footprint, taking its least depth anywhere
-    /// as its depth at each (as [`Self::split_hidden`]); then no lattice
-    /// ray can prove it. Only boxes of at most [`MOST_BOX_POINTS`] points
+    /// side) in the box of its footprint (its triangles `run`, `projected`
+    /// on the face; `None`: a vertex not finite), taking its least depth
+    /// anywhere as its depth at each (as [`Self::split_hidden`]); then no
+    /// lattice ray can prove it. Only boxes of at most [`MOST_BOX_POINTS`] points
     /// are asked, a row of the lattice at a time, stopping at the first
     /// point not hidden.
-    fn lattice_surely_hidden(&mut self, run: &[TraceTriangle], density: u32) -> bool {
-        let grid = self.rays.grid;
-        let reference = grid.reference_point();
+    fn lattice_surely_hidden(
+        &mut self,
+        run: &[TraceTriangle],
+        projected: &[Option<ProjectedPolygon>],
+        density: u32,
+    ) -> bool {
         let Some((hidden, nearest)) = self.hidden_at_least_depth(run) else {
             return false;
         };
         let d = f64::from(density);
-        let projected = run.iter().map(|t| {
-            let corner = |v: glam::Vec3| grid.project_point_directional(reference + v.as_dvec3());
-            Some([
-                corner(t.vertices[0])?,
-                corner(t.vertices[1])?,
-                corner(t.vertices[2])?,
-            ])
+        let projected = projected.iter().map(|p| match p.as_deref() {
+            Some(&[a, b, c]) => Some([a, b, c].map(|(x, y, _)| (x, y))),
+            _ => None,
         });
         let Some((lo, hi)) = footprint_box(projected, 1.0 / d) else {
             return false;
@@ -529,18 +529,17 @@ impl<'r> Sampler<'r, '_> {
         })
     }
 
-    /// `rays` (a whole cell's: each with its point in texel units and the
-    /// caster's nearest depth there) less those the caster's occluders so
-    /// far surely hide.
-    fn unhidden(&mut self, mut rays: Vec<(TexelRay, Point, f64)>) -> Vec<(TexelRay, Point, f64)> {
+    /// `points` (a whole cell's, texel units, each with the caster's
+    /// nearest depth there) less those the caster's occluders so far
+    /// surely hide.
+    fn unhidden(&mut self, mut points: Vec<(Point, f64)>) -> Vec<(Point, f64)> {
         let Some(hidden) = &mut self.hidden else {
-            return rays;
+            return points;
         };
-        let points: Vec<Point> = rays.iter().map(|&(_, p, _)| p).collect();
-        let near: Vec<f64> = rays.iter().map(|&(_, _, near)| near).collect();
-        let mut hidden = hidden.hidden(&points, &near).into_iter();
-        rays.retain(|_| hidden.next() == Some(false));
-        rays
+        let (at, near): (Vec<Point>, Vec<f64>) = points.iter().copied().unzip();
+        let mut hidden = hidden.hidden(&at, &near).into_iter();
+        points.retain(|_| hidden.next() == Some(false));
+        points
     }
 
     /// The probes of a cell (its corners) traced together; returns whether
@@ -723,7 +722,7 @@ struct Footprint {
     /// none, the caster counts as nearest everywhere near it).
     margin: f64,
     planes: Vec<(Rect, Option<Affine>)>,
-    polygons: Vec<Vec<Point>>,
+    polygons: Vec<Polygon>,
     /// `polygons` grown by [`TOUCH`], for the lattice points' tests.
     regions: Vec<Option<ConvexRegion>>,
     outline: Option<Vec<(Point, Point)>>,
@@ -736,14 +735,8 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
     let grid = sampler.rays.grid;
     let reference = grid.reference_point();
     let caster = &sampler.rays.casters.casters[sampler.caster as usize];
-    if sampler.lattice_surely_hidden(run, density) {
-        return;
-    }
-    let kept: Vec<[DVec3; 3]> = run
-        .iter()
-        .filter(|t| hittable(t, grid.direction(), caster.double_sided, config))
-        .map(|t| t.vertices.map(|v| reference + v.as_dvec3()))
-        .collect();
+    let is_hittable =
+        |t: &TraceTriangle| hittable(t, grid.direction(), caster.double_sided, config);
     // A model under a directional light traces the whole lattice (no
     // outline, every cell crossed); terrain blocks and perspective lights,
     // whose footprints can be as large as the world, probe cells inside the
@@ -754,18 +747,27 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
     };
     let margin = sampler.hidden.as_ref().map(|h| h.occlusion.margin());
     for face in 0..grid.faces() {
-        let projected: Vec<Vec<(f64, f64, f64)>> = kept
+        // Every triangle, once: the box of all for the occlusion test, the
+        // hittable ones for the lattice.
+        let projected: Vec<Option<ProjectedPolygon>> = run
             .iter()
-            .filter_map(|&t| grid.project_triangle_with_depth(face, t))
+            .map(|t| {
+                grid.project_triangle_with_depth(face, t.vertices.map(|v| reference + v.as_dvec3()))
+            })
+            .collect();
+        if face == 0 && sampler.lattice_surely_hidden(run, &projected, density) {
+            return;
+        }
+        let projected: Vec<&ProjectedPolygon> = projected
+            .iter()
+            .zip(run)
+            .filter_map(|(p, t)| p.as_ref().filter(|_| is_hittable(t)))
             .collect();
         let planes = match margin.filter(|_| outline.is_none()) {
             None => Vec::new(),
             Some(margin) => projected.iter().map(|p| depth_plane(p, margin)).collect(),
         };
-        let polygons: Vec<Vec<Point>> = projected
-            .into_iter()
-            .map(|p| p.into_iter().map(|(x, y, _)| (x, y)).collect())
-            .collect();
+        let polygons: Vec<Polygon> = projected.iter().map(|p| Polygon::flat(p)).collect();
         let outline = outline.as_ref().and_then(|edges| {
             edges
                 .iter()
@@ -792,6 +794,35 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
         if footprint.sample(sampler) {
             return;
         }
+    }
+}
+
+/// A projected polygon without its depths, held inline as
+/// [`ProjectedPolygon`] is (a caster has one per hittable triangle).
+#[derive(Clone, Copy)]
+struct Polygon {
+    points: [Point; 4],
+    len: usize,
+}
+
+impl Polygon {
+    fn flat(projected: &ProjectedPolygon) -> Polygon {
+        let mut points = [(0.0, 0.0); 4];
+        for (point, &(x, y, _)) in points.iter_mut().zip(projected.iter()) {
+            *point = (x, y);
+        }
+        Polygon {
+            points,
+            len: projected.len(),
+        }
+    }
+}
+
+impl std::ops::Deref for Polygon {
+    type Target = [Point];
+
+    fn deref(&self) -> &[Point] {
+        &self.points[..self.len]
     }
 }
 
@@ -887,6 +918,36 @@ impl LatticeCell {
 /// (indices) near it.
 type OutlineCell = ((i64, i64, i64, i64), Vec<u32>);
 
+/// A polygon or outline edge (index) near a top cell (row, column).
+type Binned = ((i64, i64), u32);
+
+/// The top cells that polygons are near, in order (row by row), each with
+/// the polygons and the outline edges near it (indices, in order), from
+/// lists of [`Binned`] sorted.
+struct Bins<'b> {
+    polygons: &'b [Binned],
+    edges: &'b [Binned],
+}
+
+impl Iterator for Bins<'_> {
+    type Item = ((i64, i64), Vec<u32>, Vec<u32>);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let &(cell, _) = self.polygons.first()?;
+        let take = |list: &mut &[Binned]| {
+            // Those of cells before this one (edges of cells without
+            // polygons) are skipped.
+            let skip = list.partition_point(|&(c, _)| c < cell);
+            let near = list[skip..].partition_point(|&(c, _)| c == cell);
+            let indices = list[skip..skip + near].iter().map(|&(_, i)| i).collect();
+            *list = &list[skip + near..];
+            indices
+        };
+        let polygons = take(&mut self.polygons);
+        Some((cell, polygons, take(&mut self.edges)))
+    }
+}
+
 /// The polygons and outline edges (indices) near one cell.
 struct Near<'f> {
     polygons: &'f [u32],
@@ -928,8 +989,9 @@ impl Footprint {
                 .clamp(0.0, cells as f64) as i64;
             first..last
         };
-        let mut bins: std::collections::BTreeMap<(i64, i64), (Vec<u32>, Vec<u32>)> =
-            std::collections::BTreeMap::new();
+        // (top cell, index) of every polygon and outline edge near a top
+        // cell, sorted by cell (row by row), then index.
+        let mut polygon_bins: Vec<Binned> = Vec::new();
         for (index, polygon) in self.polygons.iter().enumerate() {
             // Grown by the depth margin: a cell's list must hold every
             // polygon whose depth may count at its points.
@@ -940,23 +1002,28 @@ impl Footprint {
             );
             for cy in span(lo.1, hi.1, cells_y) {
                 for cx in span(lo.0, hi.0, cells_x) {
-                    bins.entry((cy, cx)).or_default().0.push(index as u32);
+                    polygon_bins.push(((cy, cx), index as u32));
                 }
             }
         }
+        polygon_bins.sort_unstable();
+        let mut edge_bins: Vec<Binned> = Vec::new();
         for (index, &(a, b)) in self.outline.iter().flatten().enumerate() {
             let (lo, hi) = bounds([a, b]);
             for cy in span(lo.1, hi.1, cells_y) {
                 for cx in span(lo.0, hi.0, cells_x) {
-                    if let Some(bin) = bins.get_mut(&(cy, cx)) {
-                        bin.1.push(index as u32);
-                    }
+                    edge_bins.push(((cy, cx), index as u32));
                 }
             }
         }
+        edge_bins.sort_unstable();
+        let bins = Bins {
+            polygons: &polygon_bins,
+            edges: &edge_bins,
+        };
         let mut lattice = LatticeCell::default();
         let mut outline_cells = Vec::new();
-        for ((cy, cx), (polygons, edges)) in &bins {
+        for ((cy, cx), polygons, edges) in bins {
             let (i0, j0) = (cx * top, cy * top);
             let cell = (i0, j0, top.min(width - i0), top.min(height - j0));
             if cell.2 <= 0 || cell.3 <= 0 {
@@ -964,11 +1031,14 @@ impl Footprint {
             }
             let proven = match self.outline {
                 None => {
-                    self.fill_lattice(polygons, cell, &mut lattice);
+                    self.fill_lattice(&polygons, cell, &mut lattice);
                     self.lattice_batches(sampler, &lattice, cell)
                 }
                 Some(_) => {
-                    let near = &Near { polygons, edges };
+                    let near = &Near {
+                        polygons: &polygons,
+                        edges: &edges,
+                    };
                     self.cell(sampler, near, cell, &mut outline_cells)
                 }
             };
@@ -1081,28 +1151,27 @@ impl Footprint {
         lattice: &LatticeCell,
         (i0, j0, ni, nj): (i64, i64, i64, i64),
     ) -> bool {
-        let grid = sampler.rays.grid;
-        let mut rays: Vec<(TexelRay, Point, f64)> = Vec::new();
+        let mut points: Vec<(Point, f64)> = Vec::new();
         for j in j0..j0 + nj {
             for i in i0..i0 + ni {
                 let at = lattice.index(i, j);
                 if lattice.on[at] {
-                    let p = self.point(i, j);
-                    rays.push((grid.ray_through(self.face, p.0, p.1), p, lattice.near[at]));
+                    points.push((self.point(i, j), lattice.near[at]));
                 }
             }
         }
-        if sampler.hidden.is_some() && rays.len() > FEW_POINTS {
+        let ray = |(p, _): (Point, f64)| sampler.rays.grid.ray_through(self.face, p.0, p.1);
+        if sampler.hidden.is_some() && points.len() > FEW_POINTS {
             // The points the occluders met so far surely hide need no ray,
             // nor a probe: often they are all of them.
-            rays = sampler.unhidden(rays);
-            if rays.is_empty() {
+            points = sampler.unhidden(points);
+            if points.is_empty() {
                 return false;
             }
             // A probe: the middle point alone, for the casters in front of
             // the caster here.
-            let (probe, _, _) = rays.remove(rays.len() / 2);
-            if sampler.trace(&probe).0 {
+            let probe = points.remove(points.len() / 2);
+            if sampler.trace(&ray(probe)).0 {
                 return true;
             }
             let (caster, casters) = (sampler.caster, sampler.rays.casters);
@@ -1111,11 +1180,11 @@ impl Footprint {
                 .as_mut()
                 .is_some_and(|hidden| hidden.note(caster, casters, sampler.hits.iter()));
             // Else the rest were tested against these occluders already.
-            if met_new && rays.len() > FEW_POINTS {
-                rays = sampler.unhidden(rays);
+            if met_new && points.len() > FEW_POINTS {
+                points = sampler.unhidden(points);
             }
         }
-        let batch: Vec<TexelRay> = rays.iter().map(|&(ray, _, _)| ray).collect();
+        let batch: Vec<TexelRay> = points.into_iter().map(ray).collect();
         sampler.trace_batch(&batch)
     }
 

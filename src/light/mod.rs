@@ -135,6 +135,31 @@ fn too_large_fix(light_type: &str) -> &'static str {
     }
 }
 
+/// A triangle projected on a face (texel units and depth per vertex): three
+/// points, or four where a perspective face's near plane cuts a corner off.
+/// Held inline: refinement and the conservative bake project every triangle
+/// they look at.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ProjectedPolygon {
+    points: [(f64, f64, f64); 4],
+    len: usize,
+}
+
+impl ProjectedPolygon {
+    fn push(&mut self, point: (f64, f64, f64)) {
+        self.points[self.len] = point;
+        self.len += 1;
+    }
+}
+
+impl std::ops::Deref for ProjectedPolygon {
+    type Target = [(f64, f64, f64)];
+
+    fn deref(&self) -> &Self::Target {
+        &self.points[..self.len]
+    }
+}
+
 /// A light's shadow map: `faces × height × width` texels, each with one ray
 /// through its centre.
 #[derive(Debug, Clone)]
@@ -602,7 +627,7 @@ impl TexelGrid {
     /// of it can be hit from this face, or a vertex is not finite.
     pub fn project_triangle(&self, face: usize, triangle: [DVec3; 3]) -> Option<Vec<(f64, f64)>> {
         let polygon = self.project_triangle_with_depth(face, triangle)?;
-        Some(polygon.into_iter().map(|(x, y, _)| (x, y)).collect())
+        Some(polygon.iter().map(|&(x, y, _)| (x, y)).collect())
     }
 
     /// A directional light's image position (texel units) of `p`, as
@@ -632,18 +657,19 @@ impl TexelGrid {
         &self,
         face: usize,
         triangle: [DVec3; 3],
-    ) -> Option<Vec<(f64, f64, f64)>> {
+    ) -> Option<ProjectedPolygon> {
         if !triangle.iter().all(|p| p.is_finite()) {
             return None;
         }
         match &self.projection {
-            Projection::Orthographic { direction, .. } => triangle
-                .iter()
-                .map(|&p| {
+            Projection::Orthographic { direction, .. } => {
+                let mut polygon = ProjectedPolygon::default();
+                for p in triangle {
                     let (x, y) = self.project_point_directional(p)?;
-                    Some((x, y, p.dot(*direction)))
-                })
-                .collect(),
+                    polygon.push((x, y, p.dot(*direction)));
+                }
+                Some(polygon)
+            }
             Projection::Perspective {
                 position,
                 near,
@@ -656,34 +682,35 @@ impl TexelGrid {
                 let min_depth = near / (1.0 + 2.0 * half_extent * half_extent).sqrt();
                 let rel = triangle.map(|p| p - *position);
                 let depth = |p: DVec3| p.dot(forward);
-                let mut clipped: Vec<DVec3> = Vec::with_capacity(4);
+                // At most four: a vertex kept per side inside, and two
+                // crossings when the plane cuts the triangle.
+                let (mut clipped, mut n) = ([DVec3::ZERO; 4], 0);
                 for i in 0..3 {
                     let (a, b) = (rel[i], rel[(i + 1) % 3]);
                     let (da, db) = (depth(a) - min_depth, depth(b) - min_depth);
                     if da >= 0.0 {
-                        clipped.push(a);
+                        clipped[n] = a;
+                        n += 1;
                     }
                     if (da >= 0.0) != (db >= 0.0) {
-                        clipped.push(a + (b - a) * (da / (da - db)));
+                        clipped[n] = a + (b - a) * (da / (da - db));
+                        n += 1;
                     }
                 }
-                if clipped.is_empty() {
+                if n == 0 {
                     return None;
                 }
                 let (w, h) = (self.width as f64, self.height as f64);
-                Some(
-                    clipped
-                        .iter()
-                        .map(|&p| {
-                            let z = depth(p).max(min_depth);
-                            (
-                                (p.dot(u) / z / half_extent + 1.0) * 0.5 * w - self.offset.0,
-                                (p.dot(v) / z / half_extent + 1.0) * 0.5 * h - self.offset.1,
-                                z,
-                            )
-                        })
-                        .collect(),
-                )
+                let mut polygon = ProjectedPolygon::default();
+                for &p in &clipped[..n] {
+                    let z = depth(p).max(min_depth);
+                    polygon.push((
+                        (p.dot(u) / z / half_extent + 1.0) * 0.5 * w - self.offset.0,
+                        (p.dot(v) / z / half_extent + 1.0) * 0.5 * h - self.offset.1,
+                        z,
+                    ));
+                }
+                Some(polygon)
             }
         }
     }
