@@ -403,6 +403,22 @@ impl<'r> Sampler<'r, '_> {
         self.trace_aimed(rays, Aim::Caster)
     }
 
+    /// [`Self::trace_batch`] of the caster's surface points `rays`, but
+    /// ray by ray for a terrain block: its points lie scattered over a
+    /// chunk, and a packet's beam over them walks the block's whole
+    /// heightfield (on `bench`, one thread, 25 µs a ray; refinement 4 %
+    /// faster ray by ray, no faster for a perspective light's casters).
+    /// Each ray gets the answer it gets alone either way, and its hits are
+    /// noted in the same order.
+    fn trace_surface_points(&mut self, rays: &[TexelRay]) -> bool {
+        if !self.rays.casters.casters[self.caster as usize].is_terrain() {
+            return self.trace_batch(rays);
+        }
+        rays.iter().fold(false, |proven, ray| {
+            self.trace_batch(std::slice::from_ref(ray)) | proven
+        })
+    }
+
     /// Traces `rays`, which cannot prove the caster (it is proven, or they
     /// are surely hidden from it), as [`Self::trace_batch`] does: only
     /// those that may meet a caster neither known (`known`), nor this one,
@@ -630,13 +646,13 @@ fn surface_points(
         }
     }
     let first = points.len().min(FIRST_POINTS);
-    if sampler.trace_batch(&points[..first]) {
+    if sampler.trace_surface_points(&points[..first]) {
         points.drain(..first);
         return (true, points);
     }
     let (open, mut deferred) = sampler.split_hidden(&points[first..], &at[first..], run);
     for (k, batch) in open.chunks(BATCH).enumerate() {
-        if sampler.trace_batch(batch) {
+        if sampler.trace_surface_points(batch) {
             deferred.extend_from_slice(&open[k * BATCH + batch.len()..]);
             return (true, deferred);
         }
@@ -867,26 +883,35 @@ fn outline_edges(
     double_sided: bool,
     config: &BakeConfig,
 ) -> Vec<(DVec3, DVec3)> {
-    let key = |v: glam::Vec3| v.to_array().map(f32::to_bits);
+    let bits = |v: glam::Vec3| v.to_array().map(f32::to_bits);
     // Every edge of every hittable triangle, keyed by its vertices' bits
-    // (ordered), then sorted: an edge used once is a run of one. (Sorting
+    // (ordered: the six words packed in order into three, which compare
+    // faster), then sorted: an edge used once is a run of one. (Sorting
     // beat a hash map of uses 3× on terrain blocks of 8 192 triangles.)
-    type Key = ([u32; 3], [u32; 3]);
-    let mut edges: Vec<(Key, glam::Vec3, glam::Vec3)> = run
+    type Key = (u64, u64, u64);
+    let pack = |[a, b, c]: [u32; 3], [d, e, f]: [u32; 3]| -> Key {
+        let word = |hi: u32, lo: u32| (u64::from(hi) << 32) | u64::from(lo);
+        (word(a, b), word(c, d), word(e, f))
+    };
+    let mut edges: Vec<(Key, u32)> = Vec::new();
+    let mut ends: Vec<(glam::Vec3, glam::Vec3)> = Vec::new();
+    for t in run
         .iter()
         .filter(|t| hittable(t, direction, double_sided, config))
-        .flat_map(|t| {
-            (0..3).map(move |i| {
-                let (a, b) = (t.vertices[i], t.vertices[(i + 1) % 3]);
-                let (ka, kb) = (key(a), key(b));
-                (if ka <= kb { (ka, kb) } else { (kb, ka) }, a, b)
-            })
-        })
-        .collect();
+    {
+        for i in 0..3 {
+            let (a, b) = (t.vertices[i], t.vertices[(i + 1) % 3]);
+            let (ka, kb) = (bits(a), bits(b));
+            let key = if ka <= kb { pack(ka, kb) } else { pack(kb, ka) };
+            edges.push((key, ends.len() as u32));
+            ends.push((a, b));
+        }
+    }
     edges.sort_unstable_by_key(|edge| edge.0);
     let mut outline = Vec::new();
     for run in edges.chunk_by(|x, y| x.0 == y.0) {
-        if let [(_, a, b)] = run {
+        if let [(_, edge)] = run {
+            let (a, b) = ends[*edge as usize];
             outline.push((a.as_dvec3(), b.as_dvec3()));
         }
     }
