@@ -60,7 +60,7 @@ use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{tile_rect, CasterSet, LightRays, RayCounter};
 use super::BakeConfig;
 use crate::formats::bake_settings::FaceCulling;
-use crate::light::TexelGrid;
+use crate::light::{FacePolygon, TexelGrid};
 use crate::trace::texel_beam::{self as beam, Point, Rect};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -72,7 +72,7 @@ const GROW: f64 = 1e-7;
 /// One caster triangle as a face of the light sees it.
 pub(super) struct Fragment {
     pub(super) caster: u32,
-    pub(super) polygon: Vec<Point>,
+    pub(super) polygon: FacePolygon,
     /// Depth as a function of image position: `w` (directional: t plus a
     /// constant) or `1/z` (perspective), affine.
     pub(super) depth: Affine,
@@ -312,7 +312,7 @@ impl<'w, 'a> Light<'w, 'a> {
             return None;
         }
         let projected = self.grid.project_triangle_with_depth(face, v)?;
-        let polygon: Vec<Point> = projected.iter().map(|&(x, y, _)| (x, y)).collect();
+        let polygon = projected.flat();
         if area.is_some_and(|area| !beam::overlaps_rect(&polygon, area)) {
             return None;
         }

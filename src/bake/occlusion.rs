@@ -27,7 +27,7 @@
 //! them, and their rays share one direction, so a triangle faces every ray
 //! alike and a depth along the light orders hits on one ray as t does.
 
-use super::conservative::{Fragment, Light};
+use super::conservative::{Affine, Light};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::LightRays;
 use super::BakeConfig;
@@ -49,10 +49,16 @@ const ROUNDING_RELATIVE: f64 = 1e-5;
 /// them, each with the region a lattice point must lie in to count.
 pub struct CasterImage {
     triangles: Vec<ImageTriangle>,
+    /// The caster's (`CasterInfo`): a receiver-only caster hides nothing,
+    /// an alpha-tested one only in the All pass.
+    receiver_only: bool,
+    alpha_tested: bool,
 }
 
+/// Only what the test reads (a caster's image may hold hundreds).
 struct ImageTriangle {
-    fragment: Fragment,
+    /// Depth as a function of image position (`Fragment::depth`).
+    depth: Affine,
     region: ConvexRegion,
 }
 
@@ -116,10 +122,18 @@ impl<'w, 'a> Occlusion<'w, 'a> {
                     return None;
                 }
                 let region = ConvexRegion::new(&fragment.polygon, -self.inside_margin)?;
-                Some(ImageTriangle { fragment, region })
+                Some(ImageTriangle {
+                    depth: fragment.depth,
+                    region,
+                })
             })
             .collect();
-        CasterImage { triangles }
+        let info = &light.world().casters.casters[caster as usize];
+        CasterImage {
+            triangles,
+            receiver_only: info.receiver_only,
+            alpha_tested: info.alpha_tested,
+        }
     }
 
     /// For each point of `points` (texel units on the images' face), with
@@ -156,18 +170,18 @@ impl<'w, 'a> Occlusion<'w, 'a> {
             .collect();
         let mut active: Vec<usize> = (0..points.len()).filter(|&k| open[k] != 0).collect();
         let (first, last) = self.depths;
-        for image in occluders {
+        for image in occluders.iter().filter(|image| !image.receiver_only) {
             if active.is_empty() {
                 break;
             }
-            covering(points, &active, image, |k, t, depth| {
+            // The passes an occluder here hides the point in.
+            let left = if image.alpha_tested { !1 } else { 0 };
+            covering(points, &active, image, |k, depth| {
                 let margin = ROUNDING + ROUNDING_RELATIVE * depth.abs();
-                let hides = !t.fragment.receiver_only
-                    && depth >= first + margin
-                    && depth <= last - margin
-                    && depth < threshold[k];
+                let hides =
+                    depth >= first + margin && depth <= last - margin && depth < threshold[k];
                 if hides {
-                    open[k] &= if t.fragment.alpha_tested { !1 } else { 0 };
+                    open[k] &= left;
                 }
             });
             active.retain(|&k| open[k] != 0);
@@ -176,14 +190,14 @@ impl<'w, 'a> Occlusion<'w, 'a> {
     }
 }
 
-/// Calls `found(k, triangle, depth)` for every point `k` among `active`
+/// Calls `found(k, depth)` for every point `k` among `active`
 /// (indices into `points`) that lies in a triangle's region, with the
 /// triangle's depth there.
 fn covering(
     points: &[Point],
     active: &[usize],
     image: &CasterImage,
-    mut found: impl FnMut(usize, &ImageTriangle, f64),
+    mut found: impl FnMut(usize, f64),
 ) {
     if active.is_empty() {
         return;
@@ -198,9 +212,9 @@ fn covering(
             if !t.region.contains(p) {
                 continue;
             }
-            let depth = t.fragment.depth.at(p);
+            let depth = t.depth.at(p);
             if depth.is_finite() {
-                found(k, t, depth);
+                found(k, depth);
             }
         }
     }

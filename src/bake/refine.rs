@@ -62,7 +62,7 @@ use super::trace_light::{CasterSet, LightRays, PacketState};
 use super::BakeConfig;
 use crate::classify::{self, RayHit};
 use crate::formats::bake_settings::FaceCulling;
-use crate::light::{ProjectedPolygon, TexelRay};
+use crate::light::{FacePolygon, ProjectedPolygon, TexelRay};
 use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
 use crate::trace::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
@@ -738,7 +738,7 @@ struct Footprint {
     /// none, the caster counts as nearest everywhere near it).
     margin: f64,
     planes: Vec<(Rect, Option<Affine>)>,
-    polygons: Vec<Polygon>,
+    polygons: Vec<FacePolygon>,
     /// `polygons` grown by [`TOUCH`], for the lattice points' tests.
     regions: Vec<Option<ConvexRegion>>,
     outline: Option<Vec<(Point, Point)>>,
@@ -783,7 +783,7 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
             None => Vec::new(),
             Some(margin) => projected.iter().map(|p| depth_plane(p, margin)).collect(),
         };
-        let polygons: Vec<Polygon> = projected.iter().map(|p| Polygon::flat(p)).collect();
+        let polygons: Vec<FacePolygon> = projected.iter().map(|p| p.flat()).collect();
         let outline = outline.as_ref().and_then(|edges| {
             edges
                 .iter()
@@ -810,35 +810,6 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
         if footprint.sample(sampler) {
             return;
         }
-    }
-}
-
-/// A projected polygon without its depths, held inline as
-/// [`ProjectedPolygon`] is (a caster has one per hittable triangle).
-#[derive(Clone, Copy)]
-struct Polygon {
-    points: [Point; 4],
-    len: usize,
-}
-
-impl Polygon {
-    fn flat(projected: &ProjectedPolygon) -> Polygon {
-        let mut points = [(0.0, 0.0); 4];
-        for (point, &(x, y, _)) in points.iter_mut().zip(projected.iter()) {
-            *point = (x, y);
-        }
-        Polygon {
-            points,
-            len: projected.len(),
-        }
-    }
-}
-
-impl std::ops::Deref for Polygon {
-    type Target = [Point];
-
-    fn deref(&self) -> &[Point] {
-        &self.points[..self.len]
     }
 }
 

@@ -160,6 +160,35 @@ impl std::ops::Deref for ProjectedPolygon {
     }
 }
 
+impl ProjectedPolygon {
+    /// The polygon without its depths.
+    pub fn flat(&self) -> FacePolygon {
+        let mut points = [(0.0, 0.0); 4];
+        for (point, &(x, y, _)) in points.iter_mut().zip(self.iter()) {
+            *point = (x, y);
+        }
+        FacePolygon {
+            points,
+            len: self.len,
+        }
+    }
+}
+
+/// A [`ProjectedPolygon`] without its depths (texel units), also inline.
+#[derive(Debug, Clone, Copy)]
+pub struct FacePolygon {
+    points: [(f64, f64); 4],
+    len: usize,
+}
+
+impl std::ops::Deref for FacePolygon {
+    type Target = [(f64, f64)];
+
+    fn deref(&self) -> &Self::Target {
+        &self.points[..self.len]
+    }
+}
+
 /// A light's shadow map: `faces × height × width` texels, each with one ray
 /// through its centre.
 #[derive(Debug, Clone)]
