@@ -105,7 +105,9 @@ fn push_group(
     let Some(group) = model.groups.get(group) else {
         return;
     };
-    for triangle in model.triangles.get(group.triangles.clone()).unwrap_or(&[]) {
+    let triangles = model.triangles.get(group.triangles.clone()).unwrap_or(&[]);
+    out.triangles.reserve(triangles.len());
+    for triangle in triangles {
         let mut vertices = [Vec3::ZERO; 3];
         for (v, &i) in vertices.iter_mut().zip(triangle) {
             let p = model

@@ -213,6 +213,42 @@ fn masks_are_the_same_for_any_thread_count() {
     }
 }
 
+/// Refinement shares a light's casters, and a large caster's outline
+/// cells, out between threads (`bake::refine`): what it proves and every
+/// ray it counts must not depend on how many there are.
+#[test]
+fn refinement_is_the_same_for_any_thread_count() {
+    for seed in [99, 7] {
+        let world = random_world(seed);
+        let mut rng = Rng::new(seed + 1);
+        let lights: Vec<_> = (0..4)
+            .map(|_| random_light(&mut rng, DVec3::new(CHUNK, 0.0, CHUNK)))
+            .collect();
+        let mut settings = config(lights);
+        settings.refine_density = 8;
+        settings.refine_samples = 16;
+        let answers: Vec<(Vec<u32>, Vec<u64>)> = [1, 2, 3, 5]
+            .into_iter()
+            .map(|threads| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let result = pool.install(|| bake::bake(&world.scene, &settings, &Silent).unwrap());
+                let rays = result.lights.iter().map(|l| l.refine_rays).collect();
+                (result.masks, rays)
+            })
+            .collect();
+        assert!(
+            answers[0].1.iter().any(|&rays| rays > 0),
+            "seed {seed}: refinement ran"
+        );
+        for other in &answers[1..] {
+            assert_eq!(&answers[0], other, "seed {seed}");
+        }
+    }
+}
+
 fn shadowcull(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_shadowcull"))
         .args(args)
