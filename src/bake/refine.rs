@@ -635,18 +635,6 @@ impl<'r> Sampler<'r, '_> {
         points
     }
 
-    /// The probes of a cell (its corners) traced together; returns whether
-    /// any proves the caster useful and, per ray, the passes whose front
-    /// set holds the caster (see [`Self::trace`]).
-    fn trace_fronts<const N: usize>(&mut self, rays: &[TexelRay; N]) -> (bool, [u8; N]) {
-        let proven = self.trace_batch(rays);
-        let mut fronts = [0u8; N];
-        for (front, hits) in fronts.iter_mut().zip(self.packet.hits(N)) {
-            *front = self.front_passes(hits);
-        }
-        (proven, fronts)
-    }
-
     /// Per pass, whether the caster is in the front set of a ray with
     /// `hits` (bit 0: All, bit 1: Opaque).
     fn front_passes(&self, hits: &[RayHit]) -> u8 {
@@ -995,6 +983,10 @@ impl LatticeCell {
 /// the caster.
 const OUTLINE_WAVE: usize = 4;
 
+/// A probed lattice point and the passes whose front set holds the caster
+/// there ([`Footprint::probe`]).
+type Probed = ((i64, i64), u8);
+
 /// A small cell of lattice points the outline crosses, and the polygons
 /// (indices) near it.
 type OutlineCell = ((i64, i64, i64, i64), Vec<u32>);
@@ -1120,7 +1112,7 @@ impl Footprint {
                         polygons: &polygons,
                         edges: &edges,
                     };
-                    self.cell(sampler, near, cell, &mut outline_cells)
+                    self.cell(sampler, near, cell, &[], &mut outline_cells)
                 }
             };
             if proven {
@@ -1355,6 +1347,7 @@ impl Footprint {
         sampler: &mut Sampler<'_, '_>,
         near: &Near<'_>,
         (i0, j0, ni, nj): (i64, i64, i64, i64),
+        probed: &[Probed],
         outline_cells: &mut Vec<OutlineCell>,
     ) -> bool {
         let d = self.density as f64;
@@ -1367,6 +1360,11 @@ impl Footprint {
         let point = |i: i64, j: i64| self.point(i, j);
         let grid = sampler.rays.grid;
         if ni == 1 && nj == 1 {
+            // A corner of the cell it was split from (whose probe proved
+            // nothing): the same ray would again.
+            if probed.iter().any(|&(at, _)| at == (i0, j0)) {
+                return false;
+            }
             let p = point(i0, j0);
             let inside = near.polygons.iter().any(|&i| self.touches(i, p));
             return inside && sampler.trace(&grid.ray_through(self.face, p.0, p.1)).0;
@@ -1401,21 +1399,66 @@ impl Footprint {
             outline_cells.push(((i0, j0, ni, nj), polygons));
             return false;
         }
+        let mut corners: [Probed; 4] = Default::default();
         if !crossed {
             let last = (i0 + ni - 1, j0 + nj - 1);
-            let corners = [(i0, j0), (last.0, j0), (i0, last.1), last].map(|(i, j)| {
-                let p = point(i, j);
-                grid.ray_through(self.face, p.0, p.1)
-            });
-            let (proven, fronts) = sampler.trace_fronts(&corners);
+            let at = [(i0, j0), (last.0, j0), (i0, last.1), last];
+            let (proven, fronts) = self.probe(sampler, at, probed);
             if proven {
                 return true;
             }
             if fronts.iter().all(|&f| f == fronts[0]) {
                 return false;
             }
+            corners = [0, 1, 2, 3].map(|k| (at[k], fronts[k]));
         }
-        quarters((i0, j0, ni, nj)).any(|quarter| self.cell(sampler, near, quarter, outline_cells))
+        // A crossed cell probed nothing.
+        let probed = if crossed { &[][..] } else { &corners[..] };
+        quarters((i0, j0, ni, nj))
+            .any(|quarter| self.cell(sampler, near, quarter, probed, outline_cells))
+    }
+
+    /// The probes of a cell: per corner (`at`, lattice points), the passes
+    /// whose front set holds the caster ([`Sampler::front_passes`]), and
+    /// whether one proves it useful. A corner already `probed` (one of the
+    /// corners of the cell this one was split from, which proved nothing)
+    /// is not traced again, nor is a corner twice (a cell one point wide):
+    /// the same ray gives the same answer. The others go together.
+    fn probe(
+        &self,
+        sampler: &mut Sampler<'_, '_>,
+        at: [(i64, i64); 4],
+        probed: &[Probed],
+    ) -> (bool, [u8; 4]) {
+        let grid = sampler.rays.grid;
+        let mut fronts = [0u8; 4];
+        // The corners to trace (index into `at`), each point once.
+        let mut fresh: Vec<usize> = Vec::with_capacity(4);
+        for (k, &corner) in at.iter().enumerate() {
+            if let Some(&(_, front)) = probed.iter().find(|&&(p, _)| p == corner) {
+                fronts[k] = front;
+            } else if !fresh.iter().any(|&f| at[f] == corner) {
+                fresh.push(k);
+            }
+        }
+        let rays: Vec<TexelRay> = fresh
+            .iter()
+            .map(|&k| {
+                let p = self.point(at[k].0, at[k].1);
+                grid.ray_through(self.face, p.0, p.1)
+            })
+            .collect();
+        let proven = sampler.trace_batch(&rays);
+        for (&k, hits) in fresh.iter().zip(sampler.packet.hits(rays.len())) {
+            fronts[k] = sampler.front_passes(hits);
+        }
+        // A corner met twice takes its first's answer.
+        for k in 0..4 {
+            if let Some(&first) = fresh.iter().find(|&&f| at[f] == at[k]) {
+                fronts[k] = fronts[first];
+            }
+        }
+        (proven, fronts)
     }
 }
 
