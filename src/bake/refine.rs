@@ -844,6 +844,13 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
             .zip(run)
             .filter_map(|(p, t)| p.as_ref().filter(|_| is_hittable(t)))
             .collect();
+        if !projected
+            .iter()
+            .any(|p| near_face(grid, p, margin, density))
+        {
+            // No top cell of this face is near it: nothing to trace here.
+            continue;
+        }
         let planes = match margin.filter(|_| outline.is_none()) {
             None => Vec::new(),
             Some(margin) => projected.iter().map(|p| depth_plane(p, margin)).collect(),
@@ -876,6 +883,18 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
             return;
         }
     }
+}
+
+/// Whether polygon `p` (projected on a face of `grid`) may lie near a top
+/// cell of the face ([`Footprint::sample`] bins it only there): its box,
+/// grown by the depth `margin` (if any), by two lattice points and by a top
+/// cell (the face's last top cell may reach past its edge), meets the
+/// face. A perspective light's caster often shows on one or two of six.
+fn near_face(grid: &TexelGrid, p: &ProjectedPolygon, margin: Option<f64>, density: u32) -> bool {
+    let slack = margin.unwrap_or(0.0) + 2.0 / f64::from(density.max(1)) + f64::from(TOP_CELL);
+    let (lo, hi) = bounds(p.iter().map(|&(x, y, _)| (x, y)));
+    let (width, height) = (f64::from(grid.width()), f64::from(grid.height()));
+    hi.0 > -slack && hi.1 > -slack && lo.0 < width + slack && lo.1 < height + slack
 }
 
 /// A projected triangle's box grown by `margin` and the plane of its
