@@ -52,7 +52,12 @@
 //!
 //! Rays go as packets wherever they lie near each other (surface points,
 //! a cell's corner probes, a small outline cell, a whole-lattice cell
-//! after its probe): a packet gives each ray the answer it gets alone.
+//! after its probe): a packet gives each ray the answer it gets alone. A
+//! terrain block's surface points, scattered over a chunk, go ray by ray.
+//!
+//! Threads share the casters out a few at a time, and a large caster's
+//! outline cells a wave at a time (`Footprint::outline_cells`); what is
+//! proven and every ray counted are the same for any number of threads.
 
 use super::casters::CasterTable;
 use super::conservative::Affine;
