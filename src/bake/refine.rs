@@ -569,9 +569,13 @@ impl<'r> Sampler<'r, '_> {
             return (rays.to_vec(), Vec::new());
         }
         // A point off the face is never hidden (NaN lies in no region).
+        // (There is an occlusion test only under a directional light.)
         let points: Vec<Point> = at
             .iter()
-            .map(|&p| grid.project_point(0, p).unwrap_or((f64::NAN, f64::NAN)))
+            .map(|&p| {
+                grid.project_point_directional(p)
+                    .unwrap_or((f64::NAN, f64::NAN))
+            })
             .collect();
         let near = vec![nearest; points.len()];
         let hidden = hidden.hidden(&points, &near);
