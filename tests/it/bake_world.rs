@@ -201,16 +201,23 @@ fn masks_are_the_same_for_any_thread_count() {
     let masks: Vec<Vec<u32>> = [1, 2, 3, 5]
         .into_iter()
         .map(|threads| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| bake::bake(&world.scene, &settings, &Silent).unwrap().masks)
+            on_threads(threads, || {
+                bake::bake(&world.scene, &settings, &Silent).unwrap().masks
+            })
         })
         .collect();
     for other in &masks[1..] {
         assert_eq!(&masks[0], other);
     }
+}
+
+/// `work` on a pool of `threads` threads.
+fn on_threads<T: Send>(threads: usize, work: impl FnOnce() -> T + Send) -> T {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(work)
 }
 
 /// Refinement shares a light's casters, and a large caster's outline
@@ -230,11 +237,9 @@ fn refinement_is_the_same_for_any_thread_count() {
         let answers: Vec<(Vec<u32>, Vec<u64>)> = [1, 2, 3, 5]
             .into_iter()
             .map(|threads| {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
-                let result = pool.install(|| bake::bake(&world.scene, &settings, &Silent).unwrap());
+                let result = on_threads(threads, || {
+                    bake::bake(&world.scene, &settings, &Silent).unwrap()
+                });
                 let rays = result.lights.iter().map(|l| l.refine_rays).collect();
                 (result.masks, rays)
             })
