@@ -594,9 +594,9 @@ impl<'r> Sampler<'r, '_> {
     /// side) in the box of its footprint (its triangles `run`, `projected`
     /// on the face; `None`: a vertex not finite), taking its least depth
     /// anywhere as its depth at each (as [`Self::split_hidden`]); then no
-    /// lattice ray can prove it. Only boxes of at most [`MOST_BOX_POINTS`] points
-    /// are asked, a row of the lattice at a time, stopping at the first
-    /// point not hidden.
+    /// lattice ray can prove it. Only boxes of at most [`MOST_BOX_POINTS`]
+    /// points are asked, a row of the lattice at a time, stopping at the
+    /// first point not hidden.
     fn lattice_surely_hidden(
         &mut self,
         run: &[TraceTriangle],
