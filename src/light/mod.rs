@@ -145,13 +145,6 @@ pub struct ProjectedPolygon {
     len: usize,
 }
 
-impl ProjectedPolygon {
-    fn push(&mut self, point: (f64, f64, f64)) {
-        self.points[self.len] = point;
-        self.len += 1;
-    }
-}
-
 impl std::ops::Deref for ProjectedPolygon {
     type Target = [(f64, f64, f64)];
 
@@ -161,6 +154,11 @@ impl std::ops::Deref for ProjectedPolygon {
 }
 
 impl ProjectedPolygon {
+    fn push(&mut self, point: (f64, f64, f64)) {
+        self.points[self.len] = point;
+        self.len += 1;
+    }
+
     /// The polygon without its depths.
     pub fn flat(&self) -> FacePolygon {
         let mut points = [(0.0, 0.0); 4];
