@@ -569,13 +569,9 @@ impl<'r> Sampler<'r, '_> {
             return (rays.to_vec(), Vec::new());
         }
         // A point off the face is never hidden (NaN lies in no region).
-        // (There is an occlusion test only under a directional light.)
         let points: Vec<Point> = at
             .iter()
-            .map(|&p| {
-                grid.project_point_directional(p)
-                    .unwrap_or((f64::NAN, f64::NAN))
-            })
+            .map(|&p| grid.project_point(0, p).unwrap_or((f64::NAN, f64::NAN)))
             .collect();
         let near = vec![nearest; points.len()];
         let hidden = hidden.hidden(&points, &near);
@@ -994,9 +990,6 @@ struct LatticeCell {
     cell: (i64, i64, i64, i64),
     on: Vec<bool>,
     near: Vec<f64>,
-    /// The points' coordinates by column and by row.
-    xs: Vec<f64>,
-    ys: Vec<f64>,
 }
 
 impl LatticeCell {
@@ -1225,18 +1218,6 @@ impl Footprint {
         };
         lattice.near.clear();
         lattice.near.resize((ni * nj) as usize, unknown);
-        // The points' coordinates, column by column and row by row (as
-        // `Footprint::point` gives them).
-        lattice.xs.clear();
-        lattice
-            .xs
-            .extend((i0..i0 + ni).map(|i| self.point(i, j0).0));
-        lattice.ys.clear();
-        lattice
-            .ys
-            .extend((j0..j0 + nj).map(|j| self.point(i0, j).1));
-        let point =
-            |xs: &[f64], ys: &[f64], i: i64, j: i64| (xs[(i - i0) as usize], ys[(j - j0) as usize]);
         for &k in polygons {
             let region = &self.regions[k as usize];
             let Some((b, plane)) = self.planes.get(k as usize) else {
@@ -1246,7 +1227,7 @@ impl Footprint {
                 for j in range(b.y0, b.y1, j0, nj) {
                     for i in range(b.x0, b.x1, i0, ni) {
                         let at = lattice.index(i, j);
-                        lattice.on[at] |= region.contains(point(&lattice.xs, &lattice.ys, i, j));
+                        lattice.on[at] |= region.contains(self.point(i, j));
                     }
                 }
                 continue;
@@ -1259,7 +1240,7 @@ impl Footprint {
             let walk = region.as_ref().map_or(*b, |r| b.union(r.bounds()));
             for j in range(walk.y0, walk.y1, j0, nj) {
                 for i in range(walk.x0, walk.x1, i0, ni) {
-                    let (p, at) = (point(&lattice.xs, &lattice.ys, i, j), lattice.index(i, j));
+                    let (p, at) = (self.point(i, j), lattice.index(i, j));
                     let on = region.as_ref().is_some_and(|r| r.contains(p));
                     lattice.on[at] |= on;
                     let outside = p.0 < b.x0 || p.0 > b.x1 || p.1 < b.y0 || p.1 > b.y1;

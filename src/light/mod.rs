@@ -609,6 +609,10 @@ impl TexelGrid {
     /// [`Self::project_triangle`]), or `None` when it lies too near the
     /// light's plane (or behind it) for any ray of the face to reach it.
     pub fn project_point(&self, face: usize, p: DVec3) -> Option<(f64, f64)> {
+        if let Projection::Orthographic { .. } = self.projection {
+            // What the triangle's path gives, with one projection, not three.
+            return self.project_point_directional(p);
+        }
         let polygon = self.project_triangle(face, [p, p, p])?;
         (polygon.len() == 3).then(|| polygon[0])
     }
