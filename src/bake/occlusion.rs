@@ -149,25 +149,14 @@ impl<'w, 'a> Occlusion<'w, 'a> {
         target_alpha: bool,
         occluders: &[&CasterImage],
     ) -> Vec<bool> {
-        let passes = if self.light.two_passes() && !target_alpha {
-            2
-        } else {
-            1
-        };
         // Per point, the depth an occluder must lie nearer than, and the
         // passes (bit 0: All, bit 1: Opaque) where none found so far does:
         // a point is hidden once none is left. (The nearest such occluder
         // per pass need not be found: any one hides it.)
-        let threshold: Vec<f64> = target_near
+        let (mut open, threshold): (Vec<u8>, Vec<f64>) = target_near
             .iter()
-            .map(|&near| near - (self.epsilon + ROUNDING + ROUNDING_RELATIVE * near.abs()))
-            .collect();
-        let all_passes = (1u8 << passes) - 1;
-        // Not hittable there at all: hidden without an occluder.
-        let mut open: Vec<u8> = target_near
-            .iter()
-            .map(|&near| if near == f64::INFINITY { 0 } else { all_passes })
-            .collect();
+            .map(|&near| self.test_of(near, target_alpha))
+            .unzip();
         let mut active: Vec<usize> = (0..points.len()).filter(|&k| open[k] != 0).collect();
         let (first, last) = self.depths;
         for image in occluders.iter().filter(|image| !image.receiver_only) {
@@ -177,10 +166,7 @@ impl<'w, 'a> Occlusion<'w, 'a> {
             // The passes an occluder here hides the point in.
             let left = if image.alpha_tested { !1 } else { 0 };
             covering(points, &active, image, |k, depth| {
-                let margin = ROUNDING + ROUNDING_RELATIVE * depth.abs();
-                let hides =
-                    depth >= first + margin && depth <= last - margin && depth < threshold[k];
-                if hides {
+                if hides(depth, first, last, threshold[k]) {
                     open[k] &= left;
                 }
             });
@@ -188,6 +174,136 @@ impl<'w, 'a> Occlusion<'w, 'a> {
         }
         open.into_iter().map(|passes| passes == 0).collect()
     }
+
+    /// For a point where the refined caster's nearest depth is `near`: the
+    /// passes an occluder must hide it in (none where the caster is not
+    /// hittable at all, `near` infinite), and the depth it must lie nearer
+    /// than.
+    fn test_of(&self, near: f64, target_alpha: bool) -> (u8, f64) {
+        let passes = if self.light.two_passes() && !target_alpha {
+            2
+        } else {
+            1
+        };
+        let open = if near == f64::INFINITY {
+            0
+        } else {
+            (1u8 << passes) - 1
+        };
+        let threshold = near - (self.epsilon + ROUNDING + ROUNDING_RELATIVE * near.abs());
+        (open, threshold)
+    }
+}
+
+/// The points `i0..i0 + ni × j0..j0 + nj` of the lattice `density` per
+/// texel side (point `(i, j)` at `((i + 0.5) / density, (j + 0.5) /
+/// density)`, texel units), row by row.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LatticeBlock {
+    pub i0: i64,
+    pub j0: i64,
+    pub ni: i64,
+    pub nj: i64,
+    pub density: u32,
+}
+
+impl LatticeBlock {
+    pub fn point(&self, i: i64, j: i64) -> Point {
+        let d = f64::from(self.density);
+        ((i as f64 + 0.5) / d, (j as f64 + 0.5) / d)
+    }
+
+    pub fn len(&self) -> usize {
+        (self.ni.max(0) * self.nj.max(0)) as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Point `(i, j)`'s place in row-by-row order, if it is in the block.
+    pub fn index(&self, i: i64, j: i64) -> Option<usize> {
+        let (di, dj) = (i - self.i0, j - self.j0);
+        let inside = (0..self.ni).contains(&di) && (0..self.nj).contains(&dj);
+        inside.then_some((dj * self.ni + di) as usize)
+    }
+
+    /// The block's indices `first..=last` along one axis of the points
+    /// whose coordinate (texel units) may lie in `lo..=hi` (rounded
+    /// outward).
+    fn span(&self, lo: f64, hi: f64, first: i64, n: i64) -> std::ops::RangeInclusive<i64> {
+        let d = f64::from(self.density);
+        let from = ((lo * d - 0.5).floor() as i64).max(first);
+        let to = ((hi * d - 0.5).ceil() as i64).min(first + n - 1);
+        from..=to
+    }
+}
+
+impl Occlusion<'_, '_> {
+    /// [`Occlusion::hidden`] of every point of `block`, the refined
+    /// caster's nearest depth `near` at each (row by row): the same answer
+    /// per point, found triangle by triangle over only the points of each
+    /// row its region may hold ([`ConvexRegion::row_span`]) instead of
+    /// point by point over every triangle, so a box of thousands of
+    /// points costs about what the occluders' triangles cover.
+    pub fn hidden_block(
+        &self,
+        block: LatticeBlock,
+        near: f64,
+        target_alpha: bool,
+        occluders: &[&CasterImage],
+    ) -> Vec<bool> {
+        let (all_passes, threshold) = self.test_of(near, target_alpha);
+        let mut open = vec![all_passes; block.len()];
+        let area = Rect::around([
+            block.point(block.i0, block.j0),
+            block.point(block.i0 + block.ni - 1, block.j0 + block.nj - 1),
+        ]);
+        let (first, last) = self.depths;
+        for image in occluders.iter().filter(|image| !image.receiver_only) {
+            let left = if image.alpha_tested { !1 } else { 0 };
+            for t in &image.triangles {
+                let b = t.region.bounds();
+                if !b.meets(area) {
+                    continue;
+                }
+                let columns = block.span(b.x0, b.x1, block.i0, block.ni);
+                // A narrow triangle's rows are walked whole.
+                let wide = columns.end() - columns.start() >= WIDE;
+                for j in block.span(b.y0, b.y1, block.j0, block.nj) {
+                    let columns = if wide {
+                        let (lo, hi) = t.region.row_span(block.point(0, j).1, 0.0);
+                        block.span(lo.max(b.x0), hi.min(b.x1), block.i0, block.ni)
+                    } else {
+                        columns.clone()
+                    };
+                    for i in columns {
+                        let at = ((j - block.j0) * block.ni + (i - block.i0)) as usize;
+                        let p = block.point(i, j);
+                        if open[at] == 0 || !t.region.contains(p) {
+                            continue;
+                        }
+                        let depth = t.depth.at(p);
+                        if depth.is_finite() && hides(depth, first, last, threshold) {
+                            open[at] &= left;
+                        }
+                    }
+                }
+            }
+        }
+        open.into_iter().map(|passes| passes == 0).collect()
+    }
+}
+
+/// Lattice points across a triangle's box from which
+/// [`Occlusion::hidden_block`] walks only each row's span.
+const WIDE: i64 = 8;
+
+/// Whether an occluder at `depth` lies within the rays' span `first..=last`
+/// (with [`ROUNDING`] to spare) and nearer than `threshold`.
+fn hides(depth: f64, first: f64, last: f64, threshold: f64) -> bool {
+    let margin = ROUNDING + ROUNDING_RELATIVE * depth.abs();
+    depth >= first + margin && depth <= last - margin && depth < threshold
 }
 
 /// Calls `found(k, depth)` for every point `k` among `active`

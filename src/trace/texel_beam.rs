@@ -154,6 +154,38 @@ impl ConvexRegion {
             })
     }
 
+    /// The x of row `y` where [`Self::contains_grown`] with `extra` ≥ 0
+    /// (so also [`Self::contains`]) may accept a point: an interval
+    /// `lo..=hi` holding every such point (empty when `lo > hi`), so a
+    /// walk along a row tests only the points in it. Each edge steep
+    /// enough to cross rows reliably bounds it from one side, with slack
+    /// far beyond the rounding of either test (the test still decides).
+    pub fn row_span(&self, y: f64, extra: f64) -> (f64, f64) {
+        let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+        for &(a, e, allowance, length) in self.edges.as_slice() {
+            // The test is c + k·(x − a.0) ≥ floor.
+            let k = -self.sign * e.1;
+            // (False for NaN too.)
+            let steep = k.abs() >= STEEP * length;
+            if !steep {
+                continue;
+            }
+            let c = self.sign * e.0 * (y - a.1);
+            let floor = allowance - extra * length;
+            let bound = a.0 + (floor - c) / k;
+            let slack = 1e-9 * (1.0 + a.0.abs() + a.1.abs() + y.abs() + bound.abs());
+            if !(bound.is_finite() && slack.is_finite()) {
+                continue;
+            }
+            if k > 0.0 {
+                lo = lo.max(bound - slack);
+            } else {
+                hi = hi.min(bound + slack);
+            }
+        }
+        (lo, hi)
+    }
+
     /// A box holding every point [`Self::contains`] accepts.
     pub fn bounds(&self) -> Rect {
         self.bounds
@@ -171,6 +203,11 @@ impl ConvexRegion {
         })
     }
 }
+
+/// How steep (rise over length) an edge must be to bound a row's span
+/// ([`ConvexRegion::row_span`]): the bound's rounding grows as the edge
+/// flattens; flatter ones are left to the test.
+const STEEP: f64 = 1e-3;
 
 /// A region's edges (start, direction, allowance, length): a triangle's
 /// held inline, since refinement makes one per triangle of every caster
@@ -545,5 +582,103 @@ mod tests {
             }
         }
         assert!(accepted > 5000, "{accepted}");
+    }
+
+    /// `row_span` holds every point of its row the region accepts, at the
+    /// very edge too (the last accepted point of a row, found by bisection,
+    /// and its neighbours a few ulps out), over seeded random triangles and
+    /// quads from fat ones to needles and near-flat edges, far from the
+    /// origin, shrunk or grown; and it is narrow: the span is finite on
+    /// most rows.
+    #[test]
+    fn a_row_span_holds_every_point_the_region_accepts() {
+        let mut rng = crate::rng::Rng::new(29);
+        let (mut checked, mut bounded) = (0, 0);
+        for round in 0..3000 {
+            let far = [0.0, 1e3, 2e4][round % 3];
+            let mut polygon: Vec<Point> = random_triangle(&mut rng, 2.0)
+                .into_iter()
+                .map(|(x, y)| (x + far, y - far))
+                .collect();
+            match round % 4 {
+                // A needle.
+                0 => {
+                    let (a, b) = (polygon[0], polygon[1]);
+                    let t = rng.range(-0.5, 1.5);
+                    polygon[2] = (
+                        a.0 + (b.0 - a.0) * t + rng.range(-1e-3, 1e-3),
+                        a.1 + (b.1 - a.1) * t + rng.range(-1e-3, 1e-3),
+                    );
+                }
+                // A near-flat edge.
+                1 => polygon[1].1 = polygon[0].1 + rng.range(-1e-4, 1e-4),
+                // A quad (the hull of four points, when convex).
+                2 => {
+                    let (a, b, c) = (polygon[0], polygon[1], polygon[2]);
+                    polygon.push((a.0 + c.0 - b.0, a.1 + c.1 - b.1));
+                    polygon.swap(2, 3);
+                    polygon.swap(1, 2);
+                }
+                _ => {}
+            }
+            let tolerance = [0.0, 1e-6, 0.01, -0.01, 0.3][round % 5];
+            let extra = [0.0, 0.0102, 0.3][round % 3];
+            let Some(region) = ConvexRegion::new(&polygon, tolerance) else {
+                continue;
+            };
+            let accepts = |p: Point| region.contains_grown(p, extra);
+            for k in 0..8 {
+                // Rows through a vertex exactly, and random ones.
+                let y = match k {
+                    0..3 => polygon[k].1,
+                    _ => {
+                        let v = polygon[rng.below(polygon.len())];
+                        v.1 + rng.range(-1.5, 1.5)
+                    }
+                };
+                let (lo, hi) = region.row_span(y, extra);
+                bounded += usize::from(lo.is_finite() && hi.is_finite());
+                let holds = |x: f64| !accepts((x, y)) || (lo <= x && x <= hi);
+                // Random points along the row.
+                for _ in 0..20 {
+                    let x = polygon[rng.below(polygon.len())].0 + rng.range(-3.0, 3.0);
+                    checked += 1;
+                    assert!(
+                        holds(x),
+                        "{polygon:?} {tolerance} {extra} row {y}: {x} outside {lo}..{hi}"
+                    );
+                }
+                // The row's last accepted points, each way, and a few ulps on.
+                let inside = polygon.iter().map(|p| p.0).sum::<f64>() / polygon.len() as f64;
+                if !accepts((inside, y)) {
+                    continue;
+                }
+                for way in [-1.0, 1.0] {
+                    let (mut a, mut b) = (inside, inside + way * 10.0);
+                    for _ in 0..200 {
+                        let m = 0.5 * (a + b);
+                        if accepts((m, y)) {
+                            a = m;
+                        } else {
+                            b = m;
+                        }
+                    }
+                    let mut x = a;
+                    for _ in 0..4 {
+                        checked += 1;
+                        assert!(
+                            holds(x),
+                            "{polygon:?} {tolerance} {extra} row {y}: edge {x} outside {lo}..{hi}"
+                        );
+                        x = if way > 0.0 {
+                            x.next_up()
+                        } else {
+                            x.next_down()
+                        };
+                    }
+                }
+            }
+        }
+        assert!(checked > 100_000 && bounded > 10_000, "{checked} {bounded}");
     }
 }

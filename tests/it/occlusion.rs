@@ -247,3 +247,93 @@ fn ground_at_most_bounds_the_terrain_over_a_rectangle() {
     }
     assert!(below > 50 && above > 50, "{below} below, {above} above");
 }
+
+/// `Occlusion::hidden_block` (a block of lattice points at once, triangle
+/// by triangle over each row's span) answers every point as
+/// `Occlusion::hidden` (point by point): on generated worlds, blocks over
+/// casters' footprints, with the refined caster's depth from well in front
+/// of to well behind them, alpha-tested or not. Both answers come often.
+#[test]
+fn a_block_of_lattice_points_is_hidden_as_point_by_point() {
+    use shadowcull::bake::occlusion::LatticeBlock;
+    let (mut hidden_points, mut open_points) = (0, 0);
+    for seed in [3, 5] {
+        let (_dir, scene, settings) = small_world(seed);
+        let baked = BakeWorld::new(&scene);
+        let config = BakeConfig::from_settings(&settings);
+        let index = config
+            .lights
+            .iter()
+            .position(|l| matches!(l.kind, LightKind::Directional { .. }))
+            .unwrap();
+        let setup = LightSetup::new(&baked, &config, index).unwrap();
+        let rays = setup.rays(&baked, &config);
+        let occlusion = Occlusion::new(&baked, &setup, &rays, &config).unwrap();
+        let grid = &setup.grid;
+        let reference = grid.reference_point();
+        let direction = grid.direction().unwrap();
+        let table = &rays.casters.casters;
+        let mut rng = Rng::new(seed);
+        let models: Vec<u32> = (0..table.len() as u32)
+            .filter(|&c| !table[c as usize].is_terrain())
+            .collect();
+        for (k, &caster) in models.iter().enumerate().take(200) {
+            let triangles = setup.caster_triangles(&baked, caster);
+            let vertices: Vec<DVec3> = triangles
+                .iter()
+                .flat_map(|t| t.vertices.map(|v| reference + v.as_dvec3()))
+                .collect();
+            let projected: Vec<(f64, f64)> = vertices
+                .iter()
+                .filter_map(|&v| grid.project_point(0, v))
+                .collect();
+            if projected.is_empty() {
+                continue;
+            }
+            let density = [4, 8][k % 2];
+            let d = f64::from(density);
+            let lo = projected
+                .iter()
+                .fold((f64::MAX, f64::MAX), |a, p| (a.0.min(p.0), a.1.min(p.1)));
+            let hi = projected
+                .iter()
+                .fold((f64::MIN, f64::MIN), |a, p| (a.0.max(p.0), a.1.max(p.1)));
+            let block = LatticeBlock {
+                i0: ((lo.0 - 1.0) * d).floor() as i64,
+                j0: ((lo.1 - 1.0) * d).floor() as i64,
+                ni: (((hi.0 - lo.0 + 2.0) * d).ceil() as i64).min(96),
+                nj: (((hi.1 - lo.1 + 2.0) * d).ceil() as i64).min(96),
+                density,
+            };
+            // The caster and a neighbour in id order as occluders.
+            let other = models[(k + 1) % models.len()];
+            let images = [occlusion.image(0, caster), occlusion.image(0, other)];
+            let occluders: Vec<&CasterImage> = images.iter().collect();
+            let least = vertices
+                .iter()
+                .map(|v| v.dot(direction))
+                .fold(f64::INFINITY, f64::min);
+            let near = least + rng.range(-2.0, 6.0);
+            let alpha = rng.chance(0.3);
+            let by_block = occlusion.hidden_block(block, near, alpha, &occluders);
+            let points: Vec<(f64, f64)> = (block.j0..block.j0 + block.nj)
+                .flat_map(|j| (block.i0..block.i0 + block.ni).map(move |i| block.point(i, j)))
+                .collect();
+            let by_point = occlusion.hidden(&points, &vec![near; points.len()], alpha, &occluders);
+            assert_eq!(by_block.len(), points.len());
+            for (at, (&a, &b)) in by_block.iter().zip(&by_point).enumerate() {
+                assert_eq!(
+                    a, b,
+                    "seed {seed} caster {caster}: point {:?} of {block:?} at depth {near}",
+                    points[at]
+                );
+            }
+            hidden_points += by_block.iter().filter(|&&h| h).count();
+            open_points += by_block.iter().filter(|&&h| !h).count();
+        }
+    }
+    assert!(
+        hidden_points > 2000 && open_points > 2000,
+        "{hidden_points} hidden, {open_points} open"
+    );
+}
