@@ -260,6 +260,10 @@ impl Occlusion<'_, '_> {
             block.point(block.i0 + block.ni - 1, block.j0 + block.nj - 1),
         ]);
         let (first, last) = self.depths;
+        // Per row, its points not yet hidden: a row with none is skipped
+        // (occluders' triangles overlap, a canopy's many times).
+        let mut open_in_row =
+            vec![if all_passes == 0 { 0 } else { block.ni }; block.nj.max(0) as usize];
         for image in occluders.iter().filter(|image| !image.receiver_only) {
             let left = if image.alpha_tested { !1 } else { 0 };
             for t in &image.triangles {
@@ -271,6 +275,10 @@ impl Occlusion<'_, '_> {
                 // A narrow triangle's rows are walked whole.
                 let wide = columns.end() - columns.start() >= WIDE;
                 for j in block.span(b.y0, b.y1, block.j0, block.nj) {
+                    let row = (j - block.j0) as usize;
+                    if open_in_row[row] == 0 {
+                        continue;
+                    }
                     let columns = if wide {
                         let (lo, hi) = t.region.row_span(block.point(0, j).1, 0.0);
                         block.span(lo.max(b.x0), hi.min(b.x1), block.i0, block.ni)
@@ -286,6 +294,9 @@ impl Occlusion<'_, '_> {
                         let depth = t.depth.at(p);
                         if depth.is_finite() && hides(depth, first, last, threshold) {
                             open[at] &= left;
+                            if open[at] == 0 {
+                                open_in_row[row] -= 1;
+                            }
                         }
                     }
                 }
