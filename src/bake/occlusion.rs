@@ -33,6 +33,7 @@ use super::trace_light::LightRays;
 use super::BakeConfig;
 use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
+use std::ops::RangeInclusive;
 
 /// How far inside (metres on the light's image plane) an occluder triangle
 /// must contain a lattice point to count: far more than the `f32` ray test
@@ -175,6 +176,45 @@ impl<'w, 'a> Occlusion<'w, 'a> {
         open.into_iter().map(|passes| passes == 0).collect()
     }
 
+    /// [`Self::hidden`] of every point of `block`, the refined
+    /// caster's nearest depth `near` at each (row by row): the same answer
+    /// per point, found triangle by triangle over only the points of each
+    /// row its region may hold ([`ConvexRegion::row_span`]) instead of
+    /// point by point over every triangle, so a box of thousands of
+    /// points costs about what the occluders' triangles cover.
+    pub fn hidden_block(
+        &self,
+        block: LatticeBlock,
+        near: f64,
+        target_alpha: bool,
+        occluders: &[&CasterImage],
+    ) -> Vec<bool> {
+        let (all_passes, threshold) = self.test_of(near, target_alpha);
+        let mut state = BlockState {
+            block,
+            open: vec![all_passes; block.len()],
+            open_in_row: vec![if all_passes == 0 { 0 } else { block.ni }; block.nj.max(0) as usize],
+            depths: self.depths,
+            threshold,
+        };
+        let area = Rect::around([
+            block.point(block.i0, block.j0),
+            block.point(block.i0 + block.ni - 1, block.j0 + block.nj - 1),
+        ]);
+        for image in occluders.iter().filter(|image| !image.receiver_only) {
+            // The passes an occluder here hides a point in.
+            let left = if image.alpha_tested { !1 } else { 0 };
+            for t in image
+                .triangles
+                .iter()
+                .filter(|t| t.region.bounds().meets(area))
+            {
+                state.cover(t, left);
+            }
+        }
+        state.open.into_iter().map(|passes| passes == 0).collect()
+    }
+
     /// For a point where the refined caster's nearest depth is `near`: the
     /// passes an occluder must hide it in (none where the caster is not
     /// hittable at all, `near` infinite), and the depth it must lie nearer
@@ -228,10 +268,20 @@ impl LatticeBlock {
         inside.then_some((dj * self.ni + di) as usize)
     }
 
-    /// The block's indices `first..=last` along one axis of the points
-    /// whose coordinate (texel units) may lie in `lo..=hi` (rounded
-    /// outward).
-    fn span(&self, lo: f64, hi: f64, first: i64, n: i64) -> std::ops::RangeInclusive<i64> {
+    /// The block's columns whose points' x (texel units) may lie in
+    /// `lo..=hi` (rounded outward).
+    fn columns(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
+        self.span(lo, hi, self.i0, self.ni)
+    }
+
+    /// The block's rows whose points' y may lie in `lo..=hi`.
+    fn rows(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
+        self.span(lo, hi, self.j0, self.nj)
+    }
+
+    /// Indices `first..first + n` along one axis, those whose coordinate
+    /// may lie in `lo..=hi`.
+    fn span(&self, lo: f64, hi: f64, first: i64, n: i64) -> RangeInclusive<i64> {
         let d = f64::from(self.density);
         let from = ((lo * d - 0.5).floor() as i64).max(first);
         let to = ((hi * d - 0.5).ceil() as i64).min(first + n - 1);
@@ -239,70 +289,55 @@ impl LatticeBlock {
     }
 }
 
-impl Occlusion<'_, '_> {
-    /// [`Occlusion::hidden`] of every point of `block`, the refined
-    /// caster's nearest depth `near` at each (row by row): the same answer
-    /// per point, found triangle by triangle over only the points of each
-    /// row its region may hold ([`ConvexRegion::row_span`]) instead of
-    /// point by point over every triangle, so a box of thousands of
-    /// points costs about what the occluders' triangles cover.
-    pub fn hidden_block(
-        &self,
-        block: LatticeBlock,
-        near: f64,
-        target_alpha: bool,
-        occluders: &[&CasterImage],
-    ) -> Vec<bool> {
-        let (all_passes, threshold) = self.test_of(near, target_alpha);
-        let mut open = vec![all_passes; block.len()];
-        let area = Rect::around([
-            block.point(block.i0, block.j0),
-            block.point(block.i0 + block.ni - 1, block.j0 + block.nj - 1),
-        ]);
-        let (first, last) = self.depths;
-        // Per row, its points not yet hidden: a row with none is skipped
-        // (occluders' triangles overlap, a canopy's many times).
-        let mut open_in_row =
-            vec![if all_passes == 0 { 0 } else { block.ni }; block.nj.max(0) as usize];
-        for image in occluders.iter().filter(|image| !image.receiver_only) {
-            let left = if image.alpha_tested { !1 } else { 0 };
-            for t in &image.triangles {
-                let b = t.region.bounds();
-                if !b.meets(area) {
+/// [`Occlusion::hidden_block`]'s answer so far: per point the passes
+/// where no occluder found so far hides it, and per row how many points
+/// are left open (a row with none is skipped: occluders' triangles
+/// overlap, a canopy's many times).
+struct BlockState {
+    block: LatticeBlock,
+    open: Vec<u8>,
+    open_in_row: Vec<i64>,
+    /// The depths the rays span, and the depth an occluder must lie
+    /// nearer than.
+    depths: (f64, f64),
+    threshold: f64,
+}
+
+impl BlockState {
+    /// Occluder triangle `t` over the block: the points it surely covers
+    /// nearer than the threshold are left open only in the passes `left`.
+    fn cover(&mut self, t: &ImageTriangle, left: u8) {
+        let (block, (first, last)) = (self.block, self.depths);
+        let b = t.region.bounds();
+        let columns = block.columns(b.x0, b.x1);
+        // A narrow triangle's rows are walked whole.
+        let wide = columns.end() - columns.start() >= WIDE;
+        for j in block.rows(b.y0, b.y1) {
+            let row = (j - block.j0) as usize;
+            if self.open_in_row[row] == 0 {
+                continue;
+            }
+            let columns = if wide {
+                let (lo, hi) = t.region.row_span(block.point(0, j).1, 0.0);
+                block.columns(lo.max(b.x0), hi.min(b.x1))
+            } else {
+                columns.clone()
+            };
+            for i in columns {
+                let at = row * block.ni as usize + (i - block.i0) as usize;
+                let p = block.point(i, j);
+                if self.open[at] == 0 || !t.region.contains(p) {
                     continue;
                 }
-                let columns = block.span(b.x0, b.x1, block.i0, block.ni);
-                // A narrow triangle's rows are walked whole.
-                let wide = columns.end() - columns.start() >= WIDE;
-                for j in block.span(b.y0, b.y1, block.j0, block.nj) {
-                    let row = (j - block.j0) as usize;
-                    if open_in_row[row] == 0 {
-                        continue;
-                    }
-                    let columns = if wide {
-                        let (lo, hi) = t.region.row_span(block.point(0, j).1, 0.0);
-                        block.span(lo.max(b.x0), hi.min(b.x1), block.i0, block.ni)
-                    } else {
-                        columns.clone()
-                    };
-                    for i in columns {
-                        let at = ((j - block.j0) * block.ni + (i - block.i0)) as usize;
-                        let p = block.point(i, j);
-                        if open[at] == 0 || !t.region.contains(p) {
-                            continue;
-                        }
-                        let depth = t.depth.at(p);
-                        if depth.is_finite() && hides(depth, first, last, threshold) {
-                            open[at] &= left;
-                            if open[at] == 0 {
-                                open_in_row[row] -= 1;
-                            }
-                        }
+                let depth = t.depth.at(p);
+                if depth.is_finite() && hides(depth, first, last, self.threshold) {
+                    self.open[at] &= left;
+                    if self.open[at] == 0 {
+                        self.open_in_row[row] -= 1;
                     }
                 }
             }
         }
-        open.into_iter().map(|passes| passes == 0).collect()
     }
 }
 

@@ -424,7 +424,7 @@ struct Hidden<'r> {
     /// [`nearest_depth`] of the caster, worked out when first asked.
     least_depth: OnceCell<Option<f64>>,
     /// The lattice points its occluders surely hide at its least depth
-    /// ([`Sampler::lattice_surely_hidden`]), once asked.
+    /// ([`Sampler::mask_lattice`]), once asked.
     mask: Option<Mask>,
 }
 
@@ -657,7 +657,7 @@ impl<'r> Sampler<'r, '_> {
     /// leaves out (no ray there can prove it). True when the mask holds
     /// every point: then no lattice ray can prove it. Only boxes of at
     /// most [`MOST_BOX_POINTS`] points are asked.
-    fn lattice_surely_hidden(
+    fn mask_lattice(
         &mut self,
         run: &[TraceTriangle],
         projected: &[Option<ProjectedPolygon>],
@@ -863,7 +863,7 @@ fn footprint_box(
 }
 
 /// Most lattice points in the box of a caster's footprint for which
-/// [`Sampler::lattice_surely_hidden`] is asked (a big caster is seldom
+/// [`Sampler::mask_lattice`] is asked (a big caster is seldom
 /// hidden whole; on `bench` 4 096, 16 384 and 65 536 were alike).
 const MOST_BOX_POINTS: f64 = 4096.0;
 
@@ -917,11 +917,11 @@ fn footprint_lattice(sampler: &mut Sampler<'_, '_>, run: &[TraceTriangle], confi
                 grid.project_triangle_with_depth(face, t.vertices.map(|v| reference + v.as_dvec3()))
             })
             .collect();
-        if face == 0 && sampler.lattice_surely_hidden(run, &projected, density) {
+        if face == 0 && sampler.mask_lattice(run, &projected, density) {
             return;
         }
         // A polygon the mask hides whole is left out before its setup.
-        let mask = sampler.hidden.as_ref().and_then(|h| h.mask.as_ref());
+        let mask = sampler.mask();
         let reach = margin.unwrap_or(0.0).max(1.0 / f64::from(density));
         let masked = |p: &ProjectedPolygon| mask.is_some_and(|m| m.holds_polygon(p, reach));
         let projected: Vec<&ProjectedPolygon> = projected
