@@ -3,7 +3,7 @@
 //! every point it calls hidden from a caster must be one whose ray, traced
 //! in full, does not have that caster in its front set in any pass.
 
-use crate::tiles::small_world;
+use crate::tiles::{small_world, sun_index};
 use glam::DVec3;
 use shadowcull::bake::occlusion::{CasterImage, Occlusion};
 use shadowcull::bake::setup::{BakeWorld, LightSetup};
@@ -24,11 +24,7 @@ fn points_called_hidden_never_have_the_caster_in_front() {
         let (_dir, scene, settings) = small_world(seed);
         let baked = BakeWorld::new(&scene);
         let mut config = BakeConfig::from_settings(&settings);
-        let index = config
-            .lights
-            .iter()
-            .position(|l| matches!(l.kind, LightKind::Directional { .. }))
-            .unwrap();
+        let index = sun_index(&config);
         if let LightKind::Directional {
             texel_size,
             direction: d,
@@ -261,11 +257,7 @@ fn a_block_of_lattice_points_is_hidden_as_point_by_point() {
         let (_dir, scene, settings) = small_world(seed);
         let baked = BakeWorld::new(&scene);
         let config = BakeConfig::from_settings(&settings);
-        let index = config
-            .lights
-            .iter()
-            .position(|l| matches!(l.kind, LightKind::Directional { .. }))
-            .unwrap();
+        let index = sun_index(&config);
         let setup = LightSetup::new(&baked, &config, index).unwrap();
         let rays = setup.rays(&baked, &config);
         let occlusion = Occlusion::new(&baked, &setup, &rays, &config).unwrap();

@@ -38,6 +38,16 @@ pub fn small_world(
     (dir, scene, settings)
 }
 
+/// The index of the first directional light of `config` (the `small`
+/// preset has one).
+pub fn sun_index(config: &BakeConfig) -> usize {
+    config
+        .lights
+        .iter()
+        .position(|l| matches!(l.kind, LightKind::Directional { .. }))
+        .unwrap()
+}
+
 #[test]
 fn tiles_give_every_light_the_single_ray_answers() {
     let (_dir, scene, settings) = small_world(3);
@@ -121,11 +131,7 @@ fn tiles_outside_the_reach_are_skipped_and_lose_nothing() {
                 *direction = glam::DVec3::new(-1.0, -0.35, 0.6);
             }
         }
-        let index = config
-            .lights
-            .iter()
-            .position(|l| matches!(l.kind, LightKind::Directional { .. }))
-            .unwrap();
+        let index = sun_index(&config);
         let setup = LightSetup::new(&baked, &config, index).unwrap();
         let skipping = setup.rays(&baked, &config);
         let everything = TileReach::default();
