@@ -270,12 +270,12 @@ impl LatticeBlock {
 
     /// The block's columns whose points' x (texel units) may lie in
     /// `lo..=hi` (rounded outward).
-    fn columns(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
+    pub fn columns(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
         self.span(lo, hi, self.i0, self.ni)
     }
 
     /// The block's rows whose points' y may lie in `lo..=hi`.
-    fn rows(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
+    pub fn rows(&self, lo: f64, hi: f64) -> RangeInclusive<i64> {
         self.span(lo, hi, self.j0, self.nj)
     }
 

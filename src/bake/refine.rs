@@ -459,17 +459,9 @@ impl Mask {
     /// no point that is traced.
     fn holds_polygon(&self, p: &ProjectedPolygon, reach: f64) -> bool {
         let (lo, hi) = bounds(p.iter().map(|&(x, y, _)| (x, y)));
-        let d = f64::from(self.block.density);
-        let index = |x: f64, round: fn(f64) -> f64| round(x * d - 0.5) as i64;
-        let (i0, i1) = (
-            index(lo.0 - reach, f64::floor),
-            index(hi.0 + reach, f64::ceil),
-        );
-        let (j0, j1) = (
-            index(lo.1 - reach, f64::floor),
-            index(hi.1 + reach, f64::ceil),
-        );
-        self.holds_cell((i0, j0, i1 - i0 + 1, j1 - j0 + 1))
+        let columns = self.block.columns(lo.0 - reach, hi.0 + reach);
+        let mut rows = self.block.rows(lo.1 - reach, hi.1 + reach);
+        rows.all(|j| columns.clone().all(|i| self.holds(i, j)))
     }
 }
 
@@ -1299,13 +1291,14 @@ impl Footprint {
         lattice: &mut LatticeCell,
     ) {
         let (i0, j0, ni, nj) = cell;
-        let d = self.density as f64;
-        // The lattice indices of a box's points within the cell (rounded
-        // outward; every point in the range is tested).
-        let range = |lo: f64, hi: f64, first: i64, n: i64| {
-            let from = ((lo * d - 0.5).floor() as i64).max(first);
-            let to = ((hi * d - 0.5).ceil() as i64).min(first + n - 1);
-            from..=to
+        // The cell's points a box may hold (rounded outward; every point
+        // in the range is tested).
+        let block = LatticeBlock {
+            i0,
+            j0,
+            ni,
+            nj,
+            density: self.density,
         };
         lattice.cell = cell;
         lattice.on.clear();
@@ -1324,8 +1317,8 @@ impl Footprint {
                 // No depths: only whether points lie on it.
                 let Some(region) = region else { continue };
                 let b = region.bounds();
-                for j in range(b.y0, b.y1, j0, nj) {
-                    for i in range(b.x0, b.x1, i0, ni) {
+                for j in block.rows(b.y0, b.y1) {
+                    for i in block.columns(b.x0, b.x1) {
                         let at = lattice.index(i, j);
                         lattice.on[at] |= region.contains(self.point(i, j));
                     }
@@ -1338,8 +1331,8 @@ impl Footprint {
             // edge's line), whose depth counts wherever some polygon puts
             // them on the footprint (`near` is read only there).
             let walk = region.as_ref().map_or(*b, |r| b.union(r.bounds()));
-            for j in range(walk.y0, walk.y1, j0, nj) {
-                for i in range(walk.x0, walk.x1, i0, ni) {
+            for j in block.rows(walk.y0, walk.y1) {
+                for i in block.columns(walk.x0, walk.x1) {
                     let (p, at) = (self.point(i, j), lattice.index(i, j));
                     let on = region.as_ref().is_some_and(|r| r.contains(p));
                     lattice.on[at] |= on;
