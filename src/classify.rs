@@ -1,4 +1,4 @@
-//! The rules of SPEC §4 that turn one ray's hits into "these casters are
+//! The rules of docs/contract.md §4 that turn one ray's hits into "these casters are
 //! useful for this light". Pure functions over hit lists: no geometry, no
 //! I/O, so the rules can be tested on hand-written hit lists and shared by
 //! the BVH path and the brute-force oracle.

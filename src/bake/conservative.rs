@@ -1,7 +1,7 @@
 //! The conservative grid pass (`--conservative`): a caster is kept whenever
 //! some placement of the shadow-map grid at this light's texel size could
 //! make it useful, i.e. whenever SOME ray through SOME point of a texel's
-//! square (its beam) makes it useful under SPEC §4. Every placement of the
+//! square (its beam) makes it useful under docs/contract.md §4. Every placement of the
 //! game's grid puts each of its sample rays inside one of our texels' beams,
 //! so keeping what every beam could keep never loses a shadow at any offset.
 //!
@@ -16,7 +16,7 @@
 //!   filter radius) could be hit at or behind the fragment's nearest depth
 //!   − 2ε (one ε for the front set's tie, one for "behind").
 //!
-//! Why that is conservative (each rule of SPEC §4 taken on the safe side):
+//! Why that is conservative (each rule of docs/contract.md §4 taken on the safe side):
 //! - *Beams and edges*: a fragment is any overlap of the grown square
 //!   (1e-7 texel) with the triangle, so a ray through an edge or vertex
 //!   shared by two triangles, which the tie rule gives to one of them,

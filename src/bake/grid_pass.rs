@@ -1,5 +1,5 @@
 //! The grid pass of one light over a range of tiles, as the config asks:
-//! texel centres (SPEC §4), with the filter margin, or texel beams
+//! texel centres (docs/contract.md §4), with the filter margin, or texel beams
 //! (`--conservative`). One entry point for the bake, the shards and the
 //! plan's sample, so a shard traces exactly what one bake traces.
 

@@ -1,4 +1,4 @@
-//! The below-ground test of SPEC §4: the terrain height H(x, z) over a world
+//! The below-ground test of docs/contract.md §4: the terrain height H(x, z) over a world
 //! point, from whichever block covers it. Every non-terrain hit of every ray
 //! asks it, so most answers come from a coarse ceiling of the terrain
 //! before the exact height is looked up.
@@ -276,7 +276,7 @@ impl<'a> Ground<'a> {
         })
     }
 
-    /// SPEC §4's below-ground rule for a non-terrain hit at `p`: whether
+    /// docs/contract.md §4's below-ground rule for a non-terrain hit at `p`: whether
     /// it lies more than `bias` below H(x, z) (no block or a hole: not
     /// below). The same answer as asking [`Self::height`], without it for
     /// a point above its square's ceiling.

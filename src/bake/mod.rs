@@ -34,7 +34,7 @@ pub struct BakeConfig {
     /// Metres: a non-terrain hit more than this below the terrain surface is
     /// ignored.
     pub height_bias: f64,
-    /// Metres along a ray: the tie tolerance of SPEC §4.
+    /// Metres along a ray: the tie tolerance of docs/contract.md §4.
     pub tie_epsilon: f64,
     pub lights: Vec<LightSettings>,
     /// Trace every ray against every triangle instead of the BVH (the
@@ -53,7 +53,7 @@ pub struct BakeConfig {
     /// What a texel of the grid pass stands for: its centre ray, or every
     /// ray of its beam.
     pub grid_mode: GridMode,
-    /// The filter margin in texels (`--filter-radius`): 0 is SPEC §4's
+    /// The filter margin in texels (`--filter-radius`): 0 is docs/contract.md §4's
     /// rule; K keeps a caster front-most at a texel when a surface lies
     /// behind its depth at a texel up to K away (PCF). See
     /// [`filter_margin`].
@@ -70,7 +70,7 @@ pub struct BakeConfig {
 /// What a texel of the grid pass stands for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum GridMode {
-    /// One ray through the texel's centre (k×k with supersampling): SPEC §4.
+    /// One ray through the texel's centre (k×k with supersampling): docs/contract.md §4.
     #[default]
     Centres,
     /// The texel's whole beam (`--conservative`): a caster is kept whenever
@@ -144,7 +144,7 @@ impl BakeConfig {
 }
 
 impl Default for BakeConfig {
-    /// SPEC §3 defaults and no lights.
+    /// docs/contract.md §3 defaults and no lights.
     fn default() -> Self {
         BakeConfig {
             face_culling: FaceCulling::Back,

@@ -1,5 +1,5 @@
-//! From masks to results: the `<shadow>` content of every chunk (SPEC §5)
-//! and the JSON report (SPEC §8).
+//! From masks to results: the `<shadow>` content of every chunk (docs/contract.md §5)
+//! and the JSON report (docs/contract.md §8).
 
 use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
@@ -279,7 +279,7 @@ pub fn write_outputs(outputs: &[ChunkOutput], progress: &dyn Progress) -> Result
 /// meaning or goes away (new fields may appear without it).
 pub const REPORT_VERSION: u32 = 2;
 
-/// The `--report` JSON (SPEC §8).
+/// The `--report` JSON (docs/contract.md §8).
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
     /// [`REPORT_VERSION`].

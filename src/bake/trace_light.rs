@@ -1,5 +1,5 @@
 //! One light's rays: texel tiles in parallel, each ray's hits filtered by
-//! face culling and the below-ground test, then classified (SPEC §4). The
+//! face culling and the below-ground test, then classified (docs/contract.md §4). The
 //! result is a set of useful casters, the same for any thread count (tiles
 //! are OR-ed, and each ray's answer does not depend on traversal order).
 //! A grid pass leaves out the rays that can meet only casters already

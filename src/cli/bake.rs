@@ -82,7 +82,7 @@ pub struct BakeOptions {
     #[arg(long)]
     conservative: bool,
     /// PCF margin in texels: a caster front-most at a texel is also useful
-    /// for surfaces behind its depth up to K texels away (0: SPEC §4).
+    /// for surfaces behind its depth up to K texels away (0: docs/contract.md §4).
     #[arg(long, value_name = "K", default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=16))]
     filter_radius: u32,
     /// Trace every ray against every triangle instead of the BVH (the

@@ -1,4 +1,4 @@
-//! The bake settings file (SPEC §3): which world to read, how to filter hits
+//! The bake settings file (docs/contract.md §3): which world to read, how to filter hits
 //! and which lights to bake. Every subcommand reads it, and the command line
 //! may override its values afterwards, so this module only turns the XML tree
 //! into checked values; it reads no file itself.
@@ -56,9 +56,9 @@ pub struct BakeSettings {
     /// The space folder as a resource name (e.g. `spaces/arctic`).
     pub space: String,
     pub face_culling: FaceCulling,
-    /// Metres; see SPEC §4 (below-ground test).
+    /// Metres; see docs/contract.md §4 (below-ground test).
     pub height_bias: f64,
-    /// Metres along a ray; see SPEC §4 (front-set tie tolerance).
+    /// Metres along a ray; see docs/contract.md §4 (front-set tie tolerance).
     pub tie_epsilon: f64,
     /// In file order.
     pub lights: Vec<LightSettings>,

@@ -1,4 +1,4 @@
-//! Writing baked shadow-caster masks back into `.chunk` files (SPEC §5).
+//! Writing baked shadow-caster masks back into `.chunk` files (docs/contract.md §5).
 //!
 //! The bake's only output the engine reads is a `<shadow>` element inside
 //! each `<model>`/`<shell>` and `<terrain>` of a chunk. Chunk files are

@@ -1,5 +1,5 @@
 //! Procedural meshes for the synthetic world. Every solid is closed and has
-//! outward front faces by the SPEC rule (front = side of (v1 − v0) × (v2 − v0)),
+//! outward front faces by the contract's rule (front = side of (v1 − v0) × (v2 − v0)),
 //! because the bake's face culling and hit counting depend on it; cards are
 //! the deliberate exception and are only ever given double-sided materials.
 

@@ -50,7 +50,7 @@ impl Preset {
 }
 
 /// What a generated world holds, with the meanings of `inspect --json`
-/// (SPEC §8): counts over placed instances (a model placed twice counts its
+/// (docs/contract.md §8): counts over placed instances (a model placed twice counts its
 /// groups and triangles twice; a two-resource instance counts both parts),
 /// except `models`, the number of distinct model resources. Receiver-only
 /// instances are instances too and count in `groups` and `triangles`.

@@ -1,7 +1,7 @@
 //! The light-space basis. A directional or spot light needs two axes across
 //! its direction to lay out its texel grid; the usual `lookAt` with a fixed
 //! "up" vector breaks down when the light points along that vector (a sun
-//! straight overhead is the most common light there is), so SPEC §4 asks for
+//! straight overhead is the most common light there is), so docs/contract.md §4 asks for
 //! a construction that is robust for every direction.
 
 use glam::DVec3;

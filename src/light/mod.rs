@@ -1,4 +1,4 @@
-//! Shadow-map texel grids of the three light kinds (SPEC §3–§4).
+//! Shadow-map texel grids of the three light kinds (docs/contract.md §3–§4).
 //!
 //! The bake casts one ray through the centre of every texel of every light's
 //! shadow map. This module decides where those texels are: it turns a
@@ -7,7 +7,7 @@
 //! texel as a pure function of `(face, x, y)`, so any thread computes the same
 //! ray and the bake is deterministic whatever the thread count. It also
 //! answers whether a box can be reached by the light at all, so geometry
-//! outside a light's frustum can be left out of that light's BVH (SPEC §7).
+//! outside a light's frustum can be left out of that light's BVH (docs/contract.md §7).
 //!
 //! Conventions (fixed; the report and the rasterized cross-check rely on
 //! them):

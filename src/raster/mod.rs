@@ -11,7 +11,7 @@
 //!   the fragment tests, whether it passes depth or not; then receiver-only
 //!   instances, which are not drawn into the shadow map: no depth writes, and
 //!   they count only where they are not in front of the nearest caster
-//!   (depth GEQUAL), as SPEC §4's "receiver-only hits that are not in front
+//!   (depth GEQUAL), as docs/contract.md §4's "receiver-only hits that are not in front
 //!   of the front set"; they are never counted;
 //! - pass 2: per caster (primitive group, terrain block), the samples that
 //!   pass depth LEQUAL against pass 1 where stencil > 1, no writes; a caster
@@ -856,9 +856,9 @@ impl Draw<'_> {
         for r in self.runs.iter().filter(included).filter(|r| !receiver(r)) {
             self.draw_run(self.programs.draw, r);
         }
-        // Receiver-only instances are not drawn into the shadow map (SPEC
-        // §2): they write no depth, and count only where they are not in
-        // front of the nearest caster (SPEC §4), i.e. depth GEQUAL.
+        // Receiver-only instances are not drawn into the shadow map
+        // (docs/contract.md §2): they write no depth, and count only where they are not in
+        // front of the nearest caster (docs/contract.md §4), i.e. depth GEQUAL.
         gl.depth_mask(false);
         gl.depth_func(glow::GEQUAL);
         gl.stencil_op(glow::KEEP, glow::KEEP, glow::INCR);

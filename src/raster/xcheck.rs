@@ -2,7 +2,7 @@
 //! pair by pair (caster × light), with a cause for every disagreement found
 //! by re-testing that caster with rays.
 //!
-//! SPEC §4 allows only rasterization rules at triangle edges and depth
+//! docs/contract.md §4 allows only rasterization rules at triangle edges and depth
 //! quantization as causes, so those are the only explanations:
 //! - the ray cast finds the caster useful and the raster does not: every
 //!   texel where a centre ray makes it useful is re-traced. It is a **tie**
@@ -61,8 +61,8 @@ pub struct LightTexels {
     /// Σ over casters of texels where the caster is useful (All pass).
     pub ray_cast: u64,
     /// Of `ray_cast`, the useful casters beyond the first at texels whose
-    /// front set holds several casters (hits within ε of the nearest: SPEC
-    /// §4). LEQUAL passes only exactly equal depths, so at such a texel
+    /// front set holds several casters (hits within ε of the nearest:
+    /// docs/contract.md §4). LEQUAL passes only exactly equal depths, so at such a texel
     /// the raster counts between one and all of them: `ray_cast − tied ≤
     /// raster ≤ ray_cast` up to edge texels.
     pub ray_cast_tied: u64,

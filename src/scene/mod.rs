@@ -247,7 +247,7 @@ pub struct Group {
     pub double_sided: bool,
 }
 
-/// Counts of what a scene holds (SPEC §8, `inspect --json`).
+/// Counts of what a scene holds (docs/contract.md §8, `inspect --json`).
 #[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
 pub struct Stats {
     pub chunks: usize,

@@ -1,5 +1,5 @@
 //! One chunk's terrain block as world-space geometry: the triangles the rays
-//! hit and the height query of the below-ground test (SPEC §4). Both come
+//! hit and the height query of the below-ground test (docs/contract.md §4). Both come
 //! from one cell/diagonal/hole rule so that they can never disagree.
 //!
 //! Geometry is the visible part of the block only: chunk-local

@@ -1,6 +1,6 @@
 //! The correctness oracle for the BVH: every ray against every triangle with
 //! the same triangle test and the same callback contract, so the two can be
-//! compared hit for hit (SPEC §7).
+//! compared hit for hit (docs/contract.md §7).
 
 use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};

@@ -1,6 +1,6 @@
 //! Ray casting for the bake: a two-level structure and a multi-hit
 //! traversal that reports every surface crossing of a ray, because the
-//! culling rule (SPEC §4) needs all hits near the first one, not just the
+//! culling rule (docs/contract.md §4) needs all hits near the first one, not just the
 //! closest.
 //!
 //! - bottom levels ([`BottomLevels`], `blas.rs`): one BVH per distinct

@@ -1,4 +1,4 @@
-//! One micro world per rule of SPEC §4. Expected masks come from the design
+//! One micro world per rule of docs/contract.md §4. Expected masks come from the design
 //! of each world (explained beside it); `micro::run` also checks every world
 //! against the brute-force oracle.
 

@@ -1,4 +1,4 @@
-//! Micro worlds built in memory, one per rule of SPEC §4, each with the masks
+//! Micro worlds built in memory, one per rule of docs/contract.md §4, each with the masks
 //! worked out from its design (see the comment on each test).
 
 use glam::{DMat4, DVec3, Vec3};

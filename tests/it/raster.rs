@@ -120,8 +120,8 @@ fn village_fixture_agrees_with_every_face_culling_mode() {
     // Front culling keeps the faces turned away from the light, among them
     // the bottoms of the two parts of one instance, level with each other,
     // and of two boulders 6e-5 m apart: each is useful at one texel where
-    // the other is within ε (SPEC §4 keeps both), and LEQUAL on one depth
-    // keeps one. Measured 547 of 549; those ties are the SPEC's rule, so
+    // the other is within ε (docs/contract.md §4 keeps both), and LEQUAL on one depth
+    // keeps one. Measured 547 of 549; those ties are the contract's rule, so
     // this mode's bar is that every disagreement is a tie found by the
     // re-test, not 99.9 %.
     config.face_culling = FaceCulling::Front;
@@ -317,7 +317,7 @@ fn a_designed_tie_is_the_one_disagreement_and_is_explained_as_a_tie() {
         "{cause}"
     );
     assert!(cause.contains(&format!("model {a} group 0")), "{cause}");
-    // The report's disagreement fields (SPEC §8).
+    // The report's disagreement fields (docs/contract.md §8).
     let value = serde_json::to_value(&report).unwrap();
     let entry = &value["disagreements"][0];
     for field in [
@@ -403,7 +403,7 @@ fn terrain_blocks_of_different_resolutions_hide_what_is_buried() {
 }
 
 /// `shadowcull xcheck --report`: exit 0 when everything is explained, and
-/// the SPEC §8 fields.
+/// the docs/contract.md §8 fields.
 #[test]
 fn xcheck_cli_writes_the_report_fields() {
     let settings = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small/bake.xml");

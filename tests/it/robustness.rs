@@ -1,9 +1,9 @@
-//! Stiff and extreme cases of the bake (issue 5, SPEC §6 and §7 "Numerical
+//! Stiff and extreme cases of the bake (issue 5, docs/contract.md §6 and §7 "Numerical
 //! robustness"): worlds far from the origin, axis-aligned and grazing light,
 //! coplanar casters on walls, rays exactly on shared edges and vertices,
 //! degenerate and non-finite triangles, huge next to tiny triangles, bad
 //! transforms, grid sizes from 1×1 up, and the 32-light limit. Each test says
-//! what SPEC asks for and the masks worked out from its world's design;
+//! what the contract asks for and the masks worked out from its world's design;
 //! `micro::run` also bakes every micro world by brute force and asserts the
 //! same masks.
 
@@ -184,7 +184,7 @@ fn far_world_lights(offset: DVec3) -> Vec<LightSettings> {
 
 #[test]
 fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
-    // SPEC §7 "worlds far from the origin": geometry is made light-relative
+    // docs/contract.md §7 "worlds far from the origin": geometry is made light-relative
     // in f64 before the f32 trace, so moving the whole world (chunk grid by
     // whole chunks in x and z, chunk transforms in y, lights with it) must
     // not change one mask (see `TieWorld` on why equality can be exact,
@@ -229,7 +229,7 @@ fn world_translated_by_1e5_and_1e6_metres_bakes_like_at_the_origin() {
 
 #[test]
 fn light_exactly_along_plus_and_minus_x_grazes_flat_terrain() {
-    // SPEC §4: the basis must be robust for a light parallel to any axis.
+    // docs/contract.md §4: the basis must be robust for a light parallel to any axis.
     // A wall (x 5..6, y 0..4, z 4..12) and a box B behind it (x 11..13,
     // y 0..2, z 6..10) on flat terrain. With texelSize 0.5 and the world's
     // lowest point at y = −0.25 (a sunk marker), texel centres lie at
@@ -290,7 +290,7 @@ fn light_exactly_along_plus_and_minus_x_grazes_flat_terrain() {
 
 #[test]
 fn sun_one_degree_above_the_horizon() {
-    // Grazing light, SPEC §7. Flat terrain over two chunks (x 0..32); box 1
+    // Grazing light, docs/contract.md §7. Flat terrain over two chunks (x 0..32); box 1
     // (x 2..3, y 0..1, z 4..12), box 2 (x 12..13, y 0..0.5, z 6..10). At 1°
     // a ray drops tan 1° ≈ 0.01746 m per metre: any ray reaching box 2's
     // front (y ≤ 0.5 at x = 12) or top (x 12..13) was at most
@@ -329,7 +329,7 @@ fn sun_one_degree_above_the_horizon() {
 
 #[test]
 fn spot_with_near_1e_minus_4_and_far_1e5() {
-    // SPEC §4: spot hits count for near ≤ t ≤ far. A spot 10 m above a box
+    // docs/contract.md §4: spot hits count for near ≤ t ≤ far. A spot 10 m above a box
     // over the void, fov 60°, near 1e−4 m. A wide card ("lens", ±1 mm)
     // facing the light covers its whole cone (the widest ray is 39° off
     // axis: 0.82 mm off at 1 mm) at distance d below it; a floor 9e4 m
@@ -373,7 +373,7 @@ fn spot_with_near_1e_minus_4_and_far_1e5() {
 
 #[test]
 fn decal_on_a_vertical_wall_ties_with_it() {
-    // SPEC §4 ties (tieEpsilon 1e−4 m): a decal on the −x face of a closed
+    // docs/contract.md §4 ties (tieEpsilon 1e−4 m): a decal on the −x face of a closed
     // wall box (x 8..10), lit obliquely from −x and above so the hits on the
     // wall and the decal are computed from different triangles and differ
     // by rounding only (≪ tieEpsilon). Where the decal is, the ray crosses
@@ -461,7 +461,7 @@ fn fan(kind: Fan) -> Mesh {
 
 #[test]
 fn fans_hit_exactly_on_shared_edges_and_vertices_count_once() {
-    // SPEC §4: a ray through an edge or vertex shared by several triangles
+    // docs/contract.md §4: a ray through an edge or vertex shared by several triangles
     // of a surface crosses it once. Light straight down, texelSize 1; a
     // marker card at x, z 0..0.25 (never hit) puts the grid's lower edges at
     // 0, so texel centres are at integer + 0.5: on the fan's edges and
@@ -512,7 +512,7 @@ fn fans_hit_exactly_on_shared_edges_and_vertices_count_once() {
 
 #[test]
 fn terrain_hit_exactly_on_grid_lines_and_vertices_is_one_crossing() {
-    // SPEC §4: "test it with texel centres placed exactly on … terrain grid
+    // docs/contract.md §4: "test it with texel centres placed exactly on … terrain grid
     // lines". Terrain vertices are 2 m apart; a marker card at x, z
     // −0.5..−0.25 puts texel centres (texelSize 1, straight down) on every
     // integer: every vertex, every grid line and every cell diagonal. A
@@ -545,7 +545,7 @@ fn terrain_hit_exactly_on_grid_lines_and_vertices_is_one_crossing() {
 
 #[test]
 fn degenerate_and_non_finite_triangles_are_left_out_and_counted() {
-    // SPEC §6 "degenerate or NaN triangles": skip + count. Group 0 is a card
+    // docs/contract.md §6 "degenerate or NaN triangles": skip + count. Group 0 is a card
     // over flat terrain plus, among its triangles, a zero-area point, a
     // collinear triangle standing vertically on a texel centre's ray
     // (texelSize 0.25: centres at 0.125 + k/4), a repeated-vertex triangle,
@@ -661,7 +661,7 @@ fn ten_km_triangles_next_to_a_tenth_of_a_millimetre() {
 
 #[test]
 fn nan_zero_scale_and_singular_transforms_are_skipped_and_reported_by_the_bake() {
-    // SPEC §6 "NaN/Inf or singular transforms": the loader leaves such an
+    // docs/contract.md §6 "NaN/Inf or singular transforms": the loader leaves such an
     // instance out as a problem; the bake completes and lists each in its
     // `skipped` (so the report counts them). Three placements of the small
     // world are damaged: a NaN, a zero scale (all-zero rotation rows) and a
@@ -838,7 +838,7 @@ fn large_spot_grid_streams_tiles() {
 
 #[test]
 fn thirty_two_lights_set_bit_31() {
-    // SPEC §3: up to 32 lights, bit i for light i. Two boxes on terrain in
+    // docs/contract.md §3: up to 32 lights, bit i for light i. Two boxes on terrain in
     // two chunks; light i is a narrow spot straight above box A when bit i
     // of PATTERN is set, else above box B. So A's mask is PATTERN and B's
     // its complement — bit 31 included on A, bit 30 on B.
@@ -879,7 +879,7 @@ fn thirty_two_lights_set_bit_31() {
 
 #[test]
 fn thirty_three_lights_are_refused_before_any_work() {
-    // SPEC §3: more than 32 lights is a clear error — which names the count
+    // docs/contract.md §3: more than 32 lights is a clear error — which names the count
     // and what to do — and it comes before anything is traced.
     let mut world = World::new(1, 1);
     world.terrain((0, 0), |_, _| 0.0);
@@ -898,7 +898,7 @@ fn thirty_three_lights_are_refused_before_any_work() {
 
 #[test]
 fn worlds_with_nothing_to_hit_skip_every_light_kind() {
-    // SPEC §6 "empty worlds": an empty world, and a world whose only model
+    // docs/contract.md §6 "empty worlds": an empty world, and a world whose only model
     // has nothing but degenerate triangles, skip directional, spot and point
     // lights alike with a reason, and bake no rays.
     let lights = vec![
@@ -991,7 +991,7 @@ fn point_light_whose_reach_holds_nothing() {
 
 #[test]
 fn absurd_finite_vertices_and_scales_are_left_out_not_fatal() {
-    // SPEC §6: a damaged file can hold a finite but absurd vertex (1e30 m)
+    // docs/contract.md §6: a damaged file can hold a finite but absurd vertex (1e30 m)
     // or a placement scaled by 1e20. Such geometry can never be traced in
     // f32 (the trace drops anything beyond MAX_COORDINATE = 1e15 m), so it
     // is left out and counted like a NaN triangle — and it must not stretch

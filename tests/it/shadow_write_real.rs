@@ -1,4 +1,4 @@
-//! Shadow write-back (SPEC §5) on every real arctic chunk and on generated
+//! Shadow write-back (docs/contract.md §5) on every real arctic chunk and on generated
 //! chunks: the bytes outside `<shadow>` are kept, a second write changes
 //! nothing, and the masks read back as written — in text and packed XML.
 
