@@ -1,8 +1,8 @@
 //! Stacked coincident geometry: the `small` world with its first house
 //! placed 1, 10, 100 and 1 000 times at one transform (a level editor's
 //! duplicate key). Every ray through the stack ties all copies at one
-//! distance; the bake must stay near-linear in the copies (issue 16: it
-//! was quadratic). Coarse lights (about 20 000 rays) keep the largest case
+//! distance; the bake must stay near-linear in the copies, not
+//! quadratic. Coarse lights (about 20 000 rays) keep the largest case
 //! quick.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};

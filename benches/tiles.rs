@@ -1,4 +1,4 @@
-//! Tile traversal against single rays on identical rays (issue 12): per
+//! Tile traversal against single rays on identical rays: per
 //! light kind, the bake's tiles traced ray by ray (`single`) and as packets
 //! (`tiles`), both through `LightRays::trace_tiles` on the rayon pool (every
 //! packet traced: `PacketSkip::Never`), with

@@ -44,15 +44,11 @@ use std::time::Instant;
 /// enters the world. Measured: on `bench` every light costs about the same
 /// per ray that enters the world, whatever the depth of boxes along it (the
 /// traversal stops behind the front hits), so a tile's cost is its rays
-/// weighted by the fraction of its texels some box covers; on the 96×96
-/// world's 0.18 m sun a shard of mostly empty corner tiles (215 M rays, 190 M
-/// of them empty) took 113 s and a shard of covered tiles (53 M rays) 169 s,
-/// which puts an empty ray at ~2 % of a covered one. Tiles wholly outside
-/// the projection of what the light reaches are not traced at all
-/// ([`TileReach`]) and cost nothing; the empty rays left are those of tiles
-/// at the edge of it. Measured again on 2026-11-24 with that rule: four
-/// shards of 64 of the 96×96 world's 0.1 m sun (908 M, 165 M, 165 M and
-/// 911 M rays) took 42.9–47.3 s each, within 1.06 of their mean.
+/// weighted by the fraction of its texels some box covers; an empty ray
+/// costs about 2 % of a covered one (docs/distributed.md gives the
+/// measurement). Tiles wholly outside the projection of what the light
+/// reaches are not traced at all ([`TileReach`]) and cost nothing; the
+/// empty rays left are those of tiles at the edge of it.
 const EMPTY_RAY_COST: f64 = 0.02;
 /// Costs are integers (so sums do not depend on the order they are added
 /// in) in these units per ray.

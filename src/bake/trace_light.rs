@@ -617,7 +617,7 @@ impl LightRays<'_> {
     /// supersampled); `None`: ray by ray, for a directional light whose
     /// rays lie more than [`MAX_PACKET_SPACING`] apart, where a packet's
     /// footprint outgrows the triangles and the tile path is slower
-    /// (measured on `bench`: 0.25 m texels 2–4× faster, 0.98 m ~25 % slower).
+    /// (docs/performance.md).
     fn packet_side(&self, samples: u32) -> Option<u32> {
         let grid = self.grid;
         if grid.width() >= 2 {

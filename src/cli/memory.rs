@@ -29,8 +29,7 @@ pub fn entering(phase: Phase) {
 /// glibc keeps freed memory mapped: the parse trees and decode buffers of
 /// loading, a top level's build temporaries. Their pages sit between live
 /// allocations, so they stay resident until `malloc_trim` gives back every
-/// whole free page (measured on `gen --chunks 20`: the bake's peak RSS
-/// fell from 172 to 143 MB, `bench`'s from 42.5 to 37.8 MB).
+/// whole free page, which lowers the bake's peak resident memory.
 fn release_free_pages() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only returns free pages to the system; every

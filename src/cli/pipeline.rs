@@ -1,4 +1,4 @@
-//! The bake's pipeline flags (issue 14): fail on broken input unless
+//! The bake's pipeline flags: fail on broken input unless
 //! `--keep-going`, a subset of lights, a memory ceiling, CI checks. Kept
 //! apart from the bake's own settings so each stays small.
 

@@ -9,7 +9,7 @@
 //! answers yes only when the uncovered rest is at most a sliver of
 //! [`SLIVER`] texels² (what floating-point clipping leaves along shared
 //! edges, where the ray/triangle test's tie rule gives every ray to one
-//! side). `beam` (issue 12's packet node test) bounds a tile's rays for
+//! side). `trace::beam` (the packet node test) bounds a tile's rays for
 //! traversal; this module bounds a texel's beam against triangles in the
 //! image plane.
 

@@ -30,8 +30,8 @@ pub struct PlacedPart {
 
 /// The placed parts a top level is built over, read by index. The build
 /// reads each part twice (its box, then its entry in tree order) so it never
-/// holds every inverse transform beside the tree's build temporaries: on a
-/// 400-chunk world that copy was 14 MB of the bake's peak.
+/// holds every inverse transform beside the tree's build temporaries (a copy
+/// that would add to the bake's peak memory).
 pub trait PlacedParts {
     fn count(&self) -> usize;
     fn part(&self, index: usize) -> PlacedPart;

@@ -1,4 +1,4 @@
-//! Mutation fuzzing kept as a test (issue 16): damaged copies of generated
+//! Mutation fuzzing kept as a test: damaged copies of generated
 //! worlds and, with `$SHADOWCULL_REALDATA`, of real BigWorld models, terrain
 //! and the arctic chunks are loaded, inspected and baked in-process into an
 //! `--out` folder. Each case must finish (no panic, no hang past

@@ -1,6 +1,6 @@
 //! Files that are not files, stray placements, paths out of the res roots,
-//! locked and linked chunks, interrupted runs (issue 16). Each test fails on
-//! the code before that issue.
+//! locked and linked chunks, interrupted runs. Each test fails when the
+//! guard it names is taken out.
 
 use shadowcull::bake::{self, output, BakeConfig, Silent};
 use shadowcull::formats::read_bake_settings;

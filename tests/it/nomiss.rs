@@ -1,4 +1,4 @@
-//! Issue 17: no missing shadow at any shadow-map offset. Designed worlds
+//! No missing shadow at any shadow-map offset. Designed worlds
 //! for the filter margin, refinement and the conservative mode (expected
 //! masks from each world's design, explained beside it; `micro::run` also
 //! checks the brute-force oracle), and seeded random worlds against the

@@ -1,4 +1,4 @@
-//! The bake in a studio pipeline (issue 14): broken input fails, every
+//! The bake in a studio pipeline: broken input fails, every
 //! light is checked before any is traced, `--light` and `<bit>` keep other
 //! bits, `plan` and `--max-memory`, progress for machines, `--check`,
 //! `--dry-run`, the report's files and versions, and small things. Each
@@ -167,7 +167,7 @@ fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
 
 #[test]
 fn a_stray_placement_fails_the_bake_unless_keep_going() {
-    // Issue 16 item 3: geometry far outside the space is a problem naming
+    // Geometry far outside the space is a problem naming
     // the chunk and element, and fails the bake like other broken input.
     let dir = small();
     edit(

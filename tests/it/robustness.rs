@@ -1,5 +1,5 @@
-//! Stiff and extreme cases of the bake (issue 5, docs/contract.md §6 and §7 "Numerical
-//! robustness"): worlds far from the origin, axis-aligned and grazing light,
+//! Stiff and extreme cases of the bake (docs/contract.md §6 and §7
+//! "Numerical robustness"): worlds far from the origin, axis-aligned and grazing light,
 //! coplanar casters on walls, rays exactly on shared edges and vertices,
 //! degenerate and non-finite triangles, huge next to tiny triangles, bad
 //! transforms, grid sizes from 1×1 up, and the 32-light limit. Each test says
@@ -770,7 +770,7 @@ fn one_by_one_grids() {
     assert_eq!(terrain_mask(&result, 0), 0);
 }
 
-/// The spot grid of the large-grid test: the 16384² of issue 5 (268 M
+/// The spot grid of the large-grid test: 16384² (268 M
 /// rays, about 14 s in the test profile on 2 cores). Memory does not grow
 /// with it: texels are traced in 32×32 tiles generated on the fly
 /// (`TexelGrid::ray` is a pure function of the texel), each thread folds its

@@ -162,7 +162,7 @@ fn shards_merged_equal_one_bake_with_supersampling_and_refinement() {
 
 #[test]
 fn shards_merged_equal_one_bake_with_conservative_filter_margin_and_refinement() {
-    // Issue 17's options: the grid mode and the filter margin run in the
+    // The accuracy options: the grid mode and the filter margin run in the
     // shards (tiles with their halo), footprint refinement in the merge.
     let dir = tempfile::tempdir().unwrap();
     let settings = world(Preset::Village, &dir.path().join("world"));
