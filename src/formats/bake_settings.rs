@@ -168,6 +168,23 @@ impl LightKind {
     }
 }
 
+/// The settings file at `path`, from its bytes: `path` names it in errors
+/// (with line and column), and relative paths in it are taken relative to
+/// its folder.
+pub fn from_bytes(bytes: &[u8], path: &Path) -> crate::Result<BakeSettings> {
+    let dir = match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
+    };
+    let mut settings = super::parse_data_section(bytes)
+        .and_then(|root| parse(&root, dir))
+        .map_err(|e| e.in_source(path, bytes))?;
+    for unknown in &mut settings.unknown {
+        unknown.position = super::text_position(bytes, unknown.offset as u64);
+    }
+    Ok(settings)
+}
+
 /// Reads the settings tree of a file in folder `settings_dir`.
 pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, FormatError> {
     let res_section = root.required("resPaths")?;
