@@ -42,3 +42,77 @@ fn names(dir: &Path) -> Vec<String> {
     names.sort();
     names
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// How this crate's code reaches the file system.
+    const FILE_SYSTEM_CALLS: &[&str] = &[
+        "std::fs",
+        "fs::",
+        "File::",
+        "OpenOptions",
+        "read_dir",
+        ".is_file()",
+        ".is_dir()",
+        ".exists()",
+        ".metadata()",
+        "canonicalize",
+        "/proc/",
+    ];
+
+    /// The lines of `text` before its inline test module (unit tests set up
+    /// their folders as they need), comments left out.
+    fn code_lines(text: &str) -> Vec<(usize, &str)> {
+        let lines: Vec<&str> = text.lines().collect();
+        let end = lines
+            .windows(2)
+            .position(|w| w[0].trim() == "#[cfg(test)]" && w[1].trim_start().starts_with("mod "))
+            .filter(|&i| lines[i + 1].trim_end().ends_with('{'))
+            .unwrap_or(lines.len());
+        lines[..end]
+            .iter()
+            .enumerate()
+            .map(|(i, line)| (i + 1, line.split("//").next().unwrap_or_default()))
+            .collect()
+    }
+
+    fn calls_in(line: &str) -> bool {
+        FILE_SYSTEM_CALLS.iter().any(|call| {
+            line.match_indices(call).any(|(at, _)| {
+                // A name as a path of its own (`fs::`), not the end of
+                // another name (`refs::`).
+                let in_a_name = |c: char| c.is_alphanumeric() || c == '_';
+                !(call.starts_with(in_a_name)
+                    && line[..at].chars().next_back().is_some_and(in_a_name))
+            })
+        })
+    }
+
+    #[test]
+    fn only_files_touches_the_file_system() {
+        assert!(calls_in("let meta = std::fs::metadata(path)?;"));
+        assert!(calls_in("if !path.is_file() {"));
+        assert!(!calls_in("let refs::x = 1;"));
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+        let mut found = Vec::new();
+        for path in find_files(&src, ".rs").unwrap() {
+            let test_file = path.file_name().is_some_and(|n| n == "tests.rs");
+            if path.starts_with(src.join("files")) || test_file {
+                continue;
+            }
+            let text = String::from_utf8(read_file(&path).unwrap()).unwrap();
+            for (number, line) in code_lines(&text) {
+                if calls_in(line) {
+                    found.push(format!("{}:{number}: {}", path.display(), line.trim()));
+                }
+            }
+        }
+        assert!(
+            found.is_empty(),
+            "file-system calls outside src/files/:\n{}",
+            found.join("\n")
+        );
+    }
+}

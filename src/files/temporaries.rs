@@ -10,10 +10,10 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 /// How old a temporary file of another host must be before it counts as
-/// stale. Its process cannot be looked up from here (a live bake on another
+/// stale: its process cannot be looked up from here (a live bake on another
 /// machine sharing the volume has a process id this machine does not know),
-/// and a live bake keeps a temporary file only while it writes its batch:
-/// seconds to minutes.
+/// and a live bake keeps a temporary file only while it writes its batch,
+/// far less than this.
 pub const STALE_TEMPORARY_AGE: Duration = Duration::from_secs(3600);
 
 /// `.NAME.shadowcull-HOST-PID.tmp`, beside `real`.
@@ -32,7 +32,8 @@ pub(super) fn temporary_path(real: &Path) -> PathBuf {
 /// Who wrote a temporary file of [`temporary_path`]'s form.
 #[derive(Debug, PartialEq, Eq)]
 struct TemporaryOwner<'a> {
-    /// `None` in the names of versions before the host was recorded.
+    /// `None` in the form without a host (`.NAME.shadowcull-PID.tmp`):
+    /// its process may be on any machine, so only its age tells.
     host: Option<&'a str>,
     pid: u32,
 }
@@ -119,7 +120,7 @@ mod tests {
             temporary_owner(".a.shadowcull-x.chunk.shadowcull-h-9.tmp"),
             owner(Some("h"), 9)
         );
-        // The names of versions before the host was recorded.
+        // The form without a host.
         assert_eq!(
             temporary_owner(".a.chunk.shadowcull-123.tmp"),
             owner(None, 123)
