@@ -70,7 +70,7 @@ pub(super) fn plan_target(
 }
 
 /// The targets that must not be replaced ([`Error::Refused`], every such
-/// file named): the checks [`write_files`] makes before it writes, for a
+/// file named): the checks [`write_files`](super::write_files) makes before it writes, for a
 /// caller that wants to know before any work.
 pub fn check_replaceable<'a>(targets: impl IntoIterator<Item = &'a Path>) -> Result<()> {
     let refused: Vec<(PathBuf, String)> = targets
