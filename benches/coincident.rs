@@ -7,7 +7,7 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use shadowcull::bake::{self, BakeConfig, Silent};
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::gen::{generate, stack_first_model, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig};
 use std::time::Duration;
@@ -38,7 +38,7 @@ fn coincident_bench(c: &mut Criterion) {
         }
         let dir = tempfile::tempdir().expect("temporary folder");
         write_tree(dir.path(), &world.files).expect("write world");
-        let settings = shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE))
+        let settings = shadowcull::files::read_bake_settings(&dir.path().join(SETTINGS_FILE))
             .expect("settings");
         let scene = load_scene(&LoadConfig {
             res_paths: ResPaths::new(settings.res_paths.clone()),

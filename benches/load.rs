@@ -3,7 +3,7 @@
 //! iteration reads and assembles the whole scene.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::gen::{generate, Preset};
 use shadowcull::scene::{load_scene, LoadConfig};
 
@@ -11,7 +11,7 @@ fn load_bench_world(c: &mut Criterion) {
     let dir = tempfile::tempdir().expect("temporary folder");
     let world = generate(Preset::Bench, 1);
     write_tree(dir.path(), &world.files).expect("write the bench world");
-    let settings = shadowcull::formats::read_bake_settings(&dir.path().join("bake.xml"))
+    let settings = shadowcull::files::read_bake_settings(&dir.path().join("bake.xml"))
         .expect("bench settings");
     let config = LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),

@@ -37,11 +37,12 @@ pub struct TextPosition {
 }
 
 impl TextPosition {
-    /// Where byte `offset` of `bytes` lies, or `None` when the bytes are
-    /// not text (packed XML, a binary section) or the offset is past them.
+    /// Where byte `offset` of text `bytes` lies, or `None` when the offset
+    /// is past them or a NUL byte before it shows they are not text (a
+    /// binary section; `formats::text_position` also knows packed XML).
     pub fn of(bytes: &[u8], offset: u64) -> Option<TextPosition> {
         let offset = usize::try_from(offset).ok()?;
-        if offset > bytes.len() || bytes.starts_with(&crate::formats::packed_xml::MAGIC) {
+        if offset > bytes.len() {
             return None;
         }
         let before = &bytes[..offset];
@@ -79,7 +80,9 @@ impl fmt::Display for Location {
 }
 
 /// A problem found while decoding bytes, before the caller attaches the path
-/// of the file those bytes came from (decoders work on slices, not files).
+/// of the file those bytes came from (decoders work on slices, not files):
+/// `in_file`, or `in_source` (in `formats`, which knows which bytes are text)
+/// for line and column too.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FormatError {
     pub at: Location,
@@ -118,18 +121,6 @@ impl FormatError {
             at: self.at,
             message: self.message,
             position: None,
-        }
-    }
-
-    /// Attaches the file and, when its bytes are text, the line and column
-    /// of the byte location (editors jump to `file:line:column`).
-    pub fn in_source(self, path: impl Into<PathBuf>, bytes: &[u8]) -> Error {
-        let position = self.at.offset().and_then(|o| TextPosition::of(bytes, o));
-        Error::Format {
-            path: path.into(),
-            at: self.at,
-            message: self.message,
-            position,
         }
     }
 }
@@ -212,11 +203,8 @@ mod tests {
             Some(TextPosition { line: 1, column: 1 })
         );
         assert_eq!(TextPosition::of(text, 999), None);
-        let err = FormatError::at_byte(at as usize, "bad").in_source("f.xml", text);
-        assert_eq!(err.to_string(), format!("f.xml:2:6 at byte {at}: bad"));
-        assert_eq!(
-            TextPosition::of(&crate::formats::packed_xml::MAGIC, 2),
-            None
-        );
+        assert_eq!(TextPosition::of(b"ab\0cd", 4), None);
+        let err = FormatError::at_byte(at as usize, "bad").in_file("f.xml");
+        assert_eq!(err.to_string(), format!("f.xml at byte {at}: bad"));
     }
 }

@@ -5,6 +5,7 @@ pub mod bake;
 pub mod classify;
 pub mod digest;
 pub mod error;
+pub mod files;
 pub mod formats;
 pub mod gen;
 pub mod inspect;

@@ -2,8 +2,8 @@
 //! a bench-density world of N×N chunks, written to a temporary folder and
 //! loaded, shared by the benches that bake it.
 
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::formats::bake_settings::BakeSettings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
 use shadowcull::gen::{generate_each, Preset, WorldSize, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Scene};
 
@@ -19,7 +19,7 @@ pub fn bench_world() -> (tempfile::TempDir, BakeSettings, Scene) {
     })
     .expect("write bench world");
     let settings =
-        shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE)).expect("settings");
+        shadowcull::files::read_bake_settings(&dir.path().join(SETTINGS_FILE)).expect("settings");
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),

@@ -170,7 +170,7 @@ impl CasterTable {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formats::resources::ResPaths;
+    use crate::files::ResPaths;
     use crate::scene::{load_scene, LoadConfig};
 
     #[test]

@@ -385,7 +385,7 @@ pub fn human_bytes(bytes: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formats::resources::ResPaths;
+    use crate::files::ResPaths;
     use crate::progress::Silent;
     use crate::scene::{load_scene, LoadConfig};
 
@@ -399,7 +399,7 @@ mod tests {
             let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
                 .join("fixtures/worlds")
                 .join(name);
-            let settings = crate::formats::read_bake_settings(&root.join("bake.xml")).unwrap();
+            let settings = crate::files::read_bake_settings(&root.join("bake.xml")).unwrap();
             let scene = load_scene(&LoadConfig {
                 res_paths: ResPaths::new(settings.res_paths.clone()),
                 space: settings.space.clone(),

@@ -598,15 +598,15 @@ impl trace_light::RayCounter for Counter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::files::ResPaths;
     use crate::formats::bake_settings::{BakeSettings, LightKind};
-    use crate::formats::resources::ResPaths;
     use crate::progress::{Call, Recorded};
 
     /// The `small` fixture and its settings, every light coarse (these
     /// tests are about phases, not rays).
     fn small_fixture() -> (BakeSettings, Scene) {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small");
-        let mut settings = crate::formats::read_bake_settings(&root.join("bake.xml")).unwrap();
+        let mut settings = crate::files::read_bake_settings(&root.join("bake.xml")).unwrap();
         for light in &mut settings.lights {
             match &mut light.kind {
                 LightKind::Directional { texel_size, .. } => *texel_size = 2.0,

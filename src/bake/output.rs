@@ -3,8 +3,8 @@
 
 use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
+use crate::files::{self, ResPaths};
 use crate::formats::chunk::InstanceKind;
-use crate::formats::resources::{self, ResPaths};
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
 use crate::formats::Section;
 use crate::progress::{Counter, Phase, Progress};
@@ -83,7 +83,7 @@ fn chunk_masks(
     casters: &CasterTable,
     chunk: &crate::scene::Chunk,
 ) -> Result<Vec<(u32, u32)>> {
-    let bytes = resources::read_file(&chunk.file)?;
+    let bytes = files::read_file(&chunk.file)?;
     let root =
         crate::formats::parse_data_section(&bytes).map_err(|e| e.in_source(&chunk.file, &bytes))?;
     old_masks(scene, casters, chunk, &bytes, &root)
@@ -203,7 +203,7 @@ fn chunk_output(
     index: usize,
     chunk: &crate::scene::Chunk,
 ) -> Result<(ChunkOutput, Vec<(u32, u32)>)> {
-    let original = resources::read_file(&chunk.file)?;
+    let original = files::read_file(&chunk.file)?;
     let root = crate::formats::parse_data_section(&original)
         .map_err(|e| e.in_source(&chunk.file, &original))?;
     let keep = !result.baked_bits;
@@ -238,7 +238,7 @@ fn chunk_output(
     };
     let changed = match out_dir {
         None => bytes != original,
-        Some(_) => resources::read_file(&target)
+        Some(_) => files::read_file(&target)
             .map(|old| old != bytes)
             .unwrap_or(true),
     };
@@ -252,7 +252,7 @@ fn chunk_output(
 }
 
 /// Writes the outputs that change something, as one batch
-/// ([`resources::write_files_beside`]): every target is checked before
+/// ([`files::write_files_beside`]): every target is checked before
 /// anything is written (a read-only chunk fails the batch, naming every such
 /// file), all temporary files are written and synced before the first
 /// rename, each counted in [`Phase::Writing`] of `progress`, and stale
@@ -270,7 +270,7 @@ pub fn write_outputs(outputs: &[ChunkOutput], progress: &dyn Progress) -> Result
         .map(|o| o.target.as_path())
         .collect();
     let counter = Counter::begin(progress, Phase::Writing, None, batch.len() as u64);
-    resources::write_files_beside(&batch, &unchanged, &mut || counter.add(1))?;
+    files::write_files_beside(&batch, &unchanged, &mut || counter.add(1))?;
     counter.finish();
     Ok(batch.len())
 }

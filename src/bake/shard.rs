@@ -26,8 +26,8 @@ use super::trace_light::{
 };
 use super::{grid_pass, BakeConfig, BakeError, GridSource};
 use crate::digest::Digest;
+use crate::files::ResPaths;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
-use crate::formats::resources::ResPaths;
 use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;

@@ -10,8 +10,8 @@ use super::{load_config, load_settings, SettingsArgs};
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, output, BakeConfig, BakeResult, GridMode};
+use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
-use shadowcull::formats::resources::{self, ResPaths};
 use shadowcull::scene::{self, Scene};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -195,7 +195,7 @@ pub(super) fn warn_locked_chunks(scene: &Scene, output_args: &OutputArgs, option
     if output_args.out.is_some() || options.pipeline.writes_nothing() {
         return;
     }
-    let checked = resources::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()));
+    let checked = files::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()));
     if let Err(shadowcull::error::Error::Refused { files }) = checked {
         eprintln!(
             "warning: {} chunk file(s) cannot be replaced; if the bake changes any of them it writes nothing and fails at the end (make them writable, e.g. check them out, or bake with --out DIR):",
@@ -285,7 +285,7 @@ pub(super) fn write_results(
             stdout.write_all(&json)?;
             writeln!(stdout)?;
         } else {
-            resources::write_atomic(path, &json)?;
+            files::write_atomic(path, &json)?;
         }
     }
     let summary = summary(

@@ -10,8 +10,7 @@ use super::{load_settings, SettingsArgs};
 use anyhow::Result;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, shard};
-use shadowcull::formats::partial;
-use shadowcull::formats::resources::ResPaths;
+use shadowcull::files::{self, ResPaths};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -37,7 +36,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
         let mut partials = Vec::new();
         let mut damaged = Vec::new();
         for path in &args.partials {
-            match partial::read(path) {
+            match files::read_partial(path) {
                 Ok(p) => partials.push((path.clone(), p)),
                 Err(err) => damaged.push(err.to_string()),
             }

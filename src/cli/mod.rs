@@ -14,7 +14,8 @@ mod xcheck;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
-use shadowcull::formats::{self, bake_settings::BakeSettings, resources::ResPaths};
+use shadowcull::files::{self, ResPaths};
+use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::{self, LoadConfig};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -144,7 +145,7 @@ fn run(cli: Cli) -> Result<()> {
             let mut written = 0usize;
             let started = std::time::Instant::now();
             generate_each(size, seed, |path, bytes| {
-                formats::resources::write_atomic(&dir.join(path), &bytes)?;
+                files::write_atomic(&dir.join(path), &bytes)?;
                 written += 1;
                 if written.is_multiple_of(2000) {
                     eprintln!(
@@ -177,7 +178,7 @@ pub(crate) fn thread_pool(threads: Option<u16>) -> Result<rayon::ThreadPool> {
 /// typo such as `<heightBais>`): every subcommand reads its settings here,
 /// so each warns alike.
 pub(crate) fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
-    let mut settings = formats::read_bake_settings(&args.settings)?;
+    let mut settings = files::read_bake_settings(&args.settings)?;
     for unknown in &settings.unknown {
         eprintln!("warning: {}:{unknown}", args.settings.display());
     }

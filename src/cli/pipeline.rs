@@ -111,20 +111,3 @@ pub fn parse_size(text: &str) -> Result<u64, String> {
         Err(format!("`{text}` is not a positive size"))
     }
 }
-
-/// The process's resident and peak resident bytes (Linux `/proc`), or
-/// zeros where unknown.
-pub fn resident_bytes() -> (u64, u64) {
-    let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
-        return (0, 0);
-    };
-    let field = |name: &str| {
-        status
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|rest| rest.trim().strip_suffix("kB"))
-            .and_then(|kb| kb.trim().parse::<u64>().ok())
-            .map_or(0, |kb| kb * 1024)
-    };
-    (field("VmRSS:"), field("VmHWM:"))
-}

@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use shadowcull::bake::estimate::{self, human_bytes, Baseline, Plan};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
-use shadowcull::formats::resources;
+use shadowcull::files;
 use shadowcull::scene::{self, Scene};
 use std::time::Instant;
 
@@ -79,12 +79,12 @@ pub fn make_plan(
     started: Instant,
     progress: &dyn shadowcull::progress::Progress,
 ) -> Result<Plan> {
-    let (resident, peak) = pipeline::resident_bytes();
+    let memory = files::resident_memory();
     let baseline = Baseline {
-        resident_bytes: resident,
-        peak_resident_bytes: peak,
+        resident_bytes: memory.resident,
+        peak_resident_bytes: memory.peak,
         elapsed_seconds: started.elapsed().as_secs_f64(),
-        chunk_file_bytes: resources::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
+        chunk_file_bytes: files::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
         threads: rayon::current_num_threads(),
     };
     Ok(estimate::plan(world, config, baseline, progress)?)

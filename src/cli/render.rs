@@ -5,7 +5,7 @@ use super::{load_config, load_settings, SettingsArgs};
 use anyhow::{Context, Result};
 use glam::DVec3;
 use shadowcull::bake::BakeConfig;
-use shadowcull::formats::{png_write, resources};
+use shadowcull::files;
 use shadowcull::render::{self, CameraSpec};
 use shadowcull::scene;
 use std::path::PathBuf;
@@ -138,10 +138,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
             render::camera_view_from(&scene, &config, light, &camera, source)
         }
     })?;
-    png_write::write_rgb(&args.output, picture.width, picture.height, &picture.rgb)?;
+    files::write_png(&args.output, picture.width, picture.height, &picture.rgb)?;
     let legend_path = args.output.with_extension("txt");
     let legend = picture.legend(&command_line());
-    resources::write_atomic(&legend_path, legend.as_bytes())?;
+    files::write_atomic(&legend_path, legend.as_bytes())?;
     let [useful, culled, terrain_useful, terrain_culled, receiver, nothing] = picture.counts();
     println!(
         "wrote {} ({} × {}) and {}: light `{}`: {} useful / {} culled casters; pixels: {useful} useful, \

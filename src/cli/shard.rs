@@ -8,9 +8,9 @@ use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::shard::{self, Plan, ShardIndex};
 use shadowcull::bake::{self, BakeConfig};
+use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::BakeSettings;
-use shadowcull::formats::partial::{self, Partial};
-use shadowcull::formats::resources::ResPaths;
+use shadowcull::formats::partial::Partial;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -106,7 +106,7 @@ pub fn run(
         casters: world.casters.len() as u64,
         units,
     };
-    partial::write(&path, &partial).with_context(|| format!("shard {shard}"))?;
+    files::write_partial(&path, &partial).with_context(|| format!("shard {shard}"))?;
     println!(
         "shard {shard}: {own} unit(s), {rays} rays traced in {trace:.2} s ({cpu:.1} CPU s); wrote {}; {:.2} s in all",
         path.display(),

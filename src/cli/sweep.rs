@@ -4,7 +4,7 @@
 use super::{load_config, load_settings, SettingsArgs};
 use anyhow::{Context, Result};
 use shadowcull::bake::BakeConfig;
-use shadowcull::formats::resources;
+use shadowcull::files;
 use shadowcull::scene;
 use shadowcull::sweep::{self, SweepConfig};
 use std::path::PathBuf;
@@ -81,7 +81,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         ("sweep.svg", report.to_svg().into_bytes()),
     ];
     for (name, bytes) in &files {
-        resources::write_atomic(&args.out.join(name), bytes)?;
+        files::write_atomic(&args.out.join(name), bytes)?;
     }
     print!("{}", report.to_table());
     println!(

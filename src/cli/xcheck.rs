@@ -99,7 +99,7 @@ pub fn run(args: XcheckArgs) -> Result<()> {
     }
     if let Some(path) = &args.report {
         let json = serde_json::to_string_pretty(&report)?;
-        shadowcull::formats::resources::write_atomic(path, json.as_bytes())?;
+        shadowcull::files::write_atomic(path, json.as_bytes())?;
     }
     if report.unexplained > 0 {
         bail!("{} disagreements stay unexplained", report.unexplained);

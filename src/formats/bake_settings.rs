@@ -168,9 +168,72 @@ impl LightKind {
     }
 }
 
+/// The settings file at `path`, from its bytes: `path` names it in errors
+/// (with line and column), and relative paths in it are taken relative to
+/// its folder.
+pub fn from_bytes(bytes: &[u8], path: &Path) -> crate::Result<BakeSettings> {
+    let dir = match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
+    };
+    let mut settings = super::parse_data_section(bytes)
+        .and_then(|root| parse(&root, dir))
+        .map_err(|e| e.in_source(path, bytes))?;
+    for unknown in &mut settings.unknown {
+        unknown.position = super::text_position(bytes, unknown.offset as u64);
+    }
+    Ok(settings)
+}
+
 /// Reads the settings tree of a file in folder `settings_dir`.
 pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, FormatError> {
     let res_section = root.required("resPaths")?;
+    let res_paths = parse_res_paths(res_section, settings_dir)?;
+
+    let space_section = root.required("space")?;
+    if space_section.value.is_empty() {
+        return Err(space_section.error("empty <space>; give the space folder, e.g. spaces/arctic"));
+    }
+    let space = space_section.value.clone();
+
+    let face_culling = match root.child("faceCulling") {
+        None => FaceCulling::default(),
+        Some(s) => FaceCulling::from_name(&s.value).ok_or_else(|| {
+            s.error(format!(
+                "unknown face culling `{}`; expected back, front or none",
+                s.value
+            ))
+        })?,
+    };
+    let height_bias = optional_non_negative(root, "heightBias", DEFAULT_HEIGHT_BIAS)?;
+    let tie_epsilon = optional_non_negative(root, "tieEpsilon", DEFAULT_TIE_EPSILON)?;
+
+    let mut unknown = Vec::new();
+    unknown_children(root, ROOT_TAGS, &mut unknown);
+    unknown_children(res_section, RES_PATHS_TAGS, &mut unknown);
+    let (lights, bits) = match root.child("lights") {
+        Some(lights_section) => parse_lights(lights_section, &mut unknown)?,
+        None => (Vec::new(), Vec::new()),
+    };
+
+    Ok(BakeSettings {
+        res_paths,
+        space,
+        face_culling,
+        height_bias,
+        tie_epsilon,
+        lights,
+        bits,
+        unknown,
+    })
+}
+
+/// `<resPaths>`: at least one folder, relative ones joined to
+/// `settings_dir`.
+fn parse_res_paths(
+    res_section: &Section,
+    settings_dir: &Path,
+) -> Result<Vec<PathBuf>, FormatError> {
     let mut res_paths = Vec::new();
     for path in res_section.children_named("path") {
         if path.value.is_empty() {
@@ -198,74 +261,50 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
             res_section.error("no <path> in <resPaths>; give at least one resource root folder")
         );
     }
+    Ok(res_paths)
+}
 
-    let space_section = root.required("space")?;
-    if space_section.value.is_empty() {
-        return Err(space_section.error("empty <space>; give the space folder, e.g. spaces/arctic"));
+/// `<lights>`: each light and its bit, in file order (at most
+/// [`MAX_LIGHTS`], names and bits distinct); elements nothing reads are
+/// added to `unknown`.
+fn parse_lights(
+    lights_section: &Section,
+    unknown: &mut Vec<UnknownElement>,
+) -> Result<(Vec<LightSettings>, Vec<u32>), FormatError> {
+    unknown_children(lights_section, LIGHTS_TAGS, unknown);
+    let count = lights_section.children_named("light").count();
+    if count > MAX_LIGHTS {
+        return Err(lights_section.error(format!(
+            "{count} lights; at most {MAX_LIGHTS} can be baked (the caster mask has 32 bits): \
+             split them over several settings files"
+        )));
     }
-    let space = space_section.value.clone();
-
-    let face_culling = match root.child("faceCulling") {
-        None => FaceCulling::default(),
-        Some(s) => FaceCulling::from_name(&s.value).ok_or_else(|| {
-            s.error(format!(
-                "unknown face culling `{}`; expected back, front or none",
-                s.value
-            ))
-        })?,
-    };
-    let height_bias = optional_non_negative(root, "heightBias", DEFAULT_HEIGHT_BIAS)?;
-    let tie_epsilon = optional_non_negative(root, "tieEpsilon", DEFAULT_TIE_EPSILON)?;
-
-    let mut unknown = Vec::new();
-    unknown_children(root, ROOT_TAGS, &mut unknown);
-    unknown_children(res_section, RES_PATHS_TAGS, &mut unknown);
     let mut lights = Vec::new();
     let mut bits = Vec::new();
-    if let Some(lights_section) = root.child("lights") {
-        unknown_children(lights_section, LIGHTS_TAGS, &mut unknown);
-        let count = lights_section.children_named("light").count();
-        if count > MAX_LIGHTS {
-            return Err(lights_section.error(format!(
-                "{count} lights; at most {MAX_LIGHTS} can be baked (the caster mask has 32 bits): \
-                 split them over several settings files"
+    let mut names = HashSet::new();
+    let mut owners: Vec<Option<String>> = vec![None; MAX_LIGHTS];
+    for (i, light) in lights_section.children_named("light").enumerate() {
+        unknown_children(light, LIGHT_TAGS, unknown);
+        let parsed = parse_light(light, i)?;
+        if !names.insert(parsed.name.clone()) {
+            return Err(light.error(format!(
+                "duplicate light name `{}`; light names must be unique",
+                parsed.name
             )));
         }
-        let mut names = HashSet::new();
-        let mut owners: Vec<Option<String>> = vec![None; MAX_LIGHTS];
-        for (i, light) in lights_section.children_named("light").enumerate() {
-            unknown_children(light, LIGHT_TAGS, &mut unknown);
-            let parsed = parse_light(light, i)?;
-            if !names.insert(parsed.name.clone()) {
-                return Err(light.error(format!(
-                    "duplicate light name `{}`; light names must be unique",
-                    parsed.name
-                )));
-            }
-            let bit = light_bit(light, i)?;
-            if let Some(owner) = &owners[bit as usize] {
-                return Err(light.error(format!(
-                    "light `{}` and light `{owner}` both use bit {bit}; give each light its own <bit> (0..{})",
-                    parsed.name,
-                    MAX_LIGHTS - 1
-                )));
-            }
-            owners[bit as usize] = Some(parsed.name.clone());
-            bits.push(bit);
-            lights.push(parsed);
+        let bit = light_bit(light, i)?;
+        if let Some(owner) = &owners[bit as usize] {
+            return Err(light.error(format!(
+                "light `{}` and light `{owner}` both use bit {bit}; give each light its own <bit> (0..{})",
+                parsed.name,
+                MAX_LIGHTS - 1
+            )));
         }
+        owners[bit as usize] = Some(parsed.name.clone());
+        bits.push(bit);
+        lights.push(parsed);
     }
-
-    Ok(BakeSettings {
-        res_paths,
-        space,
-        face_culling,
-        height_bias,
-        tie_epsilon,
-        lights,
-        bits,
-        unknown,
-    })
+    Ok((lights, bits))
 }
 
 /// `<bit>`, or the light's position in the file.

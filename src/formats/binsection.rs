@@ -68,95 +68,19 @@ fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
 
 /// Parses the container's index. The entries' data is not looked at.
 pub fn parse(bytes: &[u8]) -> Result<BinSection<'_>, FormatError> {
-    let len = bytes.len();
-    if len < 4 {
-        return Err(FormatError::at_byte(
-            0,
-            format!(
-                "BinSection is {len} bytes long, too short to hold its 4-byte index length; \
-                 the file is truncated"
-            ),
-        ));
-    }
-    let has_magic = bytes.starts_with(&MAGIC);
-    let data_start = if has_magic { 4 } else { 0 };
-    let index_end = len - 4;
-    let index_len_at = index_end;
-    let raw_index_len = read_u32(bytes, index_len_at).unwrap_or(0) as i32;
-    let index_start = usize::try_from(raw_index_len)
-        .ok()
-        .and_then(|l| index_end.checked_sub(l))
-        .filter(|&start| start >= data_start)
-        .ok_or_else(|| {
-            FormatError::at_byte(
-                index_len_at,
-                format!(
-                    "BinSection index length {raw_index_len} does not fit in the file \
-                     ({} bytes available between the {} and the index length); \
-                     the file is truncated or not a BinSection",
-                    index_end.saturating_sub(data_start),
-                    if has_magic { "magic" } else { "file start" }
-                ),
-            )
-        })?;
-
+    let layout = Layout::of(bytes)?;
     let mut entries = Vec::new();
-    let mut offset = index_start;
-    let mut data_offset = data_start;
-    while offset < index_end {
+    let mut offset = layout.index_start;
+    let mut data_offset = layout.data_start;
+    while offset < layout.index_end {
         let entry_at = offset;
-        let truncated = |what: &str, at: usize| {
-            FormatError::at_byte(
-                at,
-                format!(
-                    "BinSection index entry {} (starting at byte {entry_at}) is cut off: \
-                     its {what} runs past the end of the index at byte {index_end}",
-                    entries.len()
-                ),
-            )
-        };
-        let raw_data_len = read_u32(bytes, offset)
-            .filter(|_| offset + 4 <= index_end)
-            .ok_or_else(|| truncated("data length", offset))?;
-        offset += 4;
-        if has_magic || raw_data_len & EXTENDED_BIT != 0 {
-            if offset + RESERVED_LEN > index_end {
-                return Err(truncated("16 reserved bytes", offset));
-            }
-            offset += RESERVED_LEN;
-        }
-        let data_len = (raw_data_len & !EXTENDED_BIT) as usize;
-        let name_len_at = offset;
-        let raw_name_len = read_u32(bytes, offset)
-            .filter(|_| offset + 4 <= index_end)
-            .ok_or_else(|| truncated("name length", offset))? as i32;
-        offset += 4;
-        let name_len = usize::try_from(raw_name_len)
-            .ok()
-            .filter(|&l| l <= index_end - offset)
-            .ok_or_else(|| {
-                FormatError::at_byte(
-                    name_len_at,
-                    format!(
-                        "BinSection index entry {} has name length {raw_name_len}, but only {} \
-                         bytes of the index remain; the index is corrupt",
-                        entries.len(),
-                        index_end - offset
-                    ),
-                )
-            })?;
-        let name_bytes = &bytes[offset..offset + name_len];
-        let name = String::from_utf8_lossy(name_bytes).into_owned();
-        let stored_name_len = if has_magic {
-            pad4(name_len).unwrap_or(usize::MAX)
-        } else {
-            name_len
-        };
-        if stored_name_len > index_end - offset {
-            return Err(truncated("name padding", offset + name_len));
-        }
-        offset += stored_name_len;
-
+        let Record {
+            name,
+            data_len,
+            next,
+        } = layout.record(bytes, offset, entries.len())?;
+        offset = next;
+        let index_start = layout.index_start;
         let data_end = data_offset
             .checked_add(data_len)
             .filter(|&end| end <= index_start)
@@ -179,6 +103,126 @@ pub fn parse(bytes: &[u8]) -> Result<BinSection<'_>, FormatError> {
         data_offset = pad4(data_end).unwrap_or(usize::MAX);
     }
     Ok(BinSection { bytes, entries })
+}
+
+/// Where a container's parts lie: data from `data_start` (after the magic,
+/// if any), the index in `index_start..index_end`, then the index length.
+struct Layout {
+    has_magic: bool,
+    data_start: usize,
+    index_start: usize,
+    index_end: usize,
+}
+
+/// One index record as stored: its entry's name and data length, and where
+/// the next record starts.
+struct Record {
+    name: String,
+    data_len: usize,
+    next: usize,
+}
+
+impl Layout {
+    /// Finds the index from the length at the end of the file.
+    fn of(bytes: &[u8]) -> Result<Layout, FormatError> {
+        let len = bytes.len();
+        if len < 4 {
+            return Err(FormatError::at_byte(
+                0,
+                format!(
+                    "BinSection is {len} bytes long, too short to hold its 4-byte index length; \
+                     the file is truncated"
+                ),
+            ));
+        }
+        let has_magic = bytes.starts_with(&MAGIC);
+        let data_start = if has_magic { 4 } else { 0 };
+        let index_end = len - 4;
+        let index_len_at = index_end;
+        let raw_index_len = read_u32(bytes, index_len_at).unwrap_or(0) as i32;
+        let index_start = usize::try_from(raw_index_len)
+            .ok()
+            .and_then(|l| index_end.checked_sub(l))
+            .filter(|&start| start >= data_start)
+            .ok_or_else(|| {
+                FormatError::at_byte(
+                    index_len_at,
+                    format!(
+                        "BinSection index length {raw_index_len} does not fit in the file \
+                         ({} bytes available between the {} and the index length); \
+                         the file is truncated or not a BinSection",
+                        index_end.saturating_sub(data_start),
+                        if has_magic { "magic" } else { "file start" }
+                    ),
+                )
+            })?;
+        Ok(Layout {
+            has_magic,
+            data_start,
+            index_start,
+            index_end,
+        })
+    }
+
+    /// Reads the index record `number` starting at byte `entry_at`, every
+    /// field checked against the end of the index.
+    fn record(&self, bytes: &[u8], entry_at: usize, number: usize) -> Result<Record, FormatError> {
+        let index_end = self.index_end;
+        let truncated = |what: &str, at: usize| {
+            FormatError::at_byte(
+                at,
+                format!(
+                    "BinSection index entry {number} (starting at byte {entry_at}) is cut off: \
+                     its {what} runs past the end of the index at byte {index_end}"
+                ),
+            )
+        };
+        let mut offset = entry_at;
+        let raw_data_len = read_u32(bytes, offset)
+            .filter(|_| offset + 4 <= index_end)
+            .ok_or_else(|| truncated("data length", offset))?;
+        offset += 4;
+        if self.has_magic || raw_data_len & EXTENDED_BIT != 0 {
+            if offset + RESERVED_LEN > index_end {
+                return Err(truncated("16 reserved bytes", offset));
+            }
+            offset += RESERVED_LEN;
+        }
+        let data_len = (raw_data_len & !EXTENDED_BIT) as usize;
+        let name_len_at = offset;
+        let raw_name_len = read_u32(bytes, offset)
+            .filter(|_| offset + 4 <= index_end)
+            .ok_or_else(|| truncated("name length", offset))? as i32;
+        offset += 4;
+        let name_len = usize::try_from(raw_name_len)
+            .ok()
+            .filter(|&l| l <= index_end - offset)
+            .ok_or_else(|| {
+                FormatError::at_byte(
+                    name_len_at,
+                    format!(
+                        "BinSection index entry {number} has name length {raw_name_len}, but only {} \
+                         bytes of the index remain; the index is corrupt",
+                        index_end - offset
+                    ),
+                )
+            })?;
+        let name_bytes = &bytes[offset..offset + name_len];
+        let name = String::from_utf8_lossy(name_bytes).into_owned();
+        let stored_name_len = if self.has_magic {
+            pad4(name_len).unwrap_or(usize::MAX)
+        } else {
+            name_len
+        };
+        if stored_name_len > index_end - offset {
+            return Err(truncated("name padding", offset + name_len));
+        }
+        Ok(Record {
+            name,
+            data_len,
+            next: offset + stored_name_len,
+        })
+    }
 }
 
 /// Writes a container with the magic, padded data and a padded index, as

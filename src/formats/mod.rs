@@ -1,6 +1,7 @@
-//! Readers and writers of the BigWorld file formats. This is the only part of
-//! the crate that touches the file system; everything below `scene/` and the
-//! bake work on the values these modules return.
+//! Readers and writers of the BigWorld file formats (and of the crate's own
+//! partial results and pictures): bytes into values and values into bytes.
+//! They never touch the file system (`files` reads and writes the bytes), so
+//! every decoder can be driven by any slice.
 
 pub mod bake_settings;
 pub mod binsection;
@@ -10,7 +11,6 @@ pub mod packed_xml;
 pub mod partial;
 pub mod png_write;
 pub mod primitives;
-pub mod resources;
 pub mod section;
 pub mod shadow_write;
 pub mod space_settings;
@@ -20,7 +20,8 @@ pub mod xml;
 
 pub use section::Section;
 
-use crate::error::FormatError;
+use crate::error::{Error, FormatError, TextPosition};
+use std::path::PathBuf;
 
 /// Parses a data section in either encoding, sniffing the magic: packed
 /// binary XML (`45 4E A1 62`) or text XML.
@@ -32,19 +33,48 @@ pub fn parse_data_section(bytes: &[u8]) -> Result<Section, FormatError> {
     }
 }
 
-/// Reads and validates a bake settings file; relative paths in it are taken
-/// relative to the file's folder.
-pub fn read_bake_settings(path: &std::path::Path) -> crate::Result<bake_settings::BakeSettings> {
-    let bytes = resources::read_file(path)?;
-    let dir = match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => dir,
-        _ => std::path::Path::new("."),
-    };
-    let mut settings = parse_data_section(&bytes)
-        .and_then(|root| bake_settings::parse(&root, dir))
-        .map_err(|e| e.in_source(path, &bytes))?;
-    for unknown in &mut settings.unknown {
-        unknown.position = crate::error::TextPosition::of(&bytes, unknown.offset as u64);
+/// The line and column of byte `offset` of a file's `bytes`, when they are
+/// text: packed XML is not, and only the readers know its magic.
+pub fn text_position(bytes: &[u8], offset: u64) -> Option<TextPosition> {
+    if bytes.starts_with(&packed_xml::MAGIC) {
+        return None;
     }
-    Ok(settings)
+    TextPosition::of(bytes, offset)
+}
+
+// Beside `text_position` rather than in `error`, which knows no format.
+impl FormatError {
+    /// Attaches the file and, when its bytes are text, the line and column
+    /// of the byte location (editors jump to `file:line:column`).
+    pub fn in_source(self, path: impl Into<PathBuf>, bytes: &[u8]) -> Error {
+        let position = self.at.offset().and_then(|o| text_position(bytes, o));
+        Error::Format {
+            path: path.into(),
+            at: self.at,
+            message: self.message,
+            position,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_in_text_give_line_and_column_and_packed_xml_none() {
+        let text = "<a>\n\t<bé>x</bé>\n</a>".as_bytes();
+        let at = text.iter().position(|&b| b == b'x').unwrap() as u64;
+        let err = FormatError::at_byte(at as usize, "bad").in_source("f.xml", text);
+        assert_eq!(err.to_string(), format!("f.xml:2:6 at byte {at}: bad"));
+        assert_eq!(
+            text_position(text, at),
+            Some(TextPosition { line: 2, column: 6 })
+        );
+        let mut packed = packed_xml::MAGIC.to_vec();
+        packed.extend_from_slice(b"\n\n\n");
+        assert_eq!(text_position(&packed, 6), None);
+        let err = FormatError::at_byte(6, "bad").in_source("f.xml", &packed);
+        assert_eq!(err.to_string(), "f.xml at byte 6: bad");
+    }
 }

@@ -103,6 +103,19 @@ struct Reader<'a> {
     strings: &'a [String],
 }
 
+/// An element's child table, read and checked.
+struct ChildTable {
+    /// Where the element (its child count) starts.
+    start: usize,
+    count: usize,
+    /// Where its data block starts, and its length.
+    data_start: usize,
+    data_len: usize,
+    /// Where its own value ends in the data block, and the value's type.
+    own_end: usize,
+    own_type: u32,
+}
+
 impl Reader<'_> {
     fn error(&self, path: &str, offset: usize, message: impl Into<String>) -> FormatError {
         FormatError::new(
@@ -140,12 +153,38 @@ impl Reader<'_> {
                 format!("packed XML nests deeper than {MAX_DEPTH} levels; the file is corrupt"),
             ));
         }
+        let table = self.child_table(&path, start, end)?;
+        let value = self.value(
+            table.own_type,
+            table.data_start,
+            table.data_start + table.own_end,
+            &path,
+        )?;
+        let mut children = Vec::new();
+        let mut previous = table.own_end;
+        for i in 0..table.count {
+            let (child, child_end) = self.child(&path, &table, i, previous, depth)?;
+            children.push(child);
+            previous = child_end;
+        }
+        Ok(Section {
+            name,
+            value,
+            children,
+            path,
+            span: start..end,
+        })
+    }
+
+    /// The child count and table of the element at `bytes[start..end]`,
+    /// checked against its length, and where its own value ends.
+    fn child_table(&self, path: &str, start: usize, end: usize) -> Result<ChildTable, FormatError> {
         let count = self
             .i16_at(start)
             .filter(|_| start + 2 <= end)
             .ok_or_else(|| {
                 self.error(
-                    &path,
+                    path,
                     start,
                     format!(
                         "element data is {} bytes, too short for its child count (2 bytes)",
@@ -155,7 +194,7 @@ impl Reader<'_> {
             })?;
         if count < 0 {
             return Err(self.error(
-                &path,
+                path,
                 start,
                 format!("negative child count {count}; the file is corrupt"),
             ));
@@ -166,7 +205,7 @@ impl Reader<'_> {
         let data_start = start + header_len;
         if data_start > end {
             return Err(self.error(
-                &path,
+                path,
                 start,
                 format!(
                     "{count} children need a {header_len}-byte table but the element has only {} bytes",
@@ -179,74 +218,81 @@ impl Reader<'_> {
         let own_end = (own_word & DATA_POS_MASK) as usize;
         if own_end > data_len {
             return Err(self.error(
-                &path,
+                path,
                 start + 2,
                 format!(
                     "own value ends at {own_end} but the element's data block has only {data_len} bytes"
                 ),
             ));
         }
-        let value = self.value(own_word >> 28, data_start, data_start + own_end, &path)?;
-
-        let mut children = Vec::new();
-        let mut previous = own_end;
-        for i in 0..count {
-            let record = start + 6 + 6 * i;
-            let key = self.i16_at(record).unwrap_or(-1);
-            let word = self.u32_at(record + 2).unwrap_or(0);
-            let child_end = (word & DATA_POS_MASK) as usize;
-            let child_name = usize::try_from(key)
-                .ok()
-                .and_then(|k| self.strings.get(k))
-                .ok_or_else(|| {
-                    self.error(
-                        &path,
-                        record,
-                        format!(
-                            "child {i} names string {key} but the string table holds {} strings",
-                            self.strings.len()
-                        ),
-                    )
-                })?;
-            let child_path = format!("{path}/{child_name}");
-            if child_end < previous || child_end > data_len {
-                return Err(self.error(
-                    &child_path,
-                    record + 2,
-                    format!(
-                        "child {i} data ends at {child_end}, outside {previous}..={data_len} \
-                         (the previous end and the data block length)"
-                    ),
-                ));
-            }
-            let (child_start, child_stop) = (data_start + previous, data_start + child_end);
-            let child = if word >> 28 == TYPE_SECTION {
-                self.element(
-                    child_name.clone(),
-                    child_path,
-                    child_start,
-                    child_stop,
-                    depth + 1,
-                )?
-            } else {
-                Section {
-                    name: child_name.clone(),
-                    value: self.value(word >> 28, child_start, child_stop, &child_path)?,
-                    children: Vec::new(),
-                    path: child_path,
-                    span: child_start..child_stop,
-                }
-            };
-            children.push(child);
-            previous = child_end;
-        }
-        Ok(Section {
-            name,
-            value,
-            children,
-            path,
-            span: start..end,
+        Ok(ChildTable {
+            start,
+            count,
+            data_start,
+            data_len,
+            own_end,
+            own_type: own_word >> 28,
         })
+    }
+
+    /// Child `i` of an element, whose data begins where the previous one's
+    /// ended (`previous`, in the data block), and where its data ends.
+    fn child(
+        &self,
+        path: &str,
+        table: &ChildTable,
+        i: usize,
+        previous: usize,
+        depth: usize,
+    ) -> Result<(Section, usize), FormatError> {
+        let record = table.start + 6 + 6 * i;
+        let key = self.i16_at(record).unwrap_or(-1);
+        let word = self.u32_at(record + 2).unwrap_or(0);
+        let child_end = (word & DATA_POS_MASK) as usize;
+        let child_name = usize::try_from(key)
+            .ok()
+            .and_then(|k| self.strings.get(k))
+            .ok_or_else(|| {
+                self.error(
+                    path,
+                    record,
+                    format!(
+                        "child {i} names string {key} but the string table holds {} strings",
+                        self.strings.len()
+                    ),
+                )
+            })?;
+        let child_path = format!("{path}/{child_name}");
+        let data_len = table.data_len;
+        if child_end < previous || child_end > data_len {
+            return Err(self.error(
+                &child_path,
+                record + 2,
+                format!(
+                    "child {i} data ends at {child_end}, outside {previous}..={data_len} \
+                     (the previous end and the data block length)"
+                ),
+            ));
+        }
+        let (child_start, child_stop) = (table.data_start + previous, table.data_start + child_end);
+        let child = if word >> 28 == TYPE_SECTION {
+            self.element(
+                child_name.clone(),
+                child_path,
+                child_start,
+                child_stop,
+                depth + 1,
+            )?
+        } else {
+            Section {
+                name: child_name.clone(),
+                value: self.value(word >> 28, child_start, child_stop, &child_path)?,
+                children: Vec::new(),
+                path: child_path,
+                span: child_start..child_stop,
+            }
+        };
+        Ok((child, child_end))
     }
 
     /// Renders a typed value as the engine's `asString` would.

@@ -21,11 +21,9 @@
 //! count, then per unit: light, first tile, end tile, rays, seconds and
 //! `ceil(casters / 64)` words of caster bits.
 
-use super::resources;
 use crate::digest::Digest;
-use crate::error::{FormatError, Result};
+use crate::error::FormatError;
 use std::io::{Read, Write};
-use std::path::Path;
 
 pub const MAGIC: [u8; 8] = *b"SCULLPRT";
 /// Bumped whenever the layout or the meaning of a field changes.
@@ -68,17 +66,6 @@ pub struct Partial {
     pub plan: Digest,
     pub casters: u64,
     pub units: Vec<PartialUnit>,
-}
-
-/// Writes `partial` to `path` atomically.
-pub fn write(path: &Path, partial: &Partial) -> Result<()> {
-    resources::write_atomic(path, &encode(partial))
-}
-
-/// Reads and checks the partial at `path`; every error names it.
-pub fn read(path: &Path) -> Result<Partial> {
-    let bytes = resources::read_file(path)?;
-    decode(&bytes).map_err(|e| e.in_file(path))
 }
 
 pub fn encode(partial: &Partial) -> Vec<u8> {

@@ -1,11 +1,6 @@
-//! PNG output for `render`: the library computes pictures as plain RGB
-//! buffers and this module, like every other file writer, lives in
-//! `formats` so nothing else touches the file system. Encoding is
-//! deterministic (fixed compression and filter), so the same picture gives
-//! the same bytes.
-
-use crate::error::{Error, Result};
-use std::path::Path;
+//! PNG encoding for `render`, which computes pictures as plain RGB
+//! buffers. Encoding is deterministic (fixed compression and filter), so
+//! the same picture gives the same bytes.
 
 /// Encodes an 8-bit RGB picture (`width × height × 3` bytes, rows top to
 /// bottom) as PNG bytes.
@@ -38,12 +33,6 @@ pub fn encode_rgb(width: u32, height: u32, rgb: &[u8]) -> std::result::Result<Ve
     Ok(bytes)
 }
 
-/// Encodes and writes `path` atomically (temporary file, then rename).
-pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
-    let bytes = encode_rgb(width, height, rgb).map_err(|message| Error::invalid(path, message))?;
-    super::resources::write_atomic(path, &bytes)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -69,17 +58,5 @@ mod tests {
             .unwrap_err()
             .contains("needs 12 bytes"));
         assert!(encode_rgb(0, 2, &[]).is_err());
-    }
-
-    #[test]
-    fn unwritable_path_is_named() {
-        let dir = tempfile::tempdir().unwrap();
-        let file = dir.path().join("a-file");
-        std::fs::write(&file, b"x").unwrap();
-        let target = file.join("out.png");
-        let message = write_rgb(&target, 1, 1, &[1, 2, 3])
-            .unwrap_err()
-            .to_string();
-        assert!(message.contains("a-file"), "{message}");
     }
 }

@@ -57,10 +57,11 @@ const MAX_ENTRY_BYTES: u64 = 256 << 20;
 /// Same bound for decoded grids, in samples.
 const MAX_SAMPLES: usize = 64 << 20;
 
-/// Heights in metres, row-major: `heights[z * width + x]`, chunk-local,
-/// including the format's border samples.
+/// A block's height map as the file holds it: heights in metres, row-major
+/// (`heights[z * width + x]`), chunk-local, including the format's border
+/// samples (the tracer's view of the visible ones is `trace::HeightGrid`).
 #[derive(Debug, Clone, PartialEq)]
-pub struct HeightGrid {
+pub struct HeightMap {
     pub width: usize,
     pub height: usize,
     pub heights: Vec<f32>,
@@ -83,7 +84,7 @@ pub enum TerrainVersion {
 #[derive(Debug, Clone, PartialEq)]
 pub struct TerrainData {
     pub version: TerrainVersion,
-    pub heights: HeightGrid,
+    pub heights: HeightMap,
     /// Border samples on each side of `heights` that are not geometry
     /// (2 for terrain2, 1 for terrain1).
     pub border: usize,
@@ -264,7 +265,7 @@ fn sample_count(w: u32, h: u32, at: usize, what: &str) -> Result<usize, FormatEr
 }
 
 /// Decodes a terrain2 `heights` entry (after BinaryBlock inflation).
-pub fn decode_heights(b: &[u8]) -> Result<HeightGrid, FormatError> {
+pub fn decode_heights(b: &[u8]) -> Result<HeightMap, FormatError> {
     if b.len() < HEIGHTS_HEADER_LEN {
         return Err(FormatError::at_byte(
             b.len(),
@@ -330,7 +331,7 @@ pub fn decode_heights(b: &[u8]) -> Result<HeightGrid, FormatError> {
             ))
         }
     };
-    Ok(HeightGrid {
+    Ok(HeightMap {
         width: w as usize,
         height: h as usize,
         heights,
@@ -554,7 +555,7 @@ pub fn read_terrain1_block(b: &[u8]) -> Result<TerrainData, FormatError> {
         .collect();
     Ok(TerrainData {
         version: TerrainVersion::Terrain1,
-        heights: HeightGrid {
+        heights: HeightMap {
             width: w as usize,
             height: h as usize,
             heights,
@@ -575,7 +576,7 @@ pub fn read_terrain1_block(b: &[u8]) -> Result<TerrainData, FormatError> {
 /// If the grid or hole map cannot be written (see
 /// [`try_write_terrain2_cdata`]); use that function for data you did not
 /// build yourself.
-pub fn write_terrain2_cdata(heights: &HeightGrid, holes: Option<&HoleMap>) -> Vec<u8> {
+pub fn write_terrain2_cdata(heights: &HeightMap, holes: Option<&HoleMap>) -> Vec<u8> {
     match try_write_terrain2_cdata(heights, holes) {
         Ok(bytes) => bytes,
         Err(e) => panic!("write_terrain2_cdata: {e}"),
@@ -591,7 +592,7 @@ pub fn write_terrain2_cdata(heights: &HeightGrid, holes: Option<&HoleMap>) -> Ve
 /// marks it not to be zipped again) with the DOS epoch as timestamp; the PNG
 /// uses fixed filter and compression settings.
 pub fn try_write_terrain2_cdata(
-    heights: &HeightGrid,
+    heights: &HeightMap,
     holes: Option<&HoleMap>,
 ) -> Result<Vec<u8>, String> {
     let heights_entry = encode_heights(heights)?;
@@ -623,7 +624,7 @@ fn quantise_mm(h: f32) -> Option<i32> {
     (h.is_finite() && q >= f64::from(i32::MIN) && q <= f64::from(i32::MAX)).then_some(q as i32)
 }
 
-fn encode_heights(grid: &HeightGrid) -> Result<Vec<u8>, String> {
+fn encode_heights(grid: &HeightMap) -> Result<Vec<u8>, String> {
     let (w, h) = (grid.width, grid.height);
     let (Ok(w32), Ok(h32)) = (u32::try_from(w), u32::try_from(h)) else {
         return Err(format!("height grid {w}×{h} is too large"));
@@ -733,16 +734,16 @@ mod tests {
     }
 
     /// A version 4 entry for `grid`, through the writer's encoder.
-    fn heights_entry(grid: &HeightGrid) -> Vec<u8> {
+    fn heights_entry(grid: &HeightMap) -> Vec<u8> {
         encode_heights(grid).expect("encodable grid")
     }
 
-    fn grid(w: usize, h: usize, f: impl Fn(usize, usize) -> i32) -> HeightGrid {
+    fn grid(w: usize, h: usize, f: impl Fn(usize, usize) -> i32) -> HeightMap {
         let heights = (0..h)
             .flat_map(|z| (0..w).map(move |x| (x, z)))
             .map(|(x, z)| f(x, z) as f32 * 0.001f32)
             .collect();
-        HeightGrid {
+        HeightMap {
             width: w,
             height: h,
             heights,

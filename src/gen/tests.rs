@@ -291,7 +291,7 @@ fn terrain_blocks_are_continuous_and_one_has_a_hole() {
     let grids: BTreeMap<(i32, i32), _> = pl
         .chunks
         .iter()
-        .map(|c| ((c.gx, c.gz), world::height_grid(&pl, c)))
+        .map(|c| ((c.gx, c.gz), world::height_map(&pl, c)))
         .collect();
     let g = &grids[&(0, 0)];
     assert_eq!(g.width, hms + 5);
@@ -405,7 +405,7 @@ fn written_binaries_read_back_with_the_crate_readers() {
                 .file(&format!("{}/{}.cdata", pl.params.space(), ch.name()))
                 .unwrap();
             let t = terrain::read_terrain(cdata, "terrain2").unwrap();
-            let want = world::height_grid(&pl, ch);
+            let want = world::height_map(&pl, ch);
             assert_eq!(t.heights.width, pl.params.height_map_size + 5);
             assert_eq!(t.heights.height, want.height);
             for (a, b) in t.heights.heights.iter().zip(&want.heights) {
@@ -426,7 +426,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
     // The generator's in-memory meshes against what the whole loader
     // (model → visual → primitives, node transform applied) makes of the
     // written files: same groups, flags, triangles and positions.
-    use crate::formats::resources::{write_tree, ResPaths};
+    use crate::files::{write_tree, ResPaths};
     use crate::scene::{load_scene, LoadConfig};
     for preset in [Preset::Small, Preset::Village] {
         let world = generate(preset, 2);
@@ -495,7 +495,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
 
 #[test]
 fn streamed_generation_equals_the_in_memory_one_and_any_size_loads() {
-    use crate::formats::resources::{write_tree, ResPaths};
+    use crate::files::{write_tree, ResPaths};
     use crate::scene::{load_scene, LoadConfig};
     let world = generate(Preset::Village, 3);
     let mut streamed = Vec::new();

@@ -6,7 +6,7 @@
 use super::models::Kind;
 use super::xml::{f6, v3, XmlOut};
 use super::Preset;
-use crate::formats::terrain::{write_terrain2_cdata, HeightGrid, HoleMap};
+use crate::formats::terrain::{write_terrain2_cdata, HeightMap, HoleMap};
 use crate::rng::{mix, Rng};
 
 pub(crate) type M43 = [[f64; 3]; 4];
@@ -541,7 +541,7 @@ pub(crate) fn chunk_xml(ch: &ChunkPlan, rng_seed: u64) -> Vec<u8> {
 
 /// The terrain2 block of a chunk: heightMapSize + 1 samples over 0..size
 /// plus 2 border samples each side.
-pub(crate) fn height_grid(plan: &WorldPlan, ch: &ChunkPlan) -> HeightGrid {
+pub(crate) fn height_map(plan: &WorldPlan, ch: &ChunkPlan) -> HeightMap {
     let hms = plan.params.height_map_size;
     let w = hms + 5;
     let spacing = plan.params.chunk_size / hms as f64;
@@ -557,7 +557,7 @@ pub(crate) fn height_grid(plan: &WorldPlan, ch: &ChunkPlan) -> HeightGrid {
             heights.push(plan.hills.height(wx, wz) as f32);
         }
     }
-    HeightGrid {
+    HeightMap {
         width: w,
         height: w,
         heights,
@@ -582,7 +582,7 @@ pub(crate) fn hole_map(plan: &WorldPlan, ch: &ChunkPlan) -> Option<HoleMap> {
 }
 
 pub(crate) fn terrain_cdata(plan: &WorldPlan, ch: &ChunkPlan) -> Vec<u8> {
-    let grid = height_grid(plan, ch);
+    let grid = height_map(plan, ch);
     let holes = hole_map(plan, ch);
     write_terrain2_cdata(&grid, holes.as_ref())
 }

@@ -187,7 +187,7 @@ mod tests {
     use super::*;
     use crate::bake::ground::Ground;
     use crate::formats::space_settings::{outdoor_chunk_name, SpaceSettings};
-    use crate::formats::terrain::{HeightGrid, HoleMap, TerrainData, TerrainVersion};
+    use crate::formats::terrain::{HeightMap, HoleMap, TerrainData, TerrainVersion};
     use crate::rng::Rng;
     use crate::scene::{Chunk, Scene, TerrainBlock};
     use glam::{DMat4, DVec3};
@@ -219,7 +219,7 @@ mod tests {
                 });
                 let data = TerrainData {
                     version: TerrainVersion::Terrain2,
-                    heights: HeightGrid {
+                    heights: HeightMap {
                         width,
                         height: width,
                         heights,

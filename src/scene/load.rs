@@ -9,8 +9,8 @@
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
+use crate::files::{self, ResPaths};
 use crate::formats::chunk::{self, ChunkFile};
-use crate::formats::resources::{self, ResPaths};
 use crate::formats::space_settings;
 use crate::formats::{
     self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
@@ -65,7 +65,7 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 /// blocks are done.
 pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
     let log = ReadLog::default();
-    let space = resources::normalise(&config.space);
+    let space = files::normalise(&config.space);
     let settings_name = format!("{space}/space.settings");
     let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
         Error::invalid(
@@ -92,7 +92,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
     // space.settings says <singleDir>.
     // Entries that are not regular files (a FIFO, a link to a device) are
     // never opened: each is a problem.
-    let walk = resources::walk(&space_dir, ".chunk", !settings.single_dir)?;
+    let walk = files::walk(&space_dir, ".chunk", !settings.single_dir)?;
     let chunk_files = walk.files;
     let mut problems: Vec<Problem> = walk
         .refused
@@ -172,7 +172,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
     for (path, chunk) in by_name.values() {
         for instance in &chunk.instances {
             for resource in &instance.resources {
-                let name = resources::normalise(resource);
+                let name = files::normalise(resource);
                 first_reference
                     .entry(name.clone())
                     .or_insert_with(|| path.clone());
@@ -267,7 +267,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
                 let parts: Vec<Option<usize>> = element
                     .resources
                     .iter()
-                    .map(|r| model_names.get(&resources::normalise(r)).copied())
+                    .map(|r| model_names.get(&files::normalise(r)).copied())
                     .collect();
                 instances.push(Instance {
                     chunk: chunk_index,
@@ -368,7 +368,7 @@ fn read_parsed<T>(
     log: &ReadLog,
     parse: impl FnOnce(&formats::Section) -> Result<T, crate::error::FormatError>,
 ) -> Result<T> {
-    let bytes = resources::read_file(path)?;
+    let bytes = files::read_file(path)?;
     log.record(path, &bytes);
     formats::parse_data_section(&bytes)
         .and_then(|root| parse(&root))
@@ -379,7 +379,7 @@ fn read_parsed<T>(
 /// bake ignores old `<shadow>` values, so writing masks does not change the
 /// chunk as an input.
 fn read_chunk(path: &Path, log: &ReadLog) -> Result<ChunkFile> {
-    let bytes = resources::read_file(path)?;
+    let bytes = files::read_file(path)?;
     let root = formats::parse_data_section(&bytes).map_err(|e| e.in_source(path, &bytes))?;
     let chunk = chunk::parse(&root).map_err(|e| e.in_source(path, &bytes))?;
     match shadow_write::without_masks(&bytes, &root, &chunk) {
@@ -493,7 +493,7 @@ fn load_terrain(
     origin: DVec3,
     chunk_size: f64,
 ) -> Result<TerrainBlock> {
-    let resource = resources::normalise(resource);
+    let resource = files::normalise(resource);
     let Some((file, entry)) = resource
         .split_once(".cdata/")
         .map(|(stem, entry)| (format!("{stem}.cdata"), entry.to_string()))
@@ -503,23 +503,16 @@ fn load_terrain(
             format!("terrain resource `{resource}` does not name a .cdata entry (expected `NAME.cdata/terrain2`)"),
         ));
     };
-    if !resources::stays_inside(&file) {
+    if !files::stays_inside(&file) {
         return Err(Error::invalid(
             chunk_path,
             format!("terrain resource `{resource}` climbs out of the chunk's folder (`..` or a drive prefix); refused: name the .cdata relative to the chunk"),
         ));
     }
     let dir = chunk_path.parent().unwrap_or(Path::new("."));
-    // Engines write the name relative to the chunk folder; some tools write
-    // it with the space folder prefixed, so the bare file name is tried too.
-    let mut cdata_path = dir.join(&file);
-    if !cdata_path.is_file() {
-        if let Some(name) = Path::new(&file).file_name() {
-            cdata_path = dir.join(name);
-        }
-    }
+    let cdata_path = files::in_folder_or_bare(dir, &file);
     res_paths.check_inside(&cdata_path)?;
-    let bytes = resources::read_file(&cdata_path)?;
+    let bytes = files::read_file(&cdata_path)?;
     log.record(&cdata_path, &bytes);
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
     TerrainBlock::new(&data, origin, chunk_size)

@@ -334,7 +334,7 @@ fn cell_and_fraction(g: f64, cells: usize) -> (usize, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formats::terrain::{HeightGrid, HoleMap};
+    use crate::formats::terrain::{HeightMap, HoleMap};
     use crate::rng::Rng;
 
     const SENTINEL: f32 = 1000.0;
@@ -358,7 +358,7 @@ mod tests {
         }
         TerrainData {
             version,
-            heights: HeightGrid {
+            heights: HeightMap {
                 width: w,
                 height: w,
                 heights,
@@ -583,7 +583,7 @@ mod tests {
             };
             let d = TerrainData {
                 version,
-                heights: HeightGrid {
+                heights: HeightMap {
                     width: w,
                     height: h,
                     heights,

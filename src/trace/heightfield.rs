@@ -176,8 +176,8 @@ pub(crate) enum Step {
 ///
 /// A range is stored as two u16 steps of `(high − low) / 65535` above the
 /// block's lowest height, rounded outward ([`Quantizer`]): 4 bytes a tile
-/// instead of 8, the pyramid being a third of a big world's terrain
-/// memory. The walk's boxes are as conservative as with exact ranges (a
+/// instead of 8, since the pyramids are a large part of a big world's
+/// terrain memory. The walk's boxes are as conservative as with exact ranges (a
 /// box only grows), slightly looser.
 #[derive(Clone, Debug, Default)]
 pub struct HeightField {
@@ -250,8 +250,8 @@ impl HeightField {
         let tiles_z = grid.cells_z.div_ceil(TILE_CELLS);
         let side = tiles_x.max(tiles_z).max(1).next_power_of_two();
         // Exactly the pyramid's entries (side² (1 + 1/4 + …)): growing by
-        // pushes would double the allocation, a third of a big world's
-        // terrain memory.
+        // pushes could double the allocation of a large part of a big
+        // world's terrain memory.
         let entries = (4 * side * side - 1) / 3;
         let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
         for &h in grid.heights {

@@ -2,8 +2,8 @@
 //! element or byte offset) or a problem listed by the scene while the rest of
 //! the world still loads. Nothing panics.
 
-use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::read_bake_settings;
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Problem, Scene};
 use shadowcull::Error;
@@ -186,9 +186,7 @@ fn damaged_terrain_is_a_problem_not_a_failure() {
 #[test]
 fn empty_space_and_missing_space_are_errors_that_say_what_to_do() {
     let dir = small_world();
-    for chunk in
-        shadowcull::formats::resources::find_files(&dir.path().join("spaces/small"), ".chunk")
-            .unwrap()
+    for chunk in shadowcull::files::find_files(&dir.path().join("spaces/small"), ".chunk").unwrap()
     {
         std::fs::remove_file(chunk).unwrap();
     }
@@ -281,7 +279,7 @@ fn a_world_saved_as_packed_binary_xml_loads_the_same() {
     let before = load(dir.path()).unwrap().stats();
     let mut converted = 0;
     for suffix in [".chunk", ".model", ".visual", "space.settings"] {
-        for path in shadowcull::formats::resources::find_files(dir.path(), suffix).unwrap() {
+        for path in shadowcull::files::find_files(dir.path(), suffix).unwrap() {
             let text = std::fs::read(&path).unwrap();
             let tree = shadowcull::formats::xml::parse(&text).unwrap();
             let packed = shadowcull::formats::packed_xml::write(&tree).unwrap();

@@ -6,8 +6,8 @@ use crate::generated::{fixture_dir, load_world};
 use crate::micro::*;
 use glam::{DMat4, DQuat, DVec3, Vec3};
 use shadowcull::bake::{self, BakeConfig, Silent};
+use shadowcull::files::write_tree;
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
-use shadowcull::formats::resources::write_tree;
 use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::rng::Rng;
 use std::path::Path;
@@ -155,8 +155,7 @@ fn bvh_equals_brute_force_on_a_generated_world() {
     let dir = tempfile::tempdir().unwrap();
     write_tree(dir.path(), &world.files).unwrap();
     let scene = load_world(&dir.path().join(SETTINGS_FILE));
-    let settings =
-        shadowcull::formats::read_bake_settings(&dir.path().join(SETTINGS_FILE)).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&dir.path().join(SETTINGS_FILE)).unwrap();
     // Coarser grids than the file's, so the oracle stays quick.
     let lights = settings
         .lights
@@ -266,7 +265,7 @@ fn copy_fixture(preset: Preset, to: &Path) {
 }
 
 fn snapshot(dir: &Path) -> Vec<(std::path::PathBuf, Vec<u8>)> {
-    shadowcull::formats::resources::find_files(dir, ".chunk")
+    shadowcull::files::find_files(dir, ".chunk")
         .unwrap()
         .into_iter()
         .map(|p| {
@@ -448,7 +447,7 @@ fn bake_errors_exit_1_and_name_the_file() {
 fn fixture_casters(preset: Preset) -> serde_json::Value {
     let settings_file = fixture_dir(preset).join(SETTINGS_FILE);
     let scene = load_world(&settings_file);
-    let settings = shadowcull::formats::read_bake_settings(&settings_file).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&settings_file).unwrap();
     let config = BakeConfig::from_settings(&settings);
     let result = bake::bake(&scene, &config, &Silent).unwrap();
     serde_json::to_value(bake::output::report(&scene, &result).casters).unwrap()
@@ -466,7 +465,7 @@ fn fixture_bakes_match_the_blessed_masks() {
         let got = fixture_casters(preset);
         if std::env::var_os("SHADOWCULL_BLESS").is_some() {
             let text = serde_json::to_string_pretty(&got).unwrap() + "\n";
-            shadowcull::formats::resources::write_atomic(&path, text.as_bytes()).unwrap();
+            shadowcull::files::write_atomic(&path, text.as_bytes()).unwrap();
         }
         let blessed: serde_json::Value =
             serde_json::from_slice(&std::fs::read(&path).unwrap_or_else(|e| {

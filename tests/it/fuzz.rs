@@ -11,8 +11,8 @@
 use crate::support::realdata;
 use glam::DVec3;
 use shadowcull::bake::{self, output, BakeConfig, Silent};
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
-use shadowcull::formats::resources::{write_tree, ResPaths};
 use shadowcull::gen::{generate, Preset};
 use shadowcull::rng::Rng;
 use shadowcull::scene::{load_scene, LoadConfig};

@@ -2,8 +2,8 @@
 //! exactly what the generator placed, and the committed fixtures are what
 //! the generator writes today.
 
-use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::read_bake_settings;
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::gen::{generate, Expected, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Scene, Stats};
 use std::path::{Path, PathBuf};
@@ -95,7 +95,7 @@ fn committed_fixtures_are_what_gen_writes() {
                 preset.name()
             );
         }
-        let committed_files = shadowcull::formats::resources::find_files(&dir, "").unwrap();
+        let committed_files = shadowcull::files::find_files(&dir, "").unwrap();
         assert_eq!(
             committed_files.len(),
             world.files.len(),

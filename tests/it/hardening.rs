@@ -3,8 +3,8 @@
 //! guard it names is taken out.
 
 use shadowcull::bake::{self, output, BakeConfig, Silent};
-use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::{host_name, write_tree, ResPaths, STALE_TEMPORARY_AGE};
+use shadowcull::files::read_bake_settings;
+use shadowcull::files::{host_name, write_tree, ResPaths, STALE_TEMPORARY_AGE};
 use shadowcull::gen::{generate, stack_first_model, Preset, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig, Problem, Scene};
 use std::collections::BTreeMap;

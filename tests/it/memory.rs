@@ -6,7 +6,7 @@
 //! 16×16-chunk world instead of 6×6.
 
 use shadowcull::bake::memory::{peak_resident, WorldSize};
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::gen::{generate_each, WorldSize as GenSize, SETTINGS_FILE};
 use shadowcull::scene::{load_scene, LoadConfig};
 use std::process::{Command, Stdio};
@@ -44,7 +44,7 @@ fn peak_memory_follows_the_memory_model_not_placed_triangles() {
     })
     .unwrap();
     let settings_path = dir.path().join(SETTINGS_FILE);
-    let settings = shadowcull::formats::read_bake_settings(&settings_path).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&settings_path).unwrap();
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),

@@ -6,7 +6,7 @@ use shadowcull::bake::{self, BakeConfig, BakeResult, Silent};
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
 use shadowcull::formats::chunk::InstanceKind;
 use shadowcull::formats::space_settings::SpaceSettings;
-use shadowcull::formats::terrain::{HeightGrid, TerrainData, TerrainVersion};
+use shadowcull::formats::terrain::{HeightMap, TerrainData, TerrainVersion};
 use shadowcull::scene::{Chunk, Group, Instance, Model, Scene, TerrainBlock};
 
 /// Chunk size of micro worlds (metres).
@@ -245,7 +245,7 @@ impl World {
         }
         let data = TerrainData {
             version: TerrainVersion::Terrain2,
-            heights: HeightGrid {
+            heights: HeightMap {
                 width,
                 height: width,
                 heights,

@@ -6,7 +6,7 @@
 
 use crate::cli::shadowcull;
 use serde_json::Value;
-use shadowcull::formats::resources::write_tree;
+use shadowcull::files::write_tree;
 use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

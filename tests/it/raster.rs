@@ -7,8 +7,8 @@
 use crate::support::realdata;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{bake, BakeConfig, Silent};
+use shadowcull::files::ResPaths;
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
-use shadowcull::formats::resources::ResPaths;
 use shadowcull::raster::{self, xcheck, Counter, Fault, RasterOptions, RasterResult};
 use shadowcull::scene::{load_scene, LoadConfig, Scene};
 use std::path::Path;
@@ -40,7 +40,7 @@ fn compare(scene: &Scene, config: &BakeConfig, result: &RasterResult) -> xcheck:
 fn fixture(name: &str) -> (Scene, BakeConfig) {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("fixtures/worlds/{name}/bake.xml"));
-    let settings = shadowcull::formats::read_bake_settings(&path).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&path).unwrap();
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
@@ -500,7 +500,7 @@ fn bench_sun_at_a_quarter_metre_counts_exactly() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let settings = shadowcull::formats::read_bake_settings(&dir.path().join("bake.xml")).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&dir.path().join("bake.xml")).unwrap();
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),

@@ -3,14 +3,14 @@
 //! binaries are absent) still loads, with every missing resource listed.
 
 use crate::support::realdata;
-use shadowcull::formats::resources::{write_tree, ResPaths};
+use shadowcull::files::{write_tree, ResPaths};
 use shadowcull::formats::{binsection, primitives};
 use shadowcull::scene::{load_scene, LoadConfig};
 use std::collections::BTreeMap;
 use std::path::Path;
 
 pub(crate) fn real_model_names(res: &Path) -> Vec<String> {
-    let mut names: Vec<String> = shadowcull::formats::resources::find_files(res, ".model")
+    let mut names: Vec<String> = shadowcull::files::find_files(res, ".model")
         .unwrap()
         .into_iter()
         .map(|p| {

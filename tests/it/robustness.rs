@@ -666,8 +666,8 @@ fn nan_zero_scale_and_singular_transforms_are_skipped_and_reported_by_the_bake()
     // `skipped` (so the report counts them). Three placements of the small
     // world are damaged: a NaN, a zero scale (all-zero rotation rows) and a
     // singular matrix (two equal rows, determinant 0 with no zero scale).
-    use shadowcull::formats::read_bake_settings;
-    use shadowcull::formats::resources::{write_tree, ResPaths};
+    use shadowcull::files::read_bake_settings;
+    use shadowcull::files::{write_tree, ResPaths};
     use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
     use shadowcull::scene::{load_scene, LoadConfig};
     let dir = tempfile::tempdir().unwrap();

@@ -6,8 +6,8 @@
 //! runs it) adds the `bench` world.
 
 use crate::cli::shadowcull;
+use shadowcull::files::write_tree;
 use shadowcull::formats::partial;
-use shadowcull::formats::resources::write_tree;
 use shadowcull::gen::{generate, Preset};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -233,7 +233,7 @@ fn a_partial_of_other_inputs_is_refused_naming_it_and_the_file() {
     let parts = three_shards(&settings, dir.path(), "p");
     // One chunk edited (a value nudged, still a valid chunk), shard 2 baked
     // from it, the chunk put back.
-    let chunk = shadowcull::formats::resources::find_files(&dir.path().join("world"), ".chunk")
+    let chunk = shadowcull::files::find_files(&dir.path().join("world"), ".chunk")
         .unwrap()
         .remove(0);
     let original = std::fs::read(&chunk).unwrap();
@@ -390,10 +390,10 @@ fn damaged_partials_are_refused_naming_each() {
 
     // A well-formed copy of shard 1 whose answer differs (one caster bit
     // flipped, checksum valid): the two copies of shard 1 disagree.
-    let mut wrong = partial::read(&parts[1]).unwrap();
+    let mut wrong = shadowcull::files::read_partial(&parts[1]).unwrap();
     wrong.units[0].words[0] ^= 1;
     let wrong_path = dir.path().join("wrong1.part");
-    partial::write(&wrong_path, &wrong).unwrap();
+    shadowcull::files::write_partial(&wrong_path, &wrong).unwrap();
     refused(
         merge(
             &settings,
@@ -518,7 +518,7 @@ fn merging_in_place_twice_works_because_written_masks_are_not_inputs() {
     let second = ok(merge_in_place(), "second merge");
     assert!(String::from_utf8_lossy(&second.stdout).contains("wrote 0 of 9"));
     // Another value inside a chunk is still another input.
-    let chunk = shadowcull::formats::resources::find_files(&dir.path().join("world"), ".chunk")
+    let chunk = shadowcull::files::find_files(&dir.path().join("world"), ".chunk")
         .unwrap()
         .remove(0);
     let text = std::fs::read_to_string(&chunk).unwrap();
@@ -549,7 +549,7 @@ fn the_merge_table_gives_the_shards_trace_time_and_rate() {
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     let units: Vec<partial::PartialUnit> = parts
         .iter()
-        .flat_map(|p| partial::read(p).unwrap().units)
+        .flat_map(|p| shadowcull::files::read_partial(p).unwrap().units)
         .collect();
     for light in json["lights"].as_array().unwrap() {
         let index = light["index"].as_u64().unwrap() as u32;

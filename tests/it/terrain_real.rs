@@ -7,7 +7,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use glam::DVec3;
 use shadowcull::formats::terrain::{
-    decode_heights, decode_holes, read_terrain, write_terrain2_cdata, HeightGrid, HoleMap,
+    decode_heights, decode_holes, read_terrain, write_terrain2_cdata, HeightMap, HoleMap,
     TerrainVersion,
 };
 use shadowcull::rng::Rng;
@@ -201,7 +201,7 @@ fn damaged_blank_cdata_never_panics() {
 #[test]
 fn damaged_written_block_with_holes_never_panics() {
     let w = 133;
-    let heights = HeightGrid {
+    let heights = HeightMap {
         width: w,
         height: w,
         heights: (0..w * w)

@@ -9,9 +9,9 @@ use shadowcull::bake::trace_light::{
     CasterSet, PacketSkip, PacketState, RayCounter, MAX_PACKET_SPACING,
 };
 use shadowcull::bake::BakeConfig;
+use shadowcull::files::read_bake_settings;
+use shadowcull::files::write_tree;
 use shadowcull::formats::bake_settings::LightKind;
-use shadowcull::formats::read_bake_settings;
-use shadowcull::formats::resources::write_tree;
 use shadowcull::gen::{generate, Preset, SETTINGS_FILE};
 use shadowcull::trace::{PacketScratch, TraceMode};
 

@@ -1,0 +1,314 @@
+//! Batch writes that never leave a torn file: every target checked first,
+//! every temporary file written and synced before the first rename, modes
+//! and owners kept, symbolic links written through, folders synced after.
+
+use super::folder_of;
+use super::replaceable::plan_target;
+use super::temporaries::{remove_stale_temporaries, temporary_folder, temporary_path};
+use crate::error::{Error, Result};
+use std::collections::BTreeMap;
+use std::fs::{self, File, Metadata};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Replaces `path` atomically (see [`write_files`]).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_files(&[(path, bytes)])
+}
+
+/// Writes a tree of files (paths relative to `dir`, `/`-separated) with
+/// [`write_files`].
+pub fn write_tree(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
+    let paths: Vec<PathBuf> = files.iter().map(|(r, _)| dir.join(r)).collect();
+    let batch: Vec<(&Path, &[u8])> = paths
+        .iter()
+        .zip(files)
+        .map(|(p, (_, b))| (p.as_path(), b.as_slice()))
+        .collect();
+    write_files(&batch)
+}
+
+/// One file of a batch, after the checks.
+struct Planned<'a> {
+    /// The file itself: a symbolic link's target, resolved.
+    real: PathBuf,
+    folder: PathBuf,
+    /// The file it replaces, whose mode and owner the new file keeps.
+    existing: Option<Metadata>,
+    bytes: &'a [u8],
+}
+
+/// Writes one temporary file: a new file (never through an existing link),
+/// the mode and owner of the file it replaces, synced to disk.
+fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Result<()> {
+    let _ = fs::remove_file(temp);
+    let mut file = fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(temp)
+        .map_err(|e| Error::io(temp, "create", e))?;
+    file.write_all(bytes)
+        .map_err(|e| Error::io(temp, "write", e))?;
+    if let Some(meta) = existing {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            // Keeping another user's ownership needs privileges: kept where
+            // possible, else the file belongs to this user.
+            let _ = std::os::unix::fs::fchown(&file, Some(meta.uid()), Some(meta.gid()));
+        }
+        file.set_permissions(meta.permissions())
+            .map_err(|e| Error::io(temp, "set the mode of", e))?;
+    }
+    file.sync_all().map_err(|e| Error::io(temp, "sync", e))
+}
+
+/// Replaces every file of a batch so that a crash or kill never leaves a
+/// torn file:
+/// 1. every target is checked first (a regular file or new, writable, not
+///    read-only; symbolic links resolved to their target); any refusal
+///    fails the batch with every refused file named and nothing written;
+/// 2. stale temporary files of earlier runs are removed from the folders
+///    (see `temporaries`);
+/// 3. each file's bytes go to a temporary file beside its target, keeping
+///    the target's mode (and owner where possible), synced to disk; a
+///    failure removes them all, so nothing was replaced;
+/// 4. only then are they renamed over their targets, one by one;
+/// 5. the folders are synced so the renames last.
+///
+/// A kill during 3 leaves temporary files only (removed by the next run);
+/// a kill during 4 leaves some targets replaced, each whole, and the rest
+/// as they were: running again completes the batch.
+pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
+    write_files_beside(files, &[], &mut || {})
+}
+
+/// [`write_files`], also removing stale temporary files beside `unchanged`
+/// (the other targets of the same output, whose bytes stay as they are: a
+/// re-run that completes a killed bake may change no file at all, and must
+/// still remove what the killed run left), and calling `written` as each
+/// file's temporary is written and synced: step 3 syncs once per file, so
+/// a caller can show its progress while this module keeps the file system
+/// to itself.
+pub fn write_files_beside(
+    files: &[(&Path, &[u8])],
+    unchanged: &[&Path],
+    written: &mut dyn FnMut(),
+) -> Result<()> {
+    let planned = plan_batch(files)?;
+    let folders = prepare_folders(&planned, unchanged)?;
+    let temporaries = write_temporaries(&planned, written)?;
+    rename_over_targets(&planned, &temporaries)?;
+    sync_folders(&folders);
+    Ok(())
+}
+
+/// Step 1: every target checked, and two targets that are one file (links
+/// to it) refused, before anything is written.
+fn plan_batch<'a>(files: &[(&Path, &'a [u8])]) -> Result<Vec<Planned<'a>>> {
+    let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
+    let mut refused = Vec::new();
+    let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
+    for &(target, bytes) in files {
+        match plan_target(target) {
+            Ok((real, existing)) => {
+                if let Some(first) = claimed.get(&real) {
+                    refused.push((
+                        target.to_path_buf(),
+                        format!(
+                            "is the same file as {}: two outputs would replace it",
+                            first.display()
+                        ),
+                    ));
+                    continue;
+                }
+                claimed.insert(real.clone(), target);
+                planned.push(Planned {
+                    folder: folder_of(&real),
+                    real,
+                    existing,
+                    bytes,
+                });
+            }
+            Err(why) => refused.push((target.to_path_buf(), why)),
+        }
+    }
+    if refused.is_empty() {
+        Ok(planned)
+    } else {
+        Err(Error::Refused { files: refused })
+    }
+}
+
+/// Step 2: the folders the batch writes in, created, and those and the
+/// folders of `unchanged` targets swept of stale temporary files; returns
+/// the folders written in, sorted.
+fn prepare_folders<'a>(planned: &'a [Planned], unchanged: &[&Path]) -> Result<Vec<&'a Path>> {
+    let mut folders: Vec<&Path> = planned.iter().map(|p| p.folder.as_path()).collect();
+    folders.sort();
+    folders.dedup();
+    for folder in &folders {
+        fs::create_dir_all(folder).map_err(|e| Error::io(*folder, "create folder", e))?;
+    }
+    let mut swept: Vec<PathBuf> = unchanged.iter().map(|t| temporary_folder(t)).collect();
+    swept.extend(folders.iter().map(|f| f.to_path_buf()));
+    swept.sort();
+    swept.dedup();
+    for folder in &swept {
+        remove_stale_temporaries(folder);
+    }
+    Ok(folders)
+}
+
+/// Step 3: every temporary file written and synced, in batch order; on a
+/// failure every one written so far is removed, so nothing was replaced.
+fn write_temporaries(planned: &[Planned], written: &mut dyn FnMut()) -> Result<Vec<PathBuf>> {
+    let mut temporaries: Vec<PathBuf> = Vec::with_capacity(planned.len());
+    for file in planned {
+        let temp = temporary_path(&file.real);
+        let outcome = write_temporary(&temp, file.bytes, file.existing.as_ref());
+        temporaries.push(temp);
+        if let Err(err) = outcome {
+            for temp in &temporaries {
+                let _ = fs::remove_file(temp);
+            }
+            return Err(err);
+        }
+        written();
+    }
+    Ok(temporaries)
+}
+
+/// Step 4: each temporary file renamed over its target; a failure removes
+/// the temporary files not yet renamed and says whether any target was
+/// replaced.
+fn rename_over_targets(planned: &[Planned], temporaries: &[PathBuf]) -> Result<()> {
+    for (index, (file, temp)) in planned.iter().zip(temporaries).enumerate() {
+        if let Err(e) = fs::rename(temp, &file.real) {
+            for temp in &temporaries[index..] {
+                let _ = fs::remove_file(temp);
+            }
+            let action = if index == 0 {
+                "replace (nothing was replaced)"
+            } else {
+                "replace (files before it were replaced; run again to complete)"
+            };
+            return Err(Error::io(&file.real, action, e));
+        }
+    }
+    Ok(())
+}
+
+/// Step 5: makes the renames durable. Not every file system can sync a
+/// folder; the files themselves are complete either way.
+fn sync_folders(folders: &[&Path]) {
+    #[cfg(unix)]
+    for folder in folders {
+        if let Ok(handle) = File::open(folder) {
+            let _ = handle.sync_all();
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = folders;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::files::names;
+    use crate::files::temporaries::temporary_path;
+
+    #[test]
+    fn a_read_only_file_fails_the_whole_batch_before_any_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b, c) = (
+            dir.path().join("a.chunk"),
+            dir.path().join("b.chunk"),
+            dir.path().join("c.chunk"),
+        );
+        for path in [&a, &b, &c] {
+            write_atomic(path, b"old").unwrap();
+        }
+        for path in [&b, &c] {
+            let mut permissions = std::fs::metadata(path).unwrap().permissions();
+            permissions.set_readonly(true);
+            std::fs::set_permissions(path, permissions).unwrap();
+        }
+        let err = write_files(&[(&a, b"new"), (&b, b"new"), (&c, b"new")]).unwrap_err();
+        let message = err.to_string();
+        assert!(
+            message.contains("nothing was written: 2 file(s)")
+                && message.contains("b.chunk: is read-only")
+                && message.contains("c.chunk: is read-only"),
+            "{message}"
+        );
+        for path in [&a, &b, &c] {
+            assert_eq!(std::fs::read(path).unwrap(), b"old");
+        }
+        assert_eq!(names(dir.path()), ["a.chunk", "b.chunk", "c.chunk"]);
+    }
+
+    #[test]
+    fn every_temporary_file_is_written_before_the_first_rename() {
+        // The second file's temporary file cannot be created (a folder
+        // holds its name): the first file must not have been replaced yet.
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.chunk"), dir.path().join("b.chunk"));
+        write_atomic(&a, b"old").unwrap();
+        std::fs::create_dir(temporary_path(&b)).unwrap();
+        assert!(write_files(&[(&a, b"new"), (&b, b"new")]).is_err());
+        assert_eq!(std::fs::read(&a).unwrap(), b"old");
+        assert!(!temporary_path(&a).exists());
+        assert!(!b.exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn mode_is_kept_and_links_are_written_through() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let elsewhere = tempfile::tempdir().unwrap();
+        let real = elsewhere.path().join("real.chunk");
+        write_atomic(&real, b"old").unwrap();
+        std::fs::set_permissions(&real, std::fs::Permissions::from_mode(0o640)).unwrap();
+        let link = dir.path().join("x.chunk");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&real).unwrap(), b"new");
+        assert_eq!(
+            std::fs::metadata(&real).unwrap().permissions().mode() & 0o7777,
+            0o640
+        );
+        assert_eq!(names(dir.path()), ["x.chunk"]);
+        assert_eq!(names(elsewhere.path()), ["real.chunk"]);
+        // Two links to one file in one batch: refused.
+        let second = dir.path().join("y.chunk");
+        std::os::unix::fs::symlink(&real, &second).unwrap();
+        let message = write_files(&[(&link, b"1"), (&second, b"2")])
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("is the same file as"), "{message}");
+        // A dangling link: refused.
+        std::fs::remove_file(&real).unwrap();
+        let message = write_atomic(&link, b"x").unwrap_err().to_string();
+        assert!(
+            message.contains("symbolic link that cannot be followed"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn atomic_write_leaves_no_temporary_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("x.chunk");
+        write_atomic(&target, b"one").unwrap();
+        write_atomic(&target, b"two").unwrap();
+        assert_eq!(std::fs::read(&target).unwrap(), b"two");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+    }
+}
