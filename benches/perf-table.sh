@@ -13,8 +13,9 @@
 # Environment: SHADOWCULL (the binary; default: `cargo build --release`,
 # then target/release/shadowcull), RUNS (default 5), CHUNKS (the side of the
 # generated `gen --chunks N` world, default 20), THREADS (default: one per
-# core). Nothing outside WORK_DIR is written; the bundled village is baked
-# with --dry-run in place.
+# core), TABLES_ONLY=1 (print the tables of the last run in WORK_DIR again,
+# without measuring). Nothing outside WORK_DIR is written; the bundled
+# village is baked with --dry-run in place.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
 work=$(realpath -m "${1:-$repo/target/perf}")
@@ -66,8 +67,10 @@ rows=(
 )
 
 results=$work/results
-rm -rf "$results"
-mkdir -p "$results"
+if [ -z "${TABLES_ONLY:-}" ]; then
+  rm -rf "$results"
+  mkdir -p "$results"
+fi
 
 # The rays and trace seconds of every light, summed, from the closing table
 # the bake prints (a row per light: bit, name, kind, rays, triangles, bvh s,
@@ -76,26 +79,38 @@ light_sums() {
   awk '$1 ~ /^[0-9]+$/ && NF == 10 { rays += $4; trace += $7 } END { printf "%.6f %d\n", trace, rays }' "$1"
 }
 
-load_before=$(cut -d' ' -f1-3 /proc/loadavg)
-for run in $(seq "$runs"); do
-  for i in "${!rows[@]}"; do
-    IFS='|' read -r world settings options <<<"${rows[$i]}"
-    log "run $run/$runs: $world $(basename "$settings") $options"
-    # shellcheck disable=SC2086
-    /usr/bin/time -v -o "$results/$i.time" "$bin" bake "$settings" --dry-run --quiet \
-      --threads "$threads" $options >"$results/$i.out"
-    wall=$(awk -F': ' '/Elapsed \(wall clock\)/ { n = split($2, p, ":"); s = 0; for (k = 1; k <= n; k++) s = s * 60 + p[k]; print s }' "$results/$i.time")
-    rss=$(awk -F': ' '/Maximum resident set size/ { print $2 }' "$results/$i.time")
-    echo "$wall $rss $(light_sums "$results/$i.out")" >>"$results/$i.runs"
+measure() {
+  for run in $(seq "$runs"); do
+    for i in "${!rows[@]}"; do
+      IFS='|' read -r world settings options <<<"${rows[$i]}"
+      log "run $run/$runs: $world $(basename "$settings") $options"
+      # shellcheck disable=SC2086
+      /usr/bin/time -v -o "$results/$i.time" "$bin" bake "$settings" --dry-run --quiet \
+        --threads "$threads" $options >"$results/$i.out"
+      wall=$(awk -F': ' '/Elapsed \(wall clock\)/ { n = split($2, p, ":"); s = 0; for (k = 1; k <= n; k++) s = s * 60 + p[k]; print s }' "$results/$i.time")
+      rss=$(awk -F': ' '/Maximum resident set size/ { print $2 }' "$results/$i.time")
+      echo "$wall $rss $(light_sums "$results/$i.out")" >>"$results/$i.runs"
+    done
   done
-done
-load_after=$(cut -d' ' -f1-3 /proc/loadavg)
+}
+
+if [ -z "${TABLES_ONLY:-}" ]; then
+  {
+    echo "date=$(date -u +%Y-%m-%d)"
+    echo "load_before='$(cut -d' ' -f1-3 /proc/loadavg)'"
+  } >"$results/context"
+  measure
+  echo "load_after='$(cut -d' ' -f1-3 /proc/loadavg)'" >>"$results/context"
+fi
+# shellcheck disable=SC1091
+. "$results/context"
 
 # The median of column $1 of a file, and its least and greatest values.
+# (/usr/bin/time reports memory in KiB; the tables give MB, 10^6 bytes.)
 median() { awk -v c="$1" '{ print $c }' "$2" | sort -g | awk '{ v[NR] = $1 } END { printf "%s %s %s\n", v[int((NR + 1) / 2)], v[1], v[NR] }'; }
 
 {
-  echo "Measured $(date -u +%Y-%m-%d) on $(nproc) cores ($(sed -n 's/^model name\s*: //p' /proc/cpuinfo | head -n1)), $(awk '/MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo);"
+  echo "Measured $date on $(nproc) cores ($(sed -n 's/^model name\s*: //p' /proc/cpuinfo | head -n1)), $(awk '/MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo);"
   echo "$("$bin" --version), --threads $threads, median of $runs runs (range in brackets);"
   echo "load average before $load_before, after $load_after."
   current=""
@@ -117,7 +132,7 @@ median() { awk -v c="$1" '{ print $c }' "$2" | sort -g | awk '{ v[NR] = $1 } END
     awk -v s="$(basename "$settings")" -v o="${options:-}" -v r="$rays" -v w="$wall" -v lo="$lo" -v hi="$hi" \
       -v t="$trace" -v m="$rss" 'BEGIN {
         printf "| `%s` | %s | %.1f M | %.2f (%.2f–%.2f) | %.2f | %.1f | %.0f MB |\n",
-          s, (o == "" ? "—" : "`" o "`"), r / 1e6, w, lo, hi, t, (t > 0 ? r / t / 1e6 : 0), m / 1000
+          s, (o == "" ? "—" : "`" o "`"), r / 1e6, w, lo, hi, t, (t > 0 ? r / t / 1e6 : 0), m * 1024 / 1e6
       }'
   done
 } | tee "$work/perf-table.md"
