@@ -733,22 +733,181 @@ fn small_things() {
     }
 }
 
+/// The folders and files a person who clones the repository reads: the
+/// guard scans every text file under them (fixtures are generated data).
+const SELF_CONTAINED_ROOTS: &[&str] = &[
+    "README.md",
+    "ARCHITECTURE.md",
+    "Cargo.toml",
+    "docs",
+    "src",
+    "tests",
+    "benches",
+    "deploy",
+    ".ci",
+];
+
 #[test]
-fn the_readme_stands_on_its_own() {
+fn the_repository_stands_on_its_own() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
-    assert!(
-        !readme.contains("../shared/SPEC.md"),
-        "README links outside the repository"
-    );
-    assert!(readme.contains("docs/contract.md"));
-    assert!(root.join("docs/contract.md").is_file());
-    for line in readme.lines().filter(|l| l.contains("cargo run")) {
-        assert!(
-            line.contains("--release"),
-            "one build for every example: {line}"
-        );
+    let mut files = Vec::new();
+    for name in SELF_CONTAINED_ROOTS {
+        text_files(&root.join(name), &mut files);
     }
+    assert!(files.len() > 50, "the walk found {} files", files.len());
+    let mut found = Vec::new();
+    for path in &files {
+        let text = std::fs::read_to_string(path).unwrap();
+        let shown = path.strip_prefix(root).unwrap().display().to_string();
+        for (number, line) in text.lines().enumerate() {
+            for what in outward_or_process_words(line) {
+                found.push(format!("{shown}:{}: {what}: {}", number + 1, line.trim()));
+            }
+        }
+        if shown.ends_with(".md") {
+            found.extend(broken_links(root, path, &text));
+        }
+    }
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    if !readme.contains("docs/contract.md") || !root.join("docs/contract.md").is_file() {
+        found.push("README.md: cites no docs/contract.md".to_string());
+    }
+    for line in readme.lines().filter(|l| l.contains("cargo run")) {
+        if !line.contains("--release") {
+            found.push(format!(
+                "README.md: one build for every example, `cargo run --release`: {line}"
+            ));
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "cite docs/contract.md §N and keep history in git:\n{}",
+        found.join("\n")
+    );
+}
+
+/// Every UTF-8 file under `path` (pictures and other binary files are
+/// skipped), in a fixed order.
+fn text_files(path: &Path, files: &mut Vec<PathBuf>) {
+    if path.is_dir() {
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(path)
+            .unwrap()
+            .map(|entry| entry.unwrap().path())
+            .collect();
+        entries.sort();
+        for entry in entries {
+            text_files(&entry, files);
+        }
+    } else if path.is_file() && std::fs::read_to_string(path).is_ok() {
+        files.push(path.to_path_buf());
+    }
+}
+
+/// What a line says that only its author's workspace would understand: a
+/// document outside the repository, a ticket or work-round number, a
+/// commit hash in prose. The needles are assembled here so that this file
+/// does not match itself.
+fn outward_or_process_words(line: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    let outward = [
+        ["..", "/shared"].concat(),
+        ["SPEC", ".md"].concat(),
+        ["SPEC", " \u{a7}"].concat(),
+    ];
+    for needle in &outward {
+        if line.contains(needle.as_str()) {
+            found.push(format!("`{needle}` lies outside the repository"));
+        }
+    }
+    let lower = line.to_lowercase();
+    for word in ["issue", "issues", "ticket", "stop", "round"] {
+        if word_then_number(&lower, word) {
+            found.push(format!("`{word} N` is development history"));
+        }
+    }
+    let process = ["sess", "ion"].concat();
+    if words(&lower).any(|w| w.starts_with(process.as_str())) {
+        found.push(format!("`{process}` is development history"));
+    }
+    if let Some(hash) = commit_hash(line) {
+        found.push(format!("`{hash}` looks like a commit hash"));
+    }
+    found
+}
+
+/// The line's words: maximal runs of letters and digits.
+fn words(line: &str) -> impl Iterator<Item = &str> {
+    line.split(|c: char| !c.is_ascii_alphanumeric())
+        .filter(|w| !w.is_empty())
+}
+
+/// Whether `word` stands in `line` as a word followed by a space and a
+/// digit, as numbered work rounds and tickets are written.
+fn word_then_number(line: &str, word: &str) -> bool {
+    line.match_indices(word).any(|(at, _)| {
+        let before = line[..at].chars().next_back();
+        let after = &line[at + word.len()..];
+        !before.is_some_and(|c| c.is_ascii_alphanumeric())
+            && after.starts_with(' ')
+            && after[1..].starts_with(|c: char| c.is_ascii_digit())
+    })
+}
+
+/// A run of 7 to 40 lowercase hex digits holding both a digit and a letter
+/// (not a `0b`/`0x` literal) that is followed by a colon or stands in
+/// parentheses, as a short commit hash is cited in prose.
+fn commit_hash(line: &str) -> Option<&str> {
+    let bytes = line.as_bytes();
+    let mut start = 0;
+    while start < bytes.len() {
+        if !bytes[start].is_ascii_alphanumeric() {
+            start += 1;
+            continue;
+        }
+        let end = (start..bytes.len())
+            .find(|&i| !bytes[i].is_ascii_alphanumeric())
+            .unwrap_or(bytes.len());
+        let token = &line[start..end];
+        let hex = token
+            .bytes()
+            .all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'));
+        let mixed = token.bytes().any(|b| b.is_ascii_digit())
+            && token.bytes().any(|b| b.is_ascii_lowercase());
+        let literal = token.starts_with("0b") || token.starts_with("0x");
+        let cited = bytes.get(end).is_some_and(|&b| b == b':' || b == b')')
+            || (start > 0 && bytes[start - 1] == b'(');
+        if (7..=40).contains(&token.len()) && hex && mixed && !literal && cited {
+            return Some(token);
+        }
+        start = end;
+    }
+    None
+}
+
+/// The relative links of a Markdown file whose target is missing or lies
+/// outside the repository.
+fn broken_links(root: &Path, path: &Path, text: &str) -> Vec<String> {
+    let mut broken = Vec::new();
+    for piece in text.split("](").skip(1) {
+        let Some(target) = piece.split(')').next() else {
+            continue;
+        };
+        let target = target.split('#').next().unwrap_or_default();
+        if target.is_empty() || target.contains("://") || target.starts_with("mailto:") {
+            continue;
+        }
+        let resolved = path.parent().unwrap().join(target);
+        let inside = resolved
+            .canonicalize()
+            .is_ok_and(|p| p.starts_with(root.canonicalize().unwrap()));
+        if !inside {
+            broken.push(format!(
+                "{}: link `{target}` is missing or outside the repository",
+                path.strip_prefix(root).unwrap().display()
+            ));
+        }
+    }
+    broken
 }
 
 // ---------------------------------------------------------------------------

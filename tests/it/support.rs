@@ -2,7 +2,9 @@
 
 use std::path::PathBuf;
 
-/// Name of the environment variable that points at `../shared/realdata`.
+/// Name of the environment variable that points at the real BigWorld data:
+/// a folder holding `bigworld-14.4.1/res` and `fantasydemo-arctic/res`
+/// (README.md, "Development").
 pub const REALDATA_VAR: &str = "SHADOWCULL_REALDATA";
 
 /// The real BigWorld data folder, or `None` after printing loudly that the
@@ -30,7 +32,8 @@ pub fn realdata(test: &str) -> Option<PathBuf> {
                 "{test}: SHADOWCULL_REQUIRE_REALDATA is set but {REALDATA_VAR} is not"
             );
             say_not_run(&format!(
-                "{test} needs real BigWorld data; set {REALDATA_VAR}=../shared/realdata"
+                "{test} needs real BigWorld data; set {REALDATA_VAR} to the folder holding \
+                 bigworld-14.4.1/res and fantasydemo-arctic/res (README.md, Development)"
             ));
             None
         }
