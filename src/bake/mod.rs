@@ -16,6 +16,7 @@ pub mod output;
 pub mod refine;
 pub mod setup;
 pub mod shard;
+pub mod texel_beam;
 pub mod trace_light;
 
 use crate::classify::Passes;
@@ -75,7 +76,7 @@ pub enum GridMode {
     Centres,
     /// The texel's whole beam (`--conservative`): a caster is kept whenever
     /// some placement of the shadow-map grid at this texel size could make
-    /// it useful. See [`grid_pass`] and `trace::texel_beam`.
+    /// it useful. See [`grid_pass`] and [`texel_beam`].
     Conservative,
 }
 

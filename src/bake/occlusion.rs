@@ -31,7 +31,7 @@ use super::conservative::{Affine, Light};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::LightRays;
 use super::BakeConfig;
-use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
+use super::texel_beam::{ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use std::ops::RangeInclusive;
 

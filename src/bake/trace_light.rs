@@ -10,7 +10,7 @@ use super::ground::Ground;
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::texel_beam::{self, Rect};
+use super::texel_beam::{self, Rect};
 use crate::trace::{FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;

@@ -74,7 +74,7 @@ use crate::formats::bake_settings::FaceCulling;
 use crate::light::{FacePolygon, ProjectedPolygon, TexelGrid, TexelRay};
 use crate::progress::{Counter, Phase, Progress};
 use crate::rng::{mix, Rng};
-use crate::trace::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
+use super::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use rayon::prelude::*;
