@@ -57,11 +57,11 @@
 //! (a lone tilted box over the void is kept). The sweep reports how many.
 
 use super::setup::{BakeWorld, LightSetup};
+use super::texel_beam::{self as beam, Point, Rect};
 use super::trace_light::{tile_rect, CasterSet, LightRays, RayCounter};
 use super::BakeConfig;
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{FacePolygon, TexelGrid};
-use super::texel_beam::{self as beam, Point, Rect};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;

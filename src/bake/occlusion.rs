@@ -29,9 +29,9 @@
 
 use super::conservative::{Affine, Light};
 use super::setup::{BakeWorld, LightSetup};
+use super::texel_beam::{ConvexRegion, Point, Rect};
 use super::trace_light::LightRays;
 use super::BakeConfig;
-use super::texel_beam::{ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use std::ops::RangeInclusive;
 

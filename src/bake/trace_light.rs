@@ -7,10 +7,10 @@
 
 use super::casters::CasterTable;
 use super::ground::Ground;
+use super::texel_beam::{self, Rect};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use super::texel_beam::{self, Rect};
 use crate::trace::{FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
