@@ -500,75 +500,28 @@ fn bake_light_from(
     let index = setup.index;
     let light = &config.lights[index];
     let name = light_name(config, index);
-    let reach = &setup.reach;
-    if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
-        skipped.push(Skipped::info(
-            name.clone(),
-            format!(
-                "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
-                reach.parts_out_of_reach, reach.blocks_out_of_reach
-            ),
-        ));
-    }
-    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
-    if left_out > 0 {
-        skipped.push(Skipped::info(
-            name.clone(),
-            format!(
-                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
-                crate::trace::MAX_COORDINATE
-            ),
-        ));
-    }
-    if setup.passes == Passes::AllOnly {
-        skipped.push(Skipped::info(
-            name.clone(),
-            "reaches no alpha-tested group: one pass (All) instead of two",
-        ));
-    }
-    let supersample = config.supersample.max(1);
-    let mut rays = setup.grid.texel_count() * (supersample as u64).pow(2);
-    let mut refine_rays = 0;
-    let mut refine_seconds = 0.0;
+    note_left_out(setup, &name, skipped);
     let trace_started = Instant::now();
-    let useful = if setup.top.is_empty() {
+    let traced = if setup.top.is_empty() {
         skipped.push(Skipped::info(
-            name.clone(),
+            name,
             "its frustum holds no geometry: no rays traced",
         ));
-        rays = 0;
-        CasterSet::new(world.casters.len())
+        Traced::nothing(world.casters.len())
     } else {
-        let rays_of_light = setup.rays(world, config);
-        let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
-        let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
-        counter.finish();
-        if config.refine_samples > 0 || config.refine_density > 0 {
-            let refine_started = Instant::now();
-            let (refined, traced) =
-                refine::refine(world, setup, &rays_of_light, &useful, config, progress);
-            refine_seconds = refine_started.elapsed().as_secs_f64();
-            useful = useful.union(&refined);
-            refine_rays = traced;
-            rays += traced;
-        }
-        useful
+        trace_grid_and_refine(world, setup, config, progress, source)
     };
     let trace_seconds = trace_started.elapsed().as_secs_f64() + source.seconds_before(index);
-    let mut kept = CasterSet::new(world.casters.len());
-    for (id, caster) in world.casters.casters.iter().enumerate() {
-        if !caster.receiver_only && useful.contains(id as u32) {
-            kept.insert(id as u32);
-        }
-    }
+    let kept = without_receivers(world, &traced.useful);
     let useful_casters = kept.len();
+    let reach = &setup.reach;
     let report = LightReport {
         index,
         bit: config.bit(index),
         name: light.name.clone(),
         kind: light.kind.type_name(),
-        rays,
-        refine_rays,
+        rays: traced.rays,
+        refine_rays: traced.refine_rays,
         seconds: setup.reach_seconds
             + setup.top_seconds
             + started.elapsed().as_secs_f64()
@@ -576,7 +529,7 @@ fn bake_light_from(
         geometry_seconds: setup.reach_seconds,
         bvh_seconds: setup.top_seconds,
         trace_seconds,
-        refine_seconds,
+        refine_seconds: traced.refine_seconds,
         useful_casters,
         culled_casters: world.casters.real_casters() - useful_casters,
         triangles: reach.triangles as usize,
@@ -588,6 +541,110 @@ fn bake_light_from(
         },
     };
     (kept, report)
+}
+
+/// Notes in `skipped` what the light `name`'s setup left out: parts and
+/// blocks out of its reach, triangles that can never be hit, and the
+/// Opaque pass when nothing it reaches is alpha-tested.
+fn note_left_out(setup: &LightSetup, name: &str, skipped: &mut Vec<Skipped>) {
+    let reach = &setup.reach;
+    if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
+        skipped.push(Skipped::info(
+            name,
+            format!(
+                "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
+                reach.parts_out_of_reach, reach.blocks_out_of_reach
+            ),
+        ));
+    }
+    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
+    if left_out > 0 {
+        skipped.push(Skipped::info(
+            name,
+            format!(
+                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
+                crate::trace::MAX_COORDINATE
+            ),
+        ));
+    }
+    if setup.passes == Passes::AllOnly {
+        skipped.push(Skipped::info(
+            name,
+            "reaches no alpha-tested group: one pass (All) instead of two",
+        ));
+    }
+}
+
+/// What tracing one light found, and its rays.
+struct Traced {
+    useful: CasterSet,
+    /// Every ray: the grid's (texels × supersample²) and refinement's.
+    rays: u64,
+    refine_rays: u64,
+    refine_seconds: f64,
+}
+
+impl Traced {
+    /// No ray traced (nothing in the light's reach).
+    fn nothing(casters: usize) -> Traced {
+        Traced {
+            useful: CasterSet::new(casters),
+            rays: 0,
+            refine_rays: 0,
+            refine_seconds: 0.0,
+        }
+    }
+}
+
+/// The light's grid answer from `source` (as the [`Phase::Tracing`] of
+/// `progress`), then refinement when the config asks for it.
+fn trace_grid_and_refine(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    source: &dyn GridSource,
+) -> Traced {
+    let light = &config.lights[setup.index];
+    let supersample = config.supersample.max(1);
+    let grid_rays = setup.grid.texel_count() * (supersample as u64).pow(2);
+    let rays_of_light = setup.rays(world, config);
+    let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), grid_rays);
+    let useful = source.grid(world, setup, &rays_of_light, config, &counter);
+    counter.finish();
+    let mut traced = Traced {
+        useful,
+        rays: grid_rays,
+        refine_rays: 0,
+        refine_seconds: 0.0,
+    };
+    if config.refine_samples > 0 || config.refine_density > 0 {
+        let refine_started = Instant::now();
+        let (refined, refine_rays) = refine::refine(
+            world,
+            setup,
+            &rays_of_light,
+            &traced.useful,
+            config,
+            progress,
+        );
+        traced.refine_seconds = refine_started.elapsed().as_secs_f64();
+        traced.useful = traced.useful.union(&refined);
+        traced.refine_rays = refine_rays;
+        traced.rays += refine_rays;
+    }
+    traced
+}
+
+/// The casters of `useful` that count: receiver-only groups never do.
+fn without_receivers(world: &BakeWorld, useful: &CasterSet) -> CasterSet {
+    let mut kept = CasterSet::new(world.casters.len());
+    for (id, caster) in world.casters.casters.iter().enumerate() {
+        if !caster.receiver_only && useful.contains(id as u32) {
+            kept.insert(id as u32);
+        }
+    }
+    kept
 }
 
 impl trace_light::RayCounter for Counter<'_> {

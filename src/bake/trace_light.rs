@@ -83,8 +83,7 @@ pub fn tile_rect(grid: &TexelGrid, tile: u64) -> (usize, u32, u32, u32, u32) {
 /// the rounding of rays and boxes. A tile outside it is not traced at all
 /// (its rays are counted, their answer is empty): the empty corners of a
 /// sun's grid around the world's slanted projection are most of the rays
-/// of a fine sun on a big world, and cost a fifth of a ray into the world
-/// each when traced.
+/// of a fine sun on a big world.
 ///
 /// Exact: a ray of texel (x, y) passes through the texel's square, and
 /// every point of it projects there up to the rounding of its f32
