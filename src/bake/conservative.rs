@@ -56,10 +56,10 @@
 //! counts as behind when some of it lies more than ε beyond that point
 //! (a lone tilted box over the void is kept). The sweep reports how many.
 
+use super::config::BakeConfig;
 use super::setup::{BakeWorld, LightSetup};
 use super::texel_beam::{self as beam, Point, Rect};
 use super::trace_light::{tile_rect, CasterSet, LightRays, RayCounter};
-use super::BakeConfig;
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{FacePolygon, TexelGrid};
 use glam::DVec3;

@@ -15,9 +15,10 @@
 //! level and the tracing threads' working sets, plus the masks and every
 //! chunk file's old and new bytes held for the write.
 
+use super::config::{BakeConfig, GridMode};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
-use super::{grid_pass, BakeConfig, BakeError, GridMode, GridSource, TraceGrid};
+use super::{grid_pass, BakeError, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
 use std::sync::Mutex;

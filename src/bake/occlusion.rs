@@ -27,11 +27,11 @@
 //! them, and their rays share one direction, so a triangle faces every ray
 //! alike and a depth along the light orders hits on one ray as t does.
 
+use super::config::BakeConfig;
 use super::conservative::{Affine, Light};
 use super::setup::{BakeWorld, LightSetup};
 use super::texel_beam::{ConvexRegion, Point, Rect};
 use super::trace_light::LightRays;
-use super::BakeConfig;
 use crate::trace::TraceTriangle;
 use std::ops::RangeInclusive;
 

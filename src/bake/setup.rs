@@ -10,10 +10,10 @@
 //! apply the same rules.
 
 use super::casters::{CasterTable, PartCasters};
+use super::config::BakeConfig;
 use super::geometry;
 use super::ground::Ground;
 use super::trace_light::{LightRays, RayRules, TileReach};
-use super::BakeConfig;
 use crate::classify::Passes;
 use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};

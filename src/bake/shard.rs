@@ -20,11 +20,12 @@
 //! whole grid's answer, so it runs in `merge` (through
 //! [`super::bake_from`]), never in a shard.
 
+use super::config::BakeConfig;
 use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{
     tile_count, tile_rect, CasterSet, LightRays, RayCounter, TileReach, TILE,
 };
-use super::{grid_pass, BakeConfig, BakeError, GridSource};
+use super::{grid_pass, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
 use crate::formats::resources::ResPaths;

@@ -174,7 +174,7 @@ pub struct RayRules {
 }
 
 impl RayRules {
-    pub fn new(config: &super::BakeConfig, passes: Passes) -> RayRules {
+    pub fn new(config: &super::config::BakeConfig, passes: Passes) -> RayRules {
         RayRules {
             face_culling: config.face_culling,
             height_bias: config.height_bias,

@@ -9,10 +9,10 @@
 use super::lattice::{LatticeCell, TopCellPoints, TOUCH};
 use super::outline::{hittable, outline_edges};
 use super::sampler::{Sampler, BATCH, FEW_POINTS};
+use crate::bake::config::BakeConfig;
 use crate::bake::conservative::Affine;
 use crate::bake::texel_beam::{self as beam, bounds, ConvexRegion, Point, Rect};
 use crate::bake::trace_light::PacketState;
-use crate::bake::BakeConfig;
 use crate::light::{FacePolygon, ProjectedPolygon, TexelGrid, TexelRay};
 use crate::trace::TraceTriangle;
 use glam::DVec3;

@@ -72,10 +72,10 @@ mod outline;
 mod sampler;
 mod surface;
 
+use super::config::BakeConfig;
 use super::occlusion::Occlusion;
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays};
-use super::BakeConfig;
 use crate::light::TexelRay;
 use crate::progress::{Counter, Phase, Progress};
 use footprint::footprint_lattice;

@@ -4,7 +4,7 @@
 //! it crosses, so a footprint as large as the world costs rays along its
 //! edges, not over its area.
 
-use crate::bake::BakeConfig;
+use crate::bake::config::BakeConfig;
 use crate::formats::bake_settings::FaceCulling;
 use crate::trace::TraceTriangle;
 use glam::DVec3;
