@@ -352,7 +352,7 @@ impl LightRays<'_> {
     }
 
     /// Tiles of [`TILE`]² texels: faces, then rows of tiles, then columns
-    /// (the order of [`Self::tile_rect`]). A distributed bake hands out
+    /// (the order of [`tile_rect`]). A distributed bake hands out
     /// ranges of these.
     pub fn tile_count(&self) -> u64 {
         tile_count(self.grid)

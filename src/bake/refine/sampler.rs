@@ -10,7 +10,7 @@ use crate::bake::occlusion::{CasterImage, Occlusion};
 use crate::bake::texel_beam::Point;
 use crate::bake::trace_light::{CasterSet, LightRays, PacketState};
 use crate::classify::{self, RayHit};
-use crate::light::{ProjectedPolygon, TexelRay};
+use crate::light::{ProjectedPolygon, TexelGrid, TexelRay};
 use crate::trace::TraceTriangle;
 use glam::DVec3;
 use std::cell::OnceCell;
@@ -152,7 +152,7 @@ impl Hidden<'_> {
 
     /// [`nearest_depth`] of the caster (its triangles `run`), worked out
     /// once.
-    fn least_depth(&self, run: &[TraceTriangle], grid: &crate::light::TexelGrid) -> Option<f64> {
+    fn least_depth(&self, run: &[TraceTriangle], grid: &TexelGrid) -> Option<f64> {
         *self
             .least_depth
             .get_or_init(|| nearest_depth(run, grid.direction(), grid.reference_point()))
