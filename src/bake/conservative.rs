@@ -11,7 +11,7 @@
 //! - **hidden**: nearer opaque casters cover the whole fragment: the union
 //!   of the projections of triangles that are certainly hit, certainly
 //!   counted and certainly more than ε nearer than the fragment's nearest
-//!   point everywhere over it leaves nothing of it (`trace::texel_beam::subtract`);
+//!   point everywhere over it leaves nothing of it (`texel_beam::subtract`);
 //! - **nothing behind**: no other triangle meeting the beam (grown by the
 //!   filter radius) could be hit at or behind the fragment's nearest depth
 //!   − 2ε (one ε for the front set's tie, one for "behind").
@@ -56,12 +56,12 @@
 //! counts as behind when some of it lies more than ε beyond that point
 //! (a lone tilted box over the void is kept). The sweep reports how many.
 
+use super::config::BakeConfig;
 use super::setup::{BakeWorld, LightSetup};
+use super::texel_beam::{self as beam, Point, Rect};
 use super::trace_light::{tile_rect, CasterSet, LightRays, RayCounter};
-use super::BakeConfig;
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{FacePolygon, TexelGrid};
-use crate::trace::texel_beam::{self as beam, Point, Rect};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;

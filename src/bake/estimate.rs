@@ -15,9 +15,10 @@
 //! level and the tracing threads' working sets, plus the masks and every
 //! chunk file's old and new bytes held for the write.
 
+use super::config::{BakeConfig, GridMode};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
-use super::{grid_pass, BakeConfig, BakeError, GridMode, GridSource, TraceGrid};
+use super::{grid_pass, BakeError, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -242,28 +243,7 @@ fn plan_light(
     threads: usize,
     progress: &dyn Progress,
 ) -> Result<(LightPlan, Option<LightSetup>), BakeError> {
-    let light = &config.lights[index];
-    let mut plan = LightPlan {
-        index,
-        name: light.name.clone(),
-        kind: light.kind.type_name(),
-        bit: config.bit(index),
-        faces: 0,
-        width: 0,
-        height: 0,
-        rays: 0,
-        instances: 0,
-        terrain_blocks: 0,
-        triangles: 0,
-        top_level_bytes: 0,
-        sample_rays: 0,
-        sample_seconds: 0.0,
-        rays_per_second: 0.0,
-        estimated_seconds: 0.0,
-        estimated_bytes: 0,
-        nothing_to_trace: None,
-        sample: None,
-    };
+    let mut plan = LightPlan::before_setup(config, index);
     let setup = match LightSetup::new_with_progress(world, config, index, progress) {
         Ok(setup) => setup,
         Err(nothing) if nothing.is_nothing_to_trace() => {
@@ -273,28 +253,103 @@ fn plan_light(
         Err(super::setup::NoSetup::Grid(err)) => return Err(err.into()),
         Err(super::setup::NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
-    let supersample = config.supersample.max(1) as u64;
-    plan.faces = setup.grid.faces();
-    plan.width = setup.grid.width();
-    plan.height = setup.grid.height();
-    plan.instances = setup.reach.parts.len();
-    plan.terrain_blocks = setup.reach.blocks.len();
-    plan.triangles = setup.reach.triangles;
-    plan.top_level_bytes = setup.top.heap_bytes();
-    let grid_rays = setup.grid.texel_count() * supersample * supersample;
-    let refine_rays = config.refine_samples as u64 * world.casters.len() as u64;
-    plan.rays = grid_rays + refine_rays;
-    // A caster set per tracing job (rayon splits a few times per thread).
-    let working = threads.max(1) as u64 * 8 * CasterSet::new(world.casters.len()).heap_bytes();
-    // The top level peaks while it is built (the memory model's bytes per
-    // part in reach), above what the finished tree holds.
-    let building = setup.top.len() as u64 * super::memory::PER_PART_IN_REACH;
-    plan.estimated_bytes = building.max(plan.top_level_bytes as u64) + working;
+    let grid_rays = plan.size_from(world, config, &setup, threads);
     if setup.top.is_empty() {
         plan.nothing_to_trace = Some("its frustum holds no geometry".into());
         plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
         return Ok((plan, None));
     }
+    let calibration = calibrate(world, config, &setup, grid_rays, progress);
+    plan.sample_seconds = calibration.seconds;
+    plan.sample_rays = calibration.sample.rays;
+    plan.rays_per_second = calibration.rays_per_second;
+    plan.sample = Some(calibration.sample);
+    // The bake keeps the sample's answer and traces the rest.
+    let left = plan.rays.saturating_sub(plan.sample_rays);
+    plan.estimated_seconds =
+        setup.reach_seconds + setup.top_seconds + left as f64 / plan.rays_per_second;
+    Ok((plan, Some(setup)))
+}
+
+impl LightPlan {
+    /// Light `index`'s plan before its setup: what it is, nothing sized.
+    fn before_setup(config: &BakeConfig, index: usize) -> LightPlan {
+        let light = &config.lights[index];
+        LightPlan {
+            index,
+            name: light.name.clone(),
+            kind: light.kind.type_name(),
+            bit: config.bit(index),
+            faces: 0,
+            width: 0,
+            height: 0,
+            rays: 0,
+            instances: 0,
+            terrain_blocks: 0,
+            triangles: 0,
+            top_level_bytes: 0,
+            sample_rays: 0,
+            sample_seconds: 0.0,
+            rays_per_second: 0.0,
+            estimated_seconds: 0.0,
+            estimated_bytes: 0,
+            nothing_to_trace: None,
+            sample: None,
+        }
+    }
+
+    /// Sizes the plan from the light's `setup`: its grid, what it reaches,
+    /// its rays, and the memory it needs while `threads` trace it. Returns
+    /// the grid's rays (texels × supersample²).
+    fn size_from(
+        &mut self,
+        world: &BakeWorld,
+        config: &BakeConfig,
+        setup: &LightSetup,
+        threads: usize,
+    ) -> u64 {
+        let supersample = config.supersample.max(1) as u64;
+        self.faces = setup.grid.faces();
+        self.width = setup.grid.width();
+        self.height = setup.grid.height();
+        self.instances = setup.reach.parts.len();
+        self.terrain_blocks = setup.reach.blocks.len();
+        self.triangles = setup.reach.triangles;
+        self.top_level_bytes = setup.top.heap_bytes();
+        let grid_rays = setup.grid.texel_count() * supersample * supersample;
+        let refine_rays = config.refine_samples as u64 * world.casters.len() as u64;
+        self.rays = grid_rays + refine_rays;
+        // A caster set per tracing job (rayon splits a few times per thread).
+        let working = threads.max(1) as u64 * 8 * CasterSet::new(world.casters.len()).heap_bytes();
+        // The top level peaks while it is built (the memory model's bytes per
+        // part in reach), above what the finished tree holds.
+        let building = setup.top.len() as u64 * super::memory::PER_PART_IN_REACH;
+        self.estimated_bytes = building.max(self.top_level_bytes as u64) + working;
+        grid_rays
+    }
+}
+
+/// What a light's calibration traced and measured.
+struct Calibration {
+    sample: TracedSample,
+    /// Wall time of the whole sample.
+    seconds: f64,
+    /// The rate of the tiles traced with the sample's answer known (the
+    /// bake's), or of the sample's own when every tile is in it.
+    rays_per_second: f64,
+}
+
+/// Traces a spread sample of the light's tiles (`setup`; `grid_rays` in
+/// all) as [`Phase::Calibrating`] of `progress`, to measure its ray rate
+/// on this machine.
+fn calibrate(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    setup: &LightSetup,
+    grid_rays: u64,
+    progress: &dyn Progress,
+) -> Calibration {
+    let light = &config.lights[setup.index];
     let rays = setup.rays(world, config);
     let tiles = rays.tile_count();
     let every = sample_stride(tiles, setup.grid.width().div_ceil(super::trace_light::TILE));
@@ -307,7 +362,7 @@ fn plan_light(
     );
     let started = Instant::now();
     let sample = (0..sampled_tiles).into_par_iter().map(|n| n * every);
-    let mut useful = grid_pass::trace_tiles(world, &setup, &rays, config, sample, None, &counter);
+    let mut useful = grid_pass::trace_tiles(world, setup, &rays, config, sample, None, &counter);
     let cold = (started.elapsed().as_secs_f64(), counter.done());
     // The bake leaves out the rays that can meet only casters already
     // proven, more of them the more it has proven: its rate is the rate of
@@ -323,30 +378,28 @@ fn plan_light(
             .filter(|&t| t < tiles);
         let warm_started = Instant::now();
         let known = Some(&useful);
-        let found = grid_pass::trace_tiles(world, &setup, &rays, config, next, known, &counter);
+        let found = grid_pass::trace_tiles(world, setup, &rays, config, next, known, &counter);
         warm = (
             warm_started.elapsed().as_secs_f64(),
             counter.done() - cold.1,
         );
         useful = useful.union(&found);
     }
-    plan.sample_seconds = started.elapsed().as_secs_f64();
-    plan.sample_rays = counter.done();
+    let seconds = started.elapsed().as_secs_f64();
+    let sample_rays = counter.done();
     counter.finish();
-    plan.sample = Some(TracedSample {
-        every,
-        held,
-        tile_count: tiles,
-        pass: GridPassSettings::of(config),
-        rays: plan.sample_rays,
-        useful,
-    });
-    plan.rays_per_second = warm.1 as f64 / warm.0.max(1e-6);
-    // The bake keeps the sample's answer and traces the rest.
-    let left = plan.rays.saturating_sub(plan.sample_rays);
-    plan.estimated_seconds =
-        setup.reach_seconds + setup.top_seconds + left as f64 / plan.rays_per_second;
-    Ok((plan, Some(setup)))
+    Calibration {
+        sample: TracedSample {
+            every,
+            held,
+            tile_count: tiles,
+            pass: GridPassSettings::of(config),
+            rays: sample_rays,
+            useful,
+        },
+        seconds,
+        rays_per_second: warm.1 as f64 / warm.0.max(1e-6),
+    }
 }
 
 /// Every how many tiles the calibration traces one: about

@@ -7,7 +7,6 @@
 //! face even for mirrored instances.
 
 use super::casters::{CasterTable, Owner, PartCasters};
-use super::setup::{BakeWorld, Reach};
 use crate::scene::Scene;
 use crate::trace::{transform_box, TraceTriangle, MAX_COORDINATE};
 use glam::{DVec3, Vec3};
@@ -146,11 +145,16 @@ fn push_block(scene: &Scene, block: usize, caster: u32, reference: DVec3, out: &
     }
 }
 
-/// Caster `id`'s triangles, light-relative (refinement's sample surface).
-pub fn caster_triangles(world: &BakeWorld, id: u32, reference: DVec3) -> Vec<TraceTriangle> {
+/// Caster `id`'s triangles, relative to `reference` (refinement's sample
+/// surface).
+pub fn caster_triangles(
+    scene: &Scene,
+    casters: &CasterTable,
+    id: u32,
+    reference: DVec3,
+) -> Vec<TraceTriangle> {
     let mut out = FlatGeometry::default();
-    let scene = world.scene;
-    match world.casters.casters.get(id as usize).map(|c| c.owner) {
+    match casters.casters.get(id as usize).map(|c| c.owner) {
         Some(Owner::Group {
             instance,
             part,
@@ -170,28 +174,33 @@ pub fn caster_triangles(world: &BakeWorld, id: u32, reference: DVec3) -> Vec<Tra
     out.triangles
 }
 
-/// The triangles of every part and block in a light's reach (the bake's
-/// own [`Reach`], so the raster draws what the rays can hit), in caster id
-/// order, relative to `reference`.
-pub fn reach_geometry(world: &BakeWorld, reach: &Reach, reference: DVec3) -> FlatGeometry {
-    let scene = world.scene;
+/// The triangles of the placed parts `parts` (indices into `placed`, every
+/// placed part in caster id order) and of the terrain `blocks`, in that
+/// order, relative to `reference`: a light's reach
+/// (`LightSetup::reach_geometry`).
+pub fn parts_geometry(
+    scene: &Scene,
+    casters: &CasterTable,
+    placed: &[PartCasters],
+    parts: &[u32],
+    blocks: &[u32],
+    reference: DVec3,
+) -> FlatGeometry {
     // In parallel, collected in id order so the list is the same whatever
     // the thread count.
-    let per_part: Vec<FlatGeometry> = reach
-        .parts
+    let per_part: Vec<FlatGeometry> = parts
         .par_iter()
         .map(|&p| {
             let mut out = FlatGeometry::default();
-            push_part(scene, &world.parts[p as usize], reference, &mut out);
+            push_part(scene, &placed[p as usize], reference, &mut out);
             out
         })
         .collect();
-    let per_block: Vec<FlatGeometry> = reach
-        .blocks
+    let per_block: Vec<FlatGeometry> = blocks
         .par_iter()
         .map(|&block| {
             let mut out = FlatGeometry::default();
-            let caster = world.casters.of_block[block as usize];
+            let caster = casters.of_block[block as usize];
             push_block(scene, block as usize, caster, reference, &mut out);
             out
         })

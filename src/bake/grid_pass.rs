@@ -3,9 +3,10 @@
 //! (`--conservative`). One entry point for the bake, the shards and the
 //! plan's sample, so a shard traces exactly what one bake traces.
 
+use super::config::{BakeConfig, GridMode};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, PacketSkip, RayCounter};
-use super::{conservative, filter_margin, BakeConfig, GridMode};
+use super::{conservative, filter_margin};
 use rayon::prelude::*;
 
 /// The casters the grid rays of `tiles` prove useful (receiver-only ones

@@ -12,8 +12,8 @@ use std::sync::atomic::{AtomicU32, Ordering};
 pub struct Ground<'a> {
     scene: &'a Scene,
     /// The outdoor grid cells that hold a terrain block, as a dense table
-    /// (every hit of every ray looks its point up here: hashing the cell
-    /// was a tenth of a fine sun's trace).
+    /// (every hit of every ray looks its point up here, so hashing the
+    /// cell would cost a sizeable part of the trace).
     table: BlockTable,
     chunk_size: f64,
     /// Upper bounds of H over squares of the world, so that most hits
@@ -22,10 +22,10 @@ pub struct Ground<'a> {
     ceilings: Option<Ceilings>,
 }
 
-/// Squares of the world this many to a chunk side carry a ceiling: on
-/// `bench`'s sun at 0.25 m texels, 94 % of the hits the below-ground test
-/// sees lie above the ceiling of their 12.5 m square (36 % above their
-/// chunk's highest sample).
+/// Squares of the world this many to a chunk side carry a ceiling: fine
+/// enough that nearly every hit the below-ground test sees lies above its
+/// square's ceiling, where a chunk's highest sample would let far fewer
+/// skip the exact height.
 const CEILING_SQUARES_PER_CHUNK: i64 = 8;
 
 /// A height the exact test's rounding cannot reach past a ceiling (its

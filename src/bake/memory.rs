@@ -1,6 +1,6 @@
 //! The bake's memory model: what each thing the bake holds costs, so a
 //! world's peak can be predicted before it is loaded, checked by a test
-//! (`tests/it/memory.rs`) and explained in the README. The figures are
+//! (`tests/it/memory.rs`) and shown by `shadowcull plan`. The figures are
 //! heap bytes measured with heaptrack on `gen --chunks 20` and `gen
 //! --preset bench` (release build); change them only with a new
 //! measurement.
@@ -44,10 +44,9 @@ pub const PER_THREAD: u64 = 2 << 20;
 /// Resident bytes of a bake that holds nothing: the binary, its libraries,
 /// the main thread.
 pub const FIXED: u64 = 16 << 20;
-/// Peak resident set over peak heap: allocator slack and fragmentation.
-/// The binary hands freed pages back at every phase (`malloc_trim`), so
-/// little is left: `gen --chunks 20` peaks at 125 MB of heap and 139–143 MB
-/// resident, of which 20 MB are [`FIXED`] and two threads.
+/// Peak resident set over peak heap: allocator slack and fragmentation,
+/// little since the binary hands freed pages back at every phase
+/// (`malloc_trim`; see docs/performance.md).
 pub const RESIDENT_PER_HEAP: f64 = 1.05;
 
 /// What a world holds, as the memory model counts it.

@@ -4,6 +4,7 @@
 //! in `classify`, the rays in `light`, the traversal in `trace`.
 
 pub mod casters;
+pub mod config;
 pub mod conservative;
 pub mod estimate;
 pub mod filter_margin;
@@ -16,152 +17,17 @@ pub mod output;
 pub mod refine;
 pub mod setup;
 pub mod shard;
+pub mod texel_beam;
 pub mod trace_light;
 
 use crate::classify::Passes;
-use crate::formats::bake_settings::{FaceCulling, LightSettings};
 use crate::progress::{Counter, Phase};
 use crate::scene::Scene;
 use casters::CasterTable;
+pub use config::{BakeConfig, GridMode};
 use setup::{BakeWorld, LightSetup, NoSetup};
 use std::time::Instant;
 use trace_light::{CasterSet, LightRays, RayCounter};
-
-/// What to bake (the settings file's values after command-line overrides).
-#[derive(Debug, Clone)]
-pub struct BakeConfig {
-    pub face_culling: FaceCulling,
-    /// Metres: a non-terrain hit more than this below the terrain surface is
-    /// ignored.
-    pub height_bias: f64,
-    /// Metres along a ray: the tie tolerance of docs/contract.md §4.
-    pub tie_epsilon: f64,
-    pub lights: Vec<LightSettings>,
-    /// Trace every ray against every triangle instead of the BVH (the
-    /// oracle; slow).
-    pub brute_force: bool,
-    /// Rays per texel side: 1 traces texel centres, k a k×k pattern of
-    /// sub-texel centres (the same rays as a k× denser grid).
-    pub supersample: u32,
-    /// Refinement: rays aimed at this many points of every caster's own
-    /// surface that the grid did not prove useful (0: off).
-    pub refine_samples: u32,
-    /// Refinement's footprint lattice: rays per texel side at which the
-    /// light-space footprint of every caster the grid did not prove useful
-    /// is sampled (0: off). See [`refine`].
-    pub refine_density: u32,
-    /// What a texel of the grid pass stands for: its centre ray, or every
-    /// ray of its beam.
-    pub grid_mode: GridMode,
-    /// The filter margin in texels (`--filter-radius`): 0 is docs/contract.md §4's
-    /// rule; K keeps a caster front-most at a texel when a surface lies
-    /// behind its depth at a texel up to K away (PCF). See
-    /// [`filter_margin`].
-    pub filter_radius: u32,
-    /// Every light's grid moved by this sub-texel amount (texel units, see
-    /// `TexelGrid::with_offset`): the sweep's offset references and the
-    /// tests bake at other placements of the game's shadow map.
-    pub grid_offset: (f64, f64),
-    /// Per light, its bit in the masks (`<bit>`); empty or short: a light's
-    /// bit is its position. See [`BakeConfig::bit`].
-    pub bits: Vec<u32>,
-}
-
-/// What a texel of the grid pass stands for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum GridMode {
-    /// One ray through the texel's centre (k×k with supersampling): docs/contract.md §4.
-    #[default]
-    Centres,
-    /// The texel's whole beam (`--conservative`): a caster is kept whenever
-    /// some placement of the shadow-map grid at this texel size could make
-    /// it useful. See [`grid_pass`] and `trace::texel_beam`.
-    Conservative,
-}
-
-impl BakeConfig {
-    /// The settings file's values; no supersampling, no refinement.
-    pub fn from_settings(settings: &crate::formats::bake_settings::BakeSettings) -> BakeConfig {
-        BakeConfig {
-            face_culling: settings.face_culling,
-            height_bias: settings.height_bias,
-            tie_epsilon: settings.tie_epsilon,
-            lights: settings.lights.clone(),
-            brute_force: false,
-            supersample: 1,
-            refine_samples: 0,
-            refine_density: 0,
-            grid_mode: GridMode::Centres,
-            filter_radius: 0,
-            grid_offset: (0.0, 0.0),
-            bits: settings.bits.clone(),
-        }
-    }
-
-    /// Light `index`'s bit in every mask.
-    pub fn bit(&self, index: usize) -> u32 {
-        self.bits.get(index).copied().unwrap_or(index as u32)
-    }
-
-    /// The bits of every light this config bakes: the bits a bake replaces
-    /// (every other bit of an existing mask is kept).
-    pub fn baked_bits(&self) -> u32 {
-        (0..self.lights.len()).fold(0, |bits, i| bits | 1u32.wrapping_shl(self.bit(i)))
-    }
-
-    /// Only the named lights (each keeps its bit). Errors name the unknown
-    /// ones and list the lights there are.
-    pub fn select_lights(&self, names: &[String]) -> Result<BakeConfig, String> {
-        let unknown: Vec<&str> = names
-            .iter()
-            .filter(|n| !self.lights.iter().any(|l| &l.name == *n))
-            .map(String::as_str)
-            .collect();
-        if !unknown.is_empty() {
-            return Err(format!(
-                "no light named {} in the settings file; its lights are {}",
-                unknown
-                    .iter()
-                    .map(|n| format!("`{n}`"))
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                self.lights
-                    .iter()
-                    .map(|l| format!("`{}`", l.name))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ));
-        }
-        let keep: Vec<usize> = (0..self.lights.len())
-            .filter(|&i| names.contains(&self.lights[i].name))
-            .collect();
-        Ok(BakeConfig {
-            lights: keep.iter().map(|&i| self.lights[i].clone()).collect(),
-            bits: keep.iter().map(|&i| self.bit(i)).collect(),
-            ..self.clone()
-        })
-    }
-}
-
-impl Default for BakeConfig {
-    /// docs/contract.md §3 defaults and no lights.
-    fn default() -> Self {
-        BakeConfig {
-            face_culling: FaceCulling::Back,
-            height_bias: 0.05,
-            tie_epsilon: 1e-4,
-            lights: Vec::new(),
-            brute_force: false,
-            supersample: 1,
-            refine_samples: 0,
-            refine_density: 0,
-            grid_mode: GridMode::Centres,
-            filter_radius: 0,
-            grid_offset: (0.0, 0.0),
-            bits: Vec::new(),
-        }
-    }
-}
 
 pub use crate::progress::{Progress, Silent};
 
@@ -499,75 +365,28 @@ fn bake_light_from(
     let index = setup.index;
     let light = &config.lights[index];
     let name = light_name(config, index);
-    let reach = &setup.reach;
-    if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
-        skipped.push(Skipped::info(
-            name.clone(),
-            format!(
-                "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
-                reach.parts_out_of_reach, reach.blocks_out_of_reach
-            ),
-        ));
-    }
-    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
-    if left_out > 0 {
-        skipped.push(Skipped::info(
-            name.clone(),
-            format!(
-                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
-                crate::trace::MAX_COORDINATE
-            ),
-        ));
-    }
-    if setup.passes == Passes::AllOnly {
-        skipped.push(Skipped::info(
-            name.clone(),
-            "reaches no alpha-tested group: one pass (All) instead of two",
-        ));
-    }
-    let supersample = config.supersample.max(1);
-    let mut rays = setup.grid.texel_count() * (supersample as u64).pow(2);
-    let mut refine_rays = 0;
-    let mut refine_seconds = 0.0;
+    note_left_out(setup, &name, skipped);
     let trace_started = Instant::now();
-    let useful = if setup.top.is_empty() {
+    let traced = if setup.top.is_empty() {
         skipped.push(Skipped::info(
-            name.clone(),
+            name,
             "its frustum holds no geometry: no rays traced",
         ));
-        rays = 0;
-        CasterSet::new(world.casters.len())
+        Traced::nothing(world.casters.len())
     } else {
-        let rays_of_light = setup.rays(world, config);
-        let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), rays);
-        let mut useful = source.grid(world, setup, &rays_of_light, config, &counter);
-        counter.finish();
-        if config.refine_samples > 0 || config.refine_density > 0 {
-            let refine_started = Instant::now();
-            let (refined, traced) =
-                refine::refine(world, setup, &rays_of_light, &useful, config, progress);
-            refine_seconds = refine_started.elapsed().as_secs_f64();
-            useful = useful.union(&refined);
-            refine_rays = traced;
-            rays += traced;
-        }
-        useful
+        trace_grid_and_refine(world, setup, config, progress, source)
     };
     let trace_seconds = trace_started.elapsed().as_secs_f64() + source.seconds_before(index);
-    let mut kept = CasterSet::new(world.casters.len());
-    for (id, caster) in world.casters.casters.iter().enumerate() {
-        if !caster.receiver_only && useful.contains(id as u32) {
-            kept.insert(id as u32);
-        }
-    }
+    let kept = without_receivers(world, &traced.useful);
     let useful_casters = kept.len();
+    let reach = &setup.reach;
     let report = LightReport {
         index,
         bit: config.bit(index),
         name: light.name.clone(),
         kind: light.kind.type_name(),
-        rays,
-        refine_rays,
+        rays: traced.rays,
+        refine_rays: traced.refine_rays,
         seconds: setup.reach_seconds
             + setup.top_seconds
             + started.elapsed().as_secs_f64()
@@ -575,7 +394,7 @@ fn bake_light_from(
         geometry_seconds: setup.reach_seconds,
         bvh_seconds: setup.top_seconds,
         trace_seconds,
-        refine_seconds,
+        refine_seconds: traced.refine_seconds,
         useful_casters,
         culled_casters: world.casters.real_casters() - useful_casters,
         triangles: reach.triangles as usize,
@@ -589,6 +408,110 @@ fn bake_light_from(
     (kept, report)
 }
 
+/// Notes in `skipped` what the light `name`'s setup left out: parts and
+/// blocks out of its reach, triangles that can never be hit, and the
+/// Opaque pass when nothing it reaches is alpha-tested.
+fn note_left_out(setup: &LightSetup, name: &str, skipped: &mut Vec<Skipped>) {
+    let reach = &setup.reach;
+    if reach.parts_out_of_reach + reach.blocks_out_of_reach > 0 {
+        skipped.push(Skipped::info(
+            name,
+            format!(
+                "{} instance parts and {} terrain blocks outside its reach were left out of its top level",
+                reach.parts_out_of_reach, reach.blocks_out_of_reach
+            ),
+        ));
+    }
+    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
+    if left_out > 0 {
+        skipped.push(Skipped::info(
+            name,
+            format!(
+                "{left_out} zero-area, non-finite or absurdly far (> {:e} m) triangles left out (they can never be hit)",
+                crate::trace::MAX_COORDINATE
+            ),
+        ));
+    }
+    if setup.passes == Passes::AllOnly {
+        skipped.push(Skipped::info(
+            name,
+            "reaches no alpha-tested group: one pass (All) instead of two",
+        ));
+    }
+}
+
+/// What tracing one light found, and its rays.
+struct Traced {
+    useful: CasterSet,
+    /// Every ray: the grid's (texels × supersample²) and refinement's.
+    rays: u64,
+    refine_rays: u64,
+    refine_seconds: f64,
+}
+
+impl Traced {
+    /// No ray traced (nothing in the light's reach).
+    fn nothing(casters: usize) -> Traced {
+        Traced {
+            useful: CasterSet::new(casters),
+            rays: 0,
+            refine_rays: 0,
+            refine_seconds: 0.0,
+        }
+    }
+}
+
+/// The light's grid answer from `source` (as the [`Phase::Tracing`] of
+/// `progress`), then refinement when the config asks for it.
+fn trace_grid_and_refine(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    source: &dyn GridSource,
+) -> Traced {
+    let light = &config.lights[setup.index];
+    let supersample = config.supersample.max(1);
+    let grid_rays = setup.grid.texel_count() * (supersample as u64).pow(2);
+    let rays_of_light = setup.rays(world, config);
+    let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), grid_rays);
+    let useful = source.grid(world, setup, &rays_of_light, config, &counter);
+    counter.finish();
+    let mut traced = Traced {
+        useful,
+        rays: grid_rays,
+        refine_rays: 0,
+        refine_seconds: 0.0,
+    };
+    if config.refine_samples > 0 || config.refine_density > 0 {
+        let refine_started = Instant::now();
+        let (refined, refine_rays) = refine::refine(
+            world,
+            setup,
+            &rays_of_light,
+            &traced.useful,
+            config,
+            progress,
+        );
+        traced.refine_seconds = refine_started.elapsed().as_secs_f64();
+        traced.useful = traced.useful.union(&refined);
+        traced.refine_rays = refine_rays;
+        traced.rays += refine_rays;
+    }
+    traced
+}
+
+/// The casters of `useful` that count: receiver-only groups never do.
+fn without_receivers(world: &BakeWorld, useful: &CasterSet) -> CasterSet {
+    let mut kept = CasterSet::new(world.casters.len());
+    for (id, caster) in world.casters.casters.iter().enumerate() {
+        if !caster.receiver_only && useful.contains(id as u32) {
+            kept.insert(id as u32);
+        }
+    }
+    kept
+}
+
 impl trace_light::RayCounter for Counter<'_> {
     fn add(&self, rays: u64) {
         Counter::add(self, rays);
@@ -598,8 +521,8 @@ impl trace_light::RayCounter for Counter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::formats::bake_settings::{BakeSettings, FaceCulling, LightKind, LightSettings};
     use crate::files::ResPaths;
-    use crate::formats::bake_settings::{BakeSettings, LightKind};
     use crate::progress::{Call, Recorded};
 
     /// The `small` fixture and its settings, every light coarse (these

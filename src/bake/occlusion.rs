@@ -1,9 +1,9 @@
 //! Refinement's shortcut for hidden casters: a lattice ray need not be
 //! traced when geometry already known to lie on it surely keeps the
 //! refined caster out of its front set, for then that ray cannot prove the
-//! caster useful. On `bench` most of the rays refinement traced went to
-//! casters no ray ever proves (things under trees), and most of those rays
-//! stopped at two surfaces in front of the caster before reaching it.
+//! caster useful. Most of refinement's rays go to casters no ray ever
+//! proves (things under trees), and stop at surfaces in front of the caster
+//! before they reach it.
 //!
 //! The known geometry is the casters that refinement's probe rays met
 //! (`refine`): their triangles, projected on the light's face, are tested
@@ -27,11 +27,11 @@
 //! them, and their rays share one direction, so a triangle faces every ray
 //! alike and a depth along the light orders hits on one ray as t does.
 
+use super::config::BakeConfig;
 use super::conservative::{Affine, Light};
 use super::setup::{BakeWorld, LightSetup};
+use super::texel_beam::{ConvexRegion, Point, Rect};
 use super::trace_light::LightRays;
-use super::BakeConfig;
-use crate::trace::texel_beam::{ConvexRegion, Point, Rect};
 use crate::trace::TraceTriangle;
 use std::ops::RangeInclusive;
 

@@ -10,10 +10,10 @@
 //! apply the same rules.
 
 use super::casters::{CasterTable, PartCasters};
+use super::config::BakeConfig;
 use super::geometry;
 use super::ground::Ground;
 use super::trace_light::{LightRays, RayRules, TileReach};
-use super::BakeConfig;
 use crate::classify::Passes;
 use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
@@ -245,10 +245,24 @@ impl LightSetup {
         }
     }
 
-    /// Light-relative triangles of caster `id` if it lies in this light's
-    /// reach (for refinement's sample points), else empty.
+    /// Light-relative triangles of caster `id` (refinement's sample
+    /// points, the occluders' images).
     pub fn caster_triangles(&self, world: &BakeWorld, id: u32) -> Vec<TraceTriangle> {
-        geometry::caster_triangles(world, id, self.grid.reference_point())
+        let reference = self.grid.reference_point();
+        geometry::caster_triangles(world.scene, &world.casters, id, reference)
+    }
+
+    /// Every triangle in this light's reach, light-relative, in caster id
+    /// order: the raster reference draws what the rays can hit.
+    pub fn reach_geometry(&self, world: &BakeWorld) -> geometry::FlatGeometry {
+        geometry::parts_geometry(
+            world.scene,
+            &world.casters,
+            &world.parts,
+            &self.reach.parts,
+            &self.reach.blocks,
+            self.grid.reference_point(),
+        )
     }
 }
 

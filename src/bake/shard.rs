@@ -20,11 +20,12 @@
 //! whole grid's answer, so it runs in `merge` (through
 //! [`super::bake_from`]), never in a shard.
 
+use super::config::BakeConfig;
 use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{
     tile_count, tile_rect, CasterSet, LightRays, RayCounter, TileReach, TILE,
 };
-use super::{grid_pass, BakeConfig, BakeError, GridSource};
+use super::{grid_pass, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::files::ResPaths;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
@@ -36,19 +37,19 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::ops::Range;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Estimated cost of a ray through a tile that nothing in reach covers
 /// (it leaves the top level after a few boxes), relative to a ray that
-/// enters the world. Measured: on `bench` every light costs about the same
-/// per ray that enters the world, whatever the depth of boxes along it (the
-/// traversal stops behind the front hits), so a tile's cost is its rays
-/// weighted by the fraction of its texels some box covers; an empty ray
-/// costs about 2 % of a covered one (docs/distributed.md gives the
-/// measurement). Tiles wholly outside the projection of what the light
-/// reaches are not traced at all ([`TileReach`]) and cost nothing; the
-/// empty rays left are those of tiles at the edge of it.
+/// enters the world. A ray that enters the world costs about the same
+/// whatever the depth of boxes along it (the traversal stops behind the
+/// front hits), so a tile's cost is its rays weighted by the fraction of
+/// its texels some box covers, an empty ray counting this much of a
+/// covered one (measured: see docs/performance.md). Tiles wholly outside
+/// the projection of what the light reaches are not traced at all
+/// ([`TileReach`]) and cost nothing; the empty rays left are those of tiles
+/// at the edge of it.
 const EMPTY_RAY_COST: f64 = 0.02;
 /// Costs are integers (so sums do not depend on the order they are added
 /// in) in these units per ray.
@@ -514,114 +515,170 @@ pub fn merge(
     partials: &[(PathBuf, Partial)],
     command: &str,
 ) -> Result<(Merged, Plan), ShardError> {
-    let mut problems = Vec::new();
     let shards = partials.first().map_or(1, |(_, p)| p.shards).max(1);
     let plan = Plan::new(world, config, shards)?;
-    let casters = world.casters.len();
-    // shard -> (file, units) of the first partial seen for it.
-    let mut seen: BTreeMap<u32, (&PathBuf, &Partial)> = BTreeMap::new();
-    for (path, partial) in partials {
+    let expected = Expected {
+        own,
+        plan: &plan,
+        casters: world.casters.len(),
+    };
+    let (seen, mut problems) = expected.one_partial_per_shard(partials);
+    let missing: Vec<u32> = (0..shards)
+        .filter(|s| !seen.contains_key(s) && !plan.units[*s as usize].is_empty())
+        .collect();
+    if !missing.is_empty() {
+        problems.push(missing_shards(&missing, shards, command));
+    }
+    if !problems.is_empty() {
+        return Err(ShardError::Refused(problems));
+    }
+    let merged = Merged::of(config, expected.casters, &seen)?;
+    Ok((merged, plan))
+}
+
+/// What every partial of a merge must agree with.
+struct Expected<'m> {
+    own: &'m Fingerprint,
+    /// This merge's plan, of as many shards as the first partial names.
+    plan: &'m Plan,
+    casters: usize,
+}
+
+/// Per shard, the file and content of its first partial that agrees with
+/// the merge.
+type PerShard<'p> = BTreeMap<u32, (&'p PathBuf, &'p Partial)>;
+
+impl Expected<'_> {
+    /// The first partial of each shard that agrees with the merge, and the
+    /// problems of the others (a retried shard agrees only if its answer
+    /// is the first's).
+    fn one_partial_per_shard<'p>(
+        &self,
+        partials: &'p [(PathBuf, Partial)],
+    ) -> (PerShard<'p>, Vec<String>) {
+        let shards = self.plan.shards;
+        let mut problems = Vec::new();
+        let mut seen = PerShard::new();
+        for (path, partial) in partials {
+            if let Some(problem) = self.refusal(path, partial, &partials[0].0) {
+                problems.push(problem);
+                continue;
+            }
+            match seen.get(&partial.shard) {
+                // A retried shard: its units must give the same answer.
+                Some((first, earlier)) => {
+                    let disagrees = earlier
+                        .units
+                        .iter()
+                        .zip(&partial.units)
+                        .any(|(a, b)| a.words != b.words);
+                    if disagrees {
+                        problems.push(format!(
+                            "{} and {}: both are shard {}/{shards} but their answers differ: delete the wrong one and re-run that shard",
+                            path.display(),
+                            first.display(),
+                            partial.shard
+                        ));
+                    }
+                }
+                None => {
+                    seen.insert(partial.shard, (path, partial));
+                }
+            }
+        }
+        (seen, problems)
+    }
+
+    /// Why `partial` (read from `path`) cannot be merged here, if it
+    /// cannot: made from other inputs, of another split than the first
+    /// partial's (read from `first`), or by another plan.
+    fn refusal(&self, path: &Path, partial: &Partial, first: &Path) -> Option<String> {
         let name = path.display();
-        if let Some(why) = fingerprint_difference(own, &partial.fingerprint) {
-            problems.push(format!(
+        let shards = self.plan.shards;
+        if let Some(why) = fingerprint_difference(self.own, &partial.fingerprint) {
+            return Some(format!(
                 "{name}: made from other inputs than this merge: {why}"
             ));
-            continue;
         }
         if partial.shards != shards {
-            problems.push(format!(
+            return Some(format!(
                 "{name}: shard {}/{} of another split than {} ({} shards): merge the partials of one split",
                 partial.shard,
                 partial.shards,
-                partials[0].0.display(),
+                first.display(),
                 shards
             ));
-            continue;
         }
-        let expected_units = plan.units.get(partial.shard as usize);
+        let expected_units = self.plan.units.get(partial.shard as usize);
         let units_match = expected_units.is_some_and(|units| {
             units.len() == partial.units.len()
                 && units.iter().zip(&partial.units).all(|(u, p)| {
                     u.light == p.light && u.tiles.start == p.start && u.tiles.end == p.end
                 })
         });
-        if partial.plan != plan.digest || !units_match || partial.casters != casters as u64 {
-            problems.push(format!(
+        if partial.plan != self.plan.digest
+            || !units_match
+            || partial.casters != self.casters as u64
+        {
+            return Some(format!(
                 "{name}: its plan differs from this merge's plan of {shards} shards (made by another shadowcull?)"
             ));
-            continue;
         }
-        match seen.get(&partial.shard) {
-            // A retried shard: its units must give the same answer.
-            Some((first, earlier)) => {
-                let disagrees = earlier
-                    .units
-                    .iter()
-                    .zip(&partial.units)
-                    .any(|(a, b)| a.words != b.words);
-                if disagrees {
-                    problems.push(format!(
-                        "{name} and {}: both are shard {}/{shards} but their answers differ: delete the wrong one and re-run that shard",
-                        first.display(),
-                        partial.shard
-                    ));
+        None
+    }
+}
+
+/// The problem of shards `missing` of `shards`, with how to bake them
+/// (`command`).
+fn missing_shards(missing: &[u32], shards: u32, command: &str) -> String {
+    format!(
+        "missing shard(s) {} of {shards}: their units are in no partial given; bake each with `{command} --shard I/{shards} --partial FILE` and merge again",
+        missing
+            .iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    )
+}
+
+impl Merged {
+    /// Every unit of the partials `seen` (one per shard) OR-ed into its
+    /// light's answer, and their trace seconds summed per light.
+    fn of(config: &BakeConfig, casters: usize, seen: &PerShard<'_>) -> Result<Merged, ShardError> {
+        let mut per_light: Vec<Option<CasterSet>> = vec![None; config.lights.len()];
+        let mut seconds = vec![0.0; config.lights.len()];
+        for (path, partial) in seen.values() {
+            for unit in &partial.units {
+                let set = CasterSet::from_words(casters, unit.words.clone()).ok_or_else(|| {
+                    ShardError::Refused(vec![format!(
+                        "{}: a unit's caster bits do not fit the {casters} casters",
+                        path.display()
+                    )])
+                })?;
+                let slot = per_light.get_mut(unit.light as usize).ok_or_else(|| {
+                    ShardError::Refused(vec![format!(
+                        "{}: names light {} of {}",
+                        path.display(),
+                        unit.light,
+                        config.lights.len()
+                    )])
+                })?;
+                *slot = Some(match slot.take() {
+                    Some(acc) => acc.union(&set),
+                    None => set,
+                });
+                // A time is information, not an answer: a nonsense one counts 0.
+                if unit.seconds.is_finite() && unit.seconds > 0.0 {
+                    seconds[unit.light as usize] += unit.seconds;
                 }
             }
-            None => {
-                seen.insert(partial.shard, (path, partial));
-            }
         }
+        Ok(Merged {
+            per_light,
+            seconds,
+            casters,
+        })
     }
-    let missing: Vec<u32> = (0..shards)
-        .filter(|s| !seen.contains_key(s) && !plan.units[*s as usize].is_empty())
-        .collect();
-    if !missing.is_empty() {
-        problems.push(format!(
-            "missing shard(s) {} of {shards}: their units are in no partial given; bake each with `{command} --shard I/{shards} --partial FILE` and merge again",
-            missing
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ));
-    }
-    if !problems.is_empty() {
-        return Err(ShardError::Refused(problems));
-    }
-    let mut per_light: Vec<Option<CasterSet>> = vec![None; config.lights.len()];
-    let mut seconds = vec![0.0; config.lights.len()];
-    for (path, partial) in seen.values() {
-        for unit in &partial.units {
-            let set = CasterSet::from_words(casters, unit.words.clone()).ok_or_else(|| {
-                ShardError::Refused(vec![format!(
-                    "{}: a unit's caster bits do not fit the {casters} casters",
-                    path.display()
-                )])
-            })?;
-            let slot = per_light.get_mut(unit.light as usize).ok_or_else(|| {
-                ShardError::Refused(vec![format!(
-                    "{}: names light {} of {}",
-                    path.display(),
-                    unit.light,
-                    config.lights.len()
-                )])
-            })?;
-            *slot = Some(match slot.take() {
-                Some(acc) => acc.union(&set),
-                None => set,
-            });
-            // A time is information, not an answer: a nonsense one counts 0.
-            if unit.seconds.is_finite() && unit.seconds > 0.0 {
-                seconds[unit.light as usize] += unit.seconds;
-            }
-        }
-    }
-    let merged = Merged {
-        per_light,
-        seconds,
-        casters,
-    };
-    Ok((merged, plan))
 }
 
 /// Why two fingerprints differ, in a sentence, or `None` when they agree.

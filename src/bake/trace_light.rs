@@ -7,10 +7,10 @@
 
 use super::casters::CasterTable;
 use super::ground::Ground;
+use super::texel_beam::{self, Rect};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::texel_beam::{self, Rect};
 use crate::trace::{FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -83,8 +83,7 @@ pub fn tile_rect(grid: &TexelGrid, tile: u64) -> (usize, u32, u32, u32, u32) {
 /// the rounding of rays and boxes. A tile outside it is not traced at all
 /// (its rays are counted, their answer is empty): the empty corners of a
 /// sun's grid around the world's slanted projection are most of the rays
-/// of a fine sun on a big world, and cost a fifth of a ray into the world
-/// each when traced.
+/// of a fine sun on a big world.
 ///
 /// Exact: a ray of texel (x, y) passes through the texel's square, and
 /// every point of it projects there up to the rounding of its f32
@@ -175,7 +174,7 @@ pub struct RayRules {
 }
 
 impl RayRules {
-    pub fn new(config: &super::BakeConfig, passes: Passes) -> RayRules {
+    pub fn new(config: &super::config::BakeConfig, passes: Passes) -> RayRules {
         RayRules {
             face_culling: config.face_culling,
             height_bias: config.height_bias,
@@ -353,7 +352,7 @@ impl LightRays<'_> {
     }
 
     /// Tiles of [`TILE`]² texels: faces, then rows of tiles, then columns
-    /// (the order of [`Self::tile_rect`]). A distributed bake hands out
+    /// (the order of [`tile_rect`]). A distributed bake hands out
     /// ranges of these.
     pub fn tile_count(&self) -> u64 {
         tile_count(self.grid)

@@ -54,7 +54,6 @@ pub mod ground_atlas;
 pub mod xcheck;
 
 use crate::bake::casters::CasterTable;
-use crate::bake::geometry;
 use crate::bake::setup::{BakeWorld, LightSetup};
 use crate::bake::BakeConfig;
 use crate::classify::Passes;
@@ -620,7 +619,7 @@ impl LightPass<'_> {
         let gl = self.gl;
         let grid = &self.setup.grid;
         let reference = grid.reference_point();
-        let geo = geometry::reach_geometry(self.world, &self.setup.reach, reference);
+        let geo = self.setup.reach_geometry(self.world);
         let (vertices, runs) = vertex_runs(&geo.triangles);
         gl.bind_buffer(glow::ARRAY_BUFFER, Some(self.target.vbo));
         gl.buffer_data_u8_slice(glow::ARRAY_BUFFER, bytes_of(&vertices), glow::STATIC_DRAW);

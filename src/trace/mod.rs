@@ -32,7 +32,6 @@ mod bvh;
 mod heightfield;
 mod instance;
 mod packet;
-pub mod texel_beam;
 mod tlas;
 mod triangle;
 

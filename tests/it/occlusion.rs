@@ -284,7 +284,7 @@ fn a_block_of_lattice_points_is_hidden_as_point_by_point() {
             }
             let density = [4, 8][k % 2];
             let d = f64::from(density);
-            let (lo, hi) = shadowcull::trace::texel_beam::bounds(projected.iter().copied());
+            let (lo, hi) = shadowcull::bake::texel_beam::bounds(projected.iter().copied());
             let block = LatticeBlock {
                 i0: ((lo.0 - 1.0) * d).floor() as i64,
                 j0: ((lo.1 - 1.0) * d).floor() as i64,

@@ -1,8 +1,11 @@
 //! Beam tests in a light's image plane: a texel's beam (every ray through
 //! its square) against projected triangles, as convex polygons in texel
-//! units. Refinement uses them to find where a caster's footprint has an
-//! edge; the conservative grid pass (`bake::conservative`) to decide which
-//! triangles a beam meets and whether nearer triangles cover all of it.
+//! units. Only the bake works in the image plane, so this lives beside it:
+//! refinement finds where a caster's footprint has an edge, the
+//! conservative grid pass (`conservative`) which triangles a beam meets and
+//! whether nearer triangles cover all of it, `occlusion` which lattice
+//! points an occluder surely covers, and `trace_light` which tiles lie
+//! outside the hull of everything a light reaches.
 //!
 //! Every test errs on one documented side: "overlaps" and "crosses" may
 //! answer yes for a polygon a hair away (they take a tolerance), "covers"
