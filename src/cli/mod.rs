@@ -2,6 +2,7 @@
 //! messages here; nothing below this module prints.
 
 mod bake;
+mod bake_shared;
 pub mod memory;
 mod merge;
 mod pipeline;
@@ -196,3 +197,4 @@ pub(crate) fn load_config(settings: &BakeSettings) -> LoadConfig {
         space: settings.space.clone(),
     }
 }
+

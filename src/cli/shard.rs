@@ -2,7 +2,7 @@
 //! a Slurm, Kubernetes or AWS Batch array job): one shard of a distributed
 //! bake, written as a partial result for `merge`.
 
-use super::bake::{load_scene_told, BakeOptions};
+use super::bake_shared::{load_scene_told, BakeOptions};
 use super::progress::Reporter;
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
@@ -131,3 +131,4 @@ fn cpu_seconds() -> f64 {
     }
     0.0
 }
+
