@@ -1,6 +1,6 @@
-//! Load time of the generated `bench` world (issue: read worlds into one
-//! scene model). The world is generated once into a temporary folder; each
-//! iteration reads and assembles the whole scene.
+//! Load time of the generated `bench` world into one scene. The world is
+//! generated once into a temporary folder; each iteration reads and
+//! assembles the whole scene.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use shadowcull::files::{write_tree, ResPaths};

@@ -5,7 +5,7 @@
 //! the same answer asserted before timing. The world is `gen --preset
 //! bench` (seed 1) or, with `SHADOWCULL_BENCH_CHUNKS=N`, N×N chunks at the
 //! bench's density; the sun's texel size is `SHADOWCULL_BENCH_TEXEL`
-//! (default 0.25 m, the figure). A spread sample of about
+//! (default 0.25 m, a fine sun of a real world). A spread sample of about
 //! `SHADOWCULL_BENCH_RAYS` rays (default 2 M) per light keeps a run short.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};

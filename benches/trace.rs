@@ -1,4 +1,4 @@
-//! Ray casting cost (issue: per-light BVH and multi-hit traversal): BVH build
+//! Ray casting cost of the per-light BVH and multi-hit traversal: BVH build
 //! throughput over ~1M triangles, and rays/s of the multi-hit traversal
 //! against closest-hit with the same watertight test and obvhs's own
 //! closest-hit (its node and Möller–Trumbore triangle tests), on the same rays.

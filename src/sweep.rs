@@ -389,8 +389,50 @@ impl SweepReport {
     /// Both errors against seconds (log scale), one labelled point per
     /// setting, as a self-contained SVG.
     pub fn to_svg(&self) -> String {
-        let (width, height, margin) = (760.0, 460.0, 70.0);
-        let seconds: Vec<f64> = self.rows.iter().map(|r| r.seconds.max(1e-4)).collect();
+        let frame = PlotFrame::of(&self.rows);
+        let mut svg = frame.header(&self.reference.label);
+        frame.write_axes(&mut svg);
+        let markers = Series::ALL.map(|series| frame.markers(&self.rows, series));
+        let boxes: Vec<LabelBox> = markers
+            .iter()
+            .flatten()
+            .map(|&(px, py)| LabelBox::around(px, py, 6.0))
+            .collect();
+        let labels = place_labels(
+            &markers[0],
+            &self
+                .rows
+                .iter()
+                .map(|r| r.label.as_str())
+                .collect::<Vec<_>>(),
+            &boxes,
+            frame.label_area(),
+        );
+        for series in Series::ALL {
+            write_markers(&mut svg, &self.rows, series, &markers[series.index()]);
+            frame.write_legend_entry(&mut svg, series);
+        }
+        write_labels(&mut svg, &self.rows, &labels);
+        frame.write_footnote(&mut svg);
+        svg
+    }
+}
+
+/// The plot's size in SVG pixels and its axes: seconds in whole decades
+/// from `lo` to `hi` (log10), errors as log10(1 + e) up to `top`.
+struct PlotFrame {
+    width: f64,
+    height: f64,
+    margin: f64,
+    lo: f64,
+    hi: f64,
+    top: f64,
+}
+
+impl PlotFrame {
+    /// Axes that hold every row's seconds and errors.
+    fn of(rows: &[Row]) -> PlotFrame {
+        let seconds: Vec<f64> = rows.iter().map(|r| r.seconds.max(1e-4)).collect();
         let (lo, hi) = seconds.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), s| {
             (lo.min(*s), hi.max(*s))
         });
@@ -398,8 +440,7 @@ impl SweepReport {
             lo.log10().floor(),
             hi.log10().ceil().max(lo.log10().floor() + 1.0),
         );
-        let max_error = self
-            .rows
+        let max_error = rows
             .iter()
             .map(|r| r.false_culls.max(r.false_keeps))
             .max()
@@ -407,27 +448,64 @@ impl SweepReport {
             .max(1) as f64;
         // log(1 + e): zero stays on the axis, small counts stay apart.
         let top = (1.0 + max_error).log10().ceil().max(1.0);
-        let x = |s: f64| margin + (s.max(1e-4).log10() - lo) / (hi - lo) * (width - 2.0 * margin);
-        let y = |e: f64| height - margin - (1.0 + e).log10() / top * (height - 2.0 * margin);
+        PlotFrame {
+            width: 760.0,
+            height: 460.0,
+            margin: 70.0,
+            lo,
+            hi,
+            top,
+        }
+    }
+
+    /// The pixel column of a run time.
+    fn x(&self, s: f64) -> f64 {
+        self.margin
+            + (s.max(1e-4).log10() - self.lo) / (self.hi - self.lo)
+                * (self.width - 2.0 * self.margin)
+    }
+
+    /// The pixel row of an error count.
+    fn y(&self, e: f64) -> f64 {
+        self.height - self.margin - (1.0 + e).log10() / self.top * (self.height - 2.0 * self.margin)
+    }
+
+    /// Where labels may go: the plot and a strip right of it.
+    fn label_area(&self) -> LabelBox {
+        LabelBox {
+            x0: self.margin,
+            y0: self.margin,
+            x1: self.width - self.margin + 60.0,
+            y1: self.height - self.margin,
+        }
+    }
+
+    /// The opening tag, a white background and the title.
+    fn header(&self, reference: &str) -> String {
+        let (width, height) = (self.width, self.height);
         let mut svg = format!(
             "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width}\" height=\"{height}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n"
         );
         let _ = writeln!(
             svg,
-            "<text x=\"{}\" y=\"24\" font-size=\"14\" text-anchor=\"middle\">classification error against bake time (reference: {})</text>",
+            "<text x=\"{}\" y=\"24\" font-size=\"14\" text-anchor=\"middle\">classification error against bake time (reference: {reference})</text>",
             width / 2.0,
-            self.reference.label
         );
-        // Axes, decade ticks and error ticks.
+        svg
+    }
+
+    /// Axes, decade ticks, error ticks and the axis titles.
+    fn write_axes(&self, svg: &mut String) {
+        let (width, height, margin) = (self.width, self.height, self.margin);
         let _ = writeln!(
             svg,
             "<line x1=\"{margin}\" y1=\"{0}\" x2=\"{1}\" y2=\"{0}\" stroke=\"black\"/><line x1=\"{margin}\" y1=\"{margin}\" x2=\"{margin}\" y2=\"{0}\" stroke=\"black\"/>",
             height - margin,
             width - margin
         );
-        let mut decade = lo;
-        while decade <= hi {
-            let px = x(10f64.powf(decade));
+        let mut decade = self.lo;
+        while decade <= self.hi {
+            let px = self.x(10f64.powf(decade));
             let _ = writeln!(
                 svg,
                 "<line x1=\"{px}\" y1=\"{0}\" x2=\"{px}\" y2=\"{1}\" stroke=\"black\"/><text x=\"{px}\" y=\"{2}\" text-anchor=\"middle\">{3} s</text>",
@@ -438,12 +516,12 @@ impl SweepReport {
             );
             decade += 1.0;
         }
-        for e in std::iter::once(0.0).chain((0..=top as i32).map(|p| 10f64.powi(p))) {
+        for e in std::iter::once(0.0).chain((0..=self.top as i32).map(|p| 10f64.powi(p))) {
             let _ = writeln!(
                 svg,
                 "<text x=\"{}\" y=\"{}\" text-anchor=\"end\">{}</text>",
                 margin - 6.0,
-                y(e) + 4.0,
+                self.y(e) + 4.0,
                 e
             );
         }
@@ -455,109 +533,130 @@ impl SweepReport {
             height / 2.0,
             height / 2.0
         );
-        // False keeps are drawn as rings around where false culls are
-        // dots, so a setting with both at one value shows both; settings
-        // at the same place in one series are nudged apart sideways.
-        let series = [
-            ("false culls", "#c0392b", 0usize),
-            ("false keeps", "#2471a3", 1usize),
-        ];
-        let mut markers: Vec<Vec<(f64, f64)>> = Vec::new();
-        for (_, _, value) in series {
-            let mut placed: Vec<(f64, f64)> = Vec::new();
-            for row in &self.rows {
-                let e = if value == 0 {
-                    row.false_culls
-                } else {
-                    row.false_keeps
-                } as f64;
-                let (mut px, py) = (x(row.seconds), y(e));
-                while placed
-                    .iter()
-                    .any(|&(qx, qy)| (qx - px).abs() < 9.0 && (qy - py).abs() < 9.0)
-                {
-                    px += 9.0;
-                }
-                placed.push((px, py));
-            }
-            markers.push(placed);
-        }
-        let boxes: Vec<LabelBox> = markers
-            .iter()
-            .flatten()
-            .map(|&(px, py)| LabelBox::around(px, py, 6.0))
-            .collect();
-        let plot = LabelBox {
-            x0: margin,
-            y0: margin,
-            x1: width - margin + 60.0,
-            y1: height - margin,
-        };
-        let labels = place_labels(
-            &markers[0],
-            &self
-                .rows
+    }
+
+    /// Each row's marker position in `series`: settings at the same place
+    /// are nudged apart sideways, so each stays visible.
+    fn markers(&self, rows: &[Row], series: Series) -> Vec<(f64, f64)> {
+        let mut placed: Vec<(f64, f64)> = Vec::new();
+        for row in rows {
+            let (mut px, py) = (self.x(row.seconds), self.y(series.errors(row) as f64));
+            while placed
                 .iter()
-                .map(|r| r.label.as_str())
-                .collect::<Vec<_>>(),
-            &boxes,
-            plot,
-        );
-        for (series_index, (name, colour, value)) in series.into_iter().enumerate() {
-            for (i, &(px, py)) in markers[series_index].iter().enumerate() {
-                let row = &self.rows[i];
-                let (fill, r) = if value == 0 {
-                    (colour, 3.5)
-                } else {
-                    ("none", 6.0)
-                };
-                let marker = if row.setting.refine_samples > 0 {
-                    format!(
-                        "<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>",
-                        px - r,
-                        py - r,
-                        2.0 * r,
-                        2.0 * r
-                    )
-                } else {
-                    format!("<circle cx=\"{px}\" cy=\"{py}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>")
-                };
-                let _ = writeln!(svg, "{marker}");
+                .any(|&(qx, qy)| (qx - px).abs() < 9.0 && (qy - py).abs() < 9.0)
+            {
+                px += 9.0;
             }
-            let legend_y = margin + 14.0 * value as f64;
-            let (fill, r) = if value == 0 {
-                (colour, 3.5)
-            } else {
-                ("none", 6.0)
-            };
-            let _ = writeln!(
-                svg,
-                "<circle cx=\"{}\" cy=\"{}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/><text x=\"{}\" y=\"{}\">{name}</text>",
-                width - margin - 120.0,
-                legend_y,
-                width - margin - 110.0,
-                legend_y + 4.0
-            );
+            placed.push((px, py));
         }
-        for (label, (point, at)) in labels.iter().enumerate() {
-            let (px, py) = *point;
-            let _ = writeln!(
-                svg,
-                "<line x1=\"{px}\" y1=\"{py}\" x2=\"{}\" y2=\"{}\" stroke=\"#bbb\"/><text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
-                at.x0,
-                (at.y0 + at.y1) / 2.0,
-                at.x0,
-                at.y1 - 2.0,
-                self.rows[label].label
-            );
-        }
+        placed
+    }
+
+    /// The series' line of the legend, top right.
+    fn write_legend_entry(&self, svg: &mut String, series: Series) {
+        let legend_y = self.margin + 14.0 * series.index() as f64;
+        let (fill, r) = series.fill_and_radius();
+        let (name, colour) = (series.name(), series.colour());
+        let _ = writeln!(
+            svg,
+            "<circle cx=\"{}\" cy=\"{}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/><text x=\"{}\" y=\"{}\">{name}</text>",
+            self.width - self.margin - 120.0,
+            legend_y,
+            self.width - self.margin - 110.0,
+            legend_y + 4.0
+        );
+    }
+
+    /// What the marker shapes mean, and the closing tag.
+    fn write_footnote(&self, svg: &mut String) {
         let _ = writeln!(
             svg,
             "<text x=\"{}\" y=\"{}\" fill=\"#555\">squares: with refinement; dots: false culls, rings: false keeps</text>\n</svg>",
-            width - margin - 124.0,
-            margin + 32.0
+            self.width - self.margin - 124.0,
+            self.margin + 32.0
         );
-        svg
+    }
+}
+
+/// The two errors the plot draws. False keeps are rings around where false
+/// culls are dots, so a setting with both at one value shows both.
+#[derive(Debug, Clone, Copy)]
+enum Series {
+    FalseCulls,
+    FalseKeeps,
+}
+
+impl Series {
+    const ALL: [Series; 2] = [Series::FalseCulls, Series::FalseKeeps];
+
+    fn index(self) -> usize {
+        self as usize
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Series::FalseCulls => "false culls",
+            Series::FalseKeeps => "false keeps",
+        }
+    }
+
+    fn colour(self) -> &'static str {
+        match self {
+            Series::FalseCulls => "#c0392b",
+            Series::FalseKeeps => "#2471a3",
+        }
+    }
+
+    fn errors(self, row: &Row) -> u64 {
+        match self {
+            Series::FalseCulls => row.false_culls,
+            Series::FalseKeeps => row.false_keeps,
+        }
+    }
+
+    /// Dots are filled and small, rings hollow and large.
+    fn fill_and_radius(self) -> (&'static str, f64) {
+        match self {
+            Series::FalseCulls => (self.colour(), 3.5),
+            Series::FalseKeeps => ("none", 6.0),
+        }
+    }
+}
+
+/// One marker per row: a square for a setting with refinement, else a
+/// circle.
+fn write_markers(svg: &mut String, rows: &[Row], series: Series, markers: &[(f64, f64)]) {
+    let colour = series.colour();
+    let (fill, r) = series.fill_and_radius();
+    for (row, &(px, py)) in rows.iter().zip(markers) {
+        let marker = if row.setting.refine_samples > 0 {
+            format!(
+                "<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>",
+                px - r,
+                py - r,
+                2.0 * r,
+                2.0 * r
+            )
+        } else {
+            format!("<circle cx=\"{px}\" cy=\"{py}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/>")
+        };
+        let _ = writeln!(svg, "{marker}");
+    }
+}
+
+/// Each row's label where `place_labels` put it, with a leader line from
+/// its marker.
+fn write_labels(svg: &mut String, rows: &[Row], labels: &[((f64, f64), LabelBox)]) {
+    for (row, ((px, py), at)) in rows.iter().zip(labels) {
+        let _ = writeln!(
+            svg,
+            "<line x1=\"{px}\" y1=\"{py}\" x2=\"{}\" y2=\"{}\" stroke=\"#bbb\"/><text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
+            at.x0,
+            (at.y0 + at.y1) / 2.0,
+            at.x0,
+            at.y1 - 2.0,
+            row.label
+        );
     }
 }
 

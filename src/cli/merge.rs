@@ -2,7 +2,7 @@
 //! distributed bake against this machine's inputs, ORs them, refines if
 //! asked, and writes the chunks and report exactly as `bake` does.
 
-use super::bake::{
+use super::bake_shared::{
     load_scene_told, warn_locked_chunks, write_results, BakeOptions, OutputArgs, Results,
 };
 use super::progress::Reporter;

@@ -2,6 +2,7 @@
 //! messages here; nothing below this module prints.
 
 mod bake;
+mod bake_shared;
 pub mod memory;
 mod merge;
 mod pipeline;
@@ -195,5 +196,39 @@ pub(crate) fn load_config(settings: &BakeSettings) -> LoadConfig {
     LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_command_line_definition_is_consistent() {
+        // Every argument a conflict, requirement or default names exists,
+        // and no two arguments share a name or a short flag.
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn a_shard_refuses_the_flags_of_a_whole_bake() {
+        for flag in ["--out=x", "--dry-run", "--report=r.json", "--refine"] {
+            let parsed = Cli::try_parse_from([
+                "shadowcull",
+                "bake",
+                "bake.xml",
+                "--shard=0/2",
+                "--partial=p",
+                flag,
+            ]);
+            let err = parsed.expect_err(flag);
+            assert_eq!(
+                err.kind(),
+                clap::error::ErrorKind::ArgumentConflict,
+                "{flag}"
+            );
+        }
+        assert!(Cli::try_parse_from(["shadowcull", "bake", "bake.xml", "--shard=0/2"]).is_err());
     }
 }

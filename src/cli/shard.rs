@@ -2,7 +2,7 @@
 //! a Slurm, Kubernetes or AWS Batch array job): one shard of a distributed
 //! bake, written as a partial result for `merge`.
 
-use super::bake::{load_scene_told, BakeOptions};
+use super::bake_shared::{load_scene_told, BakeOptions};
 use super::progress::Reporter;
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
@@ -130,4 +130,42 @@ fn cpu_seconds() -> f64 {
         }
     }
     0.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(shard: &str, shards: Option<u32>) -> ShardArgs {
+        ShardArgs {
+            shard: Some(shard.to_string()),
+            shards,
+            partial: None,
+        }
+    }
+
+    #[test]
+    fn the_partial_path_names_the_shard_and_the_count() {
+        let shard = ShardIndex { index: 3, count: 8 };
+        assert_eq!(
+            partial_path(Path::new("parts/{index}-of-{count}.partial"), shard),
+            PathBuf::from("parts/3-of-8.partial")
+        );
+        assert_eq!(
+            partial_path(Path::new("one.partial"), shard),
+            PathBuf::from("one.partial")
+        );
+    }
+
+    #[test]
+    fn shards_must_agree_with_an_explicit_shard() {
+        let (shard, said) = args("1/4", Some(4)).shard().expect("agreeing --shards");
+        assert_eq!(shard, ShardIndex { index: 1, count: 4 });
+        assert!(said.contains("--shard"), "{said}");
+        let err = args("1/4", Some(3))
+            .shard()
+            .expect_err("disagreeing --shards");
+        assert!(err.to_string().contains("--shards 3"), "{err}");
+        assert!(args("4/4", None).shard().is_err());
+    }
 }

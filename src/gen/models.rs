@@ -98,54 +98,47 @@ impl ModelDef {
 /// meshes so that placements add up to millions of triangles).
 pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
     let d = detail.max(1);
-    let mut out = Vec::new();
+    vec![
+        one_group(Kind::Crate, OPAQUE("crate"), |m| {
+            m.add_box([-0.5, 0.0, -0.5], [0.5, 1.0, 0.5])
+        }),
+        one_group(Kind::Pillar, OPAQUE("stone"), |m| {
+            m.add_cylinder([0.0; 3], 0.3, 3.0, 12 * d)
+        }),
+        one_group(Kind::Boulder, OPAQUE("rock"), |m| {
+            // A lumpy sphere: the fixed bumps make it a star-shaped, still
+            // closed rock.
+            let bumps =
+                |i: usize, j: usize| 1.0 + 0.08 * (((i * 5 + j * 3) % 7) as f64 / 6.0 - 0.5);
+            m.add_sphere([0.0, 0.6, 0.0], 1.0, 8 * d, 12 * d, &bumps)
+        }),
+        one_group(Kind::Ring, OPAQUE("bronze"), |m| {
+            m.add_torus([0.0; 3], 1.2, 0.35, 16 * d, 8 * d)
+        }),
+        tree(d),
+        house(),
+        banner(),
+        signpost(),
+    ]
+}
 
+/// A model of one closed, opaque group.
+fn one_group(kind: Kind, material: Material, add: impl FnOnce(&mut Mesh)) -> ModelDef {
     let mut m = Mesh::default();
     m.begin_group();
-    m.add_box([-0.5, 0.0, -0.5], [0.5, 1.0, 0.5]);
+    add(&mut m);
     m.end_group(true);
-    out.push(ModelDef {
-        kind: Kind::Crate,
+    ModelDef {
+        kind,
         mesh: m,
-        materials: vec![OPAQUE("crate")],
+        materials: vec![material],
         node: None,
-    });
+    }
+}
 
-    let mut m = Mesh::default();
-    m.begin_group();
-    m.add_cylinder([0.0; 3], 0.3, 3.0, 12 * d);
-    m.end_group(true);
-    out.push(ModelDef {
-        kind: Kind::Pillar,
-        mesh: m,
-        materials: vec![OPAQUE("stone")],
-        node: None,
-    });
-
-    let mut m = Mesh::default();
-    m.begin_group();
-    // A lumpy sphere: the fixed bumps make it a star-shaped, still closed rock.
-    let bumps = |i: usize, j: usize| 1.0 + 0.08 * (((i * 5 + j * 3) % 7) as f64 / 6.0 - 0.5);
-    m.add_sphere([0.0, 0.6, 0.0], 1.0, 8 * d, 12 * d, &bumps);
-    m.end_group(true);
-    out.push(ModelDef {
-        kind: Kind::Boulder,
-        mesh: m,
-        materials: vec![OPAQUE("rock")],
-        node: None,
-    });
-
-    let mut m = Mesh::default();
-    m.begin_group();
-    m.add_torus([0.0; 3], 1.2, 0.35, 16 * d, 8 * d);
-    m.end_group(true);
-    out.push(ModelDef {
-        kind: Kind::Ring,
-        mesh: m,
-        materials: vec![OPAQUE("bronze")],
-        node: None,
-    });
-
+/// A closed trunk and open crossed cards of alpha-tested, double-sided
+/// leaves.
+fn tree(d: usize) -> ModelDef {
     let mut m = Mesh::default();
     m.begin_group();
     m.add_cylinder([0.0; 3], 0.25, 4.0, 8 * d);
@@ -153,7 +146,7 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
     m.begin_group();
     m.add_cards([0.0; 3], 2.5, 2.5, 7.5, 3);
     m.end_group(false);
-    out.push(ModelDef {
+    ModelDef {
         kind: Kind::Tree,
         mesh: m,
         materials: vec![
@@ -165,8 +158,11 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
             },
         ],
         node: None,
-    });
+    }
+}
 
+/// Walls, roof and chimney: three closed groups.
+fn house() -> ModelDef {
     let mut m = Mesh::default();
     m.begin_group();
     m.add_box([-3.0, 0.0, -4.0], [3.0, 4.0, 4.0]);
@@ -177,18 +173,21 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
     m.begin_group();
     m.add_box([1.2, 4.5, 1.5], [1.9, 7.2, 2.2]);
     m.end_group(true);
-    out.push(ModelDef {
+    ModelDef {
         kind: Kind::House,
         mesh: m,
         materials: vec![OPAQUE("walls"), OPAQUE("roof"), OPAQUE("chimney")],
         node: None,
-    });
+    }
+}
 
+/// One open, double-sided panel of cloth.
+fn banner() -> ModelDef {
     let mut m = Mesh::default();
     m.begin_group();
     m.add_panel(1.0, 0.5, 3.5);
     m.end_group(false);
-    out.push(ModelDef {
+    ModelDef {
         kind: Kind::Banner,
         mesh: m,
         materials: vec![Material {
@@ -197,17 +196,19 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
             double_sided: true,
         }],
         node: None,
-    });
+    }
+}
 
-    // Nodefull: the board is modelled at the origin and lifted, turned and
-    // scaled by its node, so a reader that skips node transforms puts it in
-    // the wrong place.
+/// Nodefull: the board is modelled at the origin and lifted, turned and
+/// scaled by its node, so a reader that skips node transforms puts it in
+/// the wrong place.
+fn signpost() -> ModelDef {
     let mut m = Mesh::default();
     m.begin_group();
     m.add_box([-0.8, -0.4, -0.1], [0.8, 0.4, 0.1]);
     m.end_group(true);
     let (a, s) = (30f64.to_radians(), 1.5);
-    out.push(ModelDef {
+    ModelDef {
         kind: Kind::Signpost,
         mesh: m,
         materials: vec![OPAQUE("board")],
@@ -217,8 +218,7 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
             [s * a.sin(), 0.0, s * a.cos()],
             [0.0, 2.2, 0.0],
         ]),
-    });
-    out
+    }
 }
 
 /// The three files of a model, paths relative to the res root.

@@ -340,23 +340,6 @@ fn bench_is_big() {
     check_references(&w, "spaces/bench");
 }
 
-/// Prints sizes and timings; run with `--release -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn report_sizes_and_timings() {
-    for p in Preset::ALL {
-        let t = std::time::Instant::now();
-        let w = generate(p, 1);
-        let bytes: usize = w.files.iter().map(|f| f.1.len()).sum();
-        println!(
-            "{p:?}: {:?}, {} files, {bytes} bytes, {:?}",
-            w.expected,
-            w.files.len(),
-            t.elapsed()
-        );
-    }
-}
-
 #[test]
 fn written_binaries_read_back_with_the_crate_readers() {
     use crate::formats::{binsection, primitives, terrain};

@@ -30,11 +30,10 @@
 //! query already marked active, and the bins that missed the command count
 //! the samples of earlier queries (or count twice) at the end of the bin.
 //! More bins (2048² tiles: 1024) and more triangles per scene make that
-//! likelier: `bench` with the sun at 0.25 m overcounted by 5193 samples in
-//! one tile, deterministically. A flush before every begin and end keeps
-//! both in an empty scene and makes the queries exact (the `Queries`
-//! counter does that), at three times the cost; atomic counters need no
-//! flush at all.
+//! likelier, and a tile that overcounts does so on every run. A flush
+//! before every begin and end keeps both in an empty scene and makes the
+//! queries exact (the `Queries` counter does that), at a cost that grows
+//! with the queries; atomic counters need no flush at all.
 //!
 //! The fragment shader applies what a depth-clipped rasterizer would not:
 //! spot and point lights keep fragments whose *distance* from the light is in
@@ -69,7 +68,7 @@ pub const DEFAULT_MAX_TILE: u32 = 2048;
 
 /// Occlusion queries issued before their results are read (each read waits
 /// for the rasterizer). With the flush before every begin and end
-/// ([`Counter::Queries`]) the batch size no longer changes the counts.
+/// ([`Counter::Queries`]) the batch size does not change the counts.
 const QUERY_BATCH: usize = 64;
 
 /// How pass 2's passing samples are counted per caster.
@@ -1034,33 +1033,7 @@ unsafe fn upload_ground(
     programs: &Programs,
     textures: [glow::Texture; 4],
 ) {
-    let heights: Vec<f32> = atlas
-        .heights
-        .iter()
-        .map(|h| (h - reference.y) as f32)
-        .collect();
-    let mut place = Vec::with_capacity(atlas.index.len() * 4);
-    let mut frame = Vec::with_capacity(atlas.index.len() * 4);
-    for entry in &atlas.index {
-        match entry {
-            Some(p) => {
-                place.extend([p.atlas.0, p.atlas.1, p.cells.0, p.cells.1].map(|v| v as f32));
-                frame.extend(
-                    [
-                        p.origin.0 - reference.x,
-                        p.origin.1 - reference.z,
-                        p.spacing.0,
-                        p.spacing.1,
-                    ]
-                    .map(|v| v as f32),
-                );
-            }
-            None => {
-                place.extend([-1.0f32; 4]);
-                frame.extend([0.0f32, 0.0, 1.0, 1.0]);
-            }
-        }
-    }
+    let texels = GroundTexels::of(atlas, reference);
     let (aw, ah) = (atlas.size.0 as i32, atlas.size.1 as i32);
     let (gw, gh) = (atlas.grid_count.0 as i32, atlas.grid_count.1 as i32);
     gl.pixel_store_i32(glow::UNPACK_ALIGNMENT, 1);
@@ -1073,7 +1046,7 @@ unsafe fn upload_ground(
             atlas_size,
             glow::RED,
             glow::FLOAT,
-            bytes_of(&heights),
+            bytes_of(&texels.heights),
         ),
         (
             glow::R8UI,
@@ -1087,14 +1060,14 @@ unsafe fn upload_ground(
             grid_size,
             glow::RGBA,
             glow::FLOAT,
-            bytes_of(&place),
+            bytes_of(&texels.place),
         ),
         (
             glow::RGBA32F,
             grid_size,
             glow::RGBA,
             glow::FLOAT,
-            bytes_of(&frame),
+            bytes_of(&texels.frame),
         ),
     ];
     for (unit, (texture, (internal, (w, h), format, kind, data))) in
@@ -1115,6 +1088,65 @@ unsafe fn upload_ground(
         );
         set_nearest(gl);
     }
+    set_ground_uniforms(gl, atlas, reference, programs);
+}
+
+/// The f32 texels of the atlas's heights and per-chunk index, relative to
+/// the upload's reference point.
+struct GroundTexels {
+    heights: Vec<f32>,
+    /// Per chunk: the block's corner in the atlas and its cells across
+    /// (−1 where the chunk has no block).
+    place: Vec<f32>,
+    /// Per chunk: the block's origin (x, z) and its cell spacing.
+    frame: Vec<f32>,
+}
+
+impl GroundTexels {
+    fn of(atlas: &GroundAtlas, reference: DVec3) -> GroundTexels {
+        let heights: Vec<f32> = atlas
+            .heights
+            .iter()
+            .map(|h| (h - reference.y) as f32)
+            .collect();
+        let mut place = Vec::with_capacity(atlas.index.len() * 4);
+        let mut frame = Vec::with_capacity(atlas.index.len() * 4);
+        for entry in &atlas.index {
+            match entry {
+                Some(p) => {
+                    place.extend([p.atlas.0, p.atlas.1, p.cells.0, p.cells.1].map(|v| v as f32));
+                    frame.extend(
+                        [
+                            p.origin.0 - reference.x,
+                            p.origin.1 - reference.z,
+                            p.spacing.0,
+                            p.spacing.1,
+                        ]
+                        .map(|v| v as f32),
+                    );
+                }
+                None => {
+                    place.extend([-1.0f32; 4]);
+                    frame.extend([0.0f32, 0.0, 1.0, 1.0]);
+                }
+            }
+        }
+        GroundTexels {
+            heights,
+            place,
+            frame,
+        }
+    }
+}
+
+/// The shader's samplers for texture units 0–3 and the chunk grid's
+/// uniforms (origin relative to `reference`, chunk size, chunks across).
+unsafe fn set_ground_uniforms(
+    gl: &glow::Context,
+    atlas: &GroundAtlas,
+    reference: DVec3,
+    programs: &Programs,
+) {
     for (unit, name) in ["heights", "cells", "block_place", "block_frame"]
         .iter()
         .enumerate()
@@ -1130,6 +1162,7 @@ unsafe fn upload_ground(
     });
     let chunk = atlas.chunk_size as f32;
     programs.set(gl, "chunk_size", |u| gl.uniform_1_f32(u, chunk));
+    let (gw, gh) = (atlas.grid_count.0 as i32, atlas.grid_count.1 as i32);
     programs.set(gl, "grid_count", |u| gl.uniform_2_i32(u, gw, gh));
 }
 

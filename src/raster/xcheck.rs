@@ -394,8 +394,6 @@ pub fn ray_counts(world: &BakeWorld, config: &BakeConfig) -> RayCounts {
 /// Compares the two methods; `raster` must come from the same scene and
 /// config.
 pub fn compare(world: &BakeWorld, config: &BakeConfig, raster: &RasterResult) -> XcheckReport {
-    let casters = &raster.casters;
-    let scene = world.scene;
     let mut report = XcheckReport {
         pairs: 0,
         agreeing: 0,
@@ -407,98 +405,143 @@ pub fn compare(world: &BakeWorld, config: &BakeConfig, raster: &RasterResult) ->
         notes: raster.ground_note.iter().cloned().collect(),
     };
     for light in 0..config.lights.len() {
-        let started = std::time::Instant::now();
-        let setup = LightSetup::new(world, config, light).ok();
-        let light_name = config.lights[light].name.clone();
-        let raster_useful: Vec<bool> = raster.masks.iter().map(|m| m & (1 << light) != 0).collect();
-        let not_in_raster: Vec<bool> = raster_useful.iter().map(|u| !u).collect();
-        let rays = setup.as_ref().map(|s| s.rays(world, config));
-        let centre = match &rays {
-            Some(rays) => centre_pass(rays, &not_in_raster),
-            None => CentrePass {
-                all: vec![0; casters.len()],
-                any: vec![0; casters.len()],
-                tied: 0,
-                watched: Vec::new(),
-            },
-        };
-        let ray_seconds = started.elapsed().as_secs_f64();
-        report.lights.push(LightTexels {
-            light,
-            name: light_name.clone(),
-            ray_cast: centre.all.iter().sum(),
-            ray_cast_tied: centre.tied,
-            raster: raster.texels.get(light).map_or(0, |t| t.iter().sum()),
-            ray_seconds,
-            raster_seconds: raster.seconds.get(light).copied().unwrap_or(0.0),
-        });
-        // Raster-only casters: one jittered pass for all of them.
-        let raster_only: Vec<bool> = (0..casters.len())
-            .map(|id| {
-                raster_useful[id] && centre.any[id] == 0 && !casters.casters[id].receiver_only
-            })
-            .collect();
-        let jittered_found = match &rays {
-            Some(rays) if raster_only.iter().any(|&b| b) => jitter_pass(rays, &raster_only),
-            _ => vec![0; casters.len()],
-        };
-        let mut hits = Vec::new();
-        for (id, caster) in casters.casters.iter().enumerate() {
-            if caster.receiver_only {
-                continue;
-            }
-            report.pairs += 1;
-            let ray_n = centre.any[id];
-            let ray = ray_n > 0;
-            let ras = raster_useful[id];
-            if ray == ras {
-                report.agreeing += 1;
-                continue;
-            }
-            let ras_all = raster.texels.get(light).map_or(0, |t| t[id]);
-            let ras_opaque = raster.texels_opaque.get(light).map_or(0, |t| t[id]);
-            let cause = match (&rays, ray) {
-                (Some(rays), true) => {
-                    let from = centre.watched.partition_point(|&(c, _)| c < id as u32);
-                    let to = centre.watched.partition_point(|&(c, _)| c <= id as u32);
-                    let texels = &centre.watched[from..to];
-                    let causes: Vec<(Texel, TexelCause)> = texels
-                        .iter()
-                        .map(|&(c, t)| (t, texel_cause(rays, &mut hits, c, t)))
-                        .collect();
-                    describe_ray_only(casters, scene, &causes)
-                }
-                // Each raster sample must have a near ray to back it.
-                (Some(_), false) => (ras_all.max(ras_opaque) <= jittered_found[id]).then(|| {
-                    format!(
-                        "edge: rays 1/{EDGE_JITTER_PER_TEXEL} texel off the centres find it useful at {} texel(s), \
-                         the raster passes {} sample(s) (all groups {ras_all}, opaque groups {ras_opaque})",
-                        jittered_found[id],
-                        ras_all.max(ras_opaque)
-                    )
-                }),
-                (None, _) => None,
-            };
-            if cause.is_none() {
-                report.unexplained += 1;
-            }
-            let (chunk, kind, index, group) = describe(scene, casters, id);
-            report.disagreements.push(Disagreement {
-                chunk,
-                kind,
-                index,
-                group,
-                light,
-                light_name: light_name.clone(),
-                ray_cast: ray,
-                raster: ras,
-                ray_texels: ray_n,
-                raster_texels: ras_all.max(ras_opaque),
-                cause,
-            });
-        }
+        compare_light(world, config, raster, light, &mut report);
     }
     report
+}
+
+/// Light `light`'s texel counts and its (caster, light) pairs, each
+/// disagreement with its cause, added to `report`.
+fn compare_light(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    raster: &RasterResult,
+    light: usize,
+    report: &mut XcheckReport,
+) {
+    let casters = &raster.casters;
+    let started = std::time::Instant::now();
+    let setup = LightSetup::new(world, config, light).ok();
+    let light_name = config.lights[light].name.clone();
+    let raster_useful: Vec<bool> = raster.masks.iter().map(|m| m & (1 << light) != 0).collect();
+    let not_in_raster: Vec<bool> = raster_useful.iter().map(|u| !u).collect();
+    let rays = setup.as_ref().map(|s| s.rays(world, config));
+    let centre = match &rays {
+        Some(rays) => centre_pass(rays, &not_in_raster),
+        None => CentrePass {
+            all: vec![0; casters.len()],
+            any: vec![0; casters.len()],
+            tied: 0,
+            watched: Vec::new(),
+        },
+    };
+    let ray_seconds = started.elapsed().as_secs_f64();
+    report.lights.push(LightTexels {
+        light,
+        name: light_name.clone(),
+        ray_cast: centre.all.iter().sum(),
+        ray_cast_tied: centre.tied,
+        raster: raster.texels.get(light).map_or(0, |t| t.iter().sum()),
+        ray_seconds,
+        raster_seconds: raster.seconds.get(light).copied().unwrap_or(0.0),
+    });
+    // Raster-only casters: one jittered pass for all of them.
+    let raster_only: Vec<bool> = (0..casters.len())
+        .map(|id| raster_useful[id] && centre.any[id] == 0 && !casters.casters[id].receiver_only)
+        .collect();
+    let jittered_found = match &rays {
+        Some(rays) if raster_only.iter().any(|&b| b) => jitter_pass(rays, &raster_only),
+        _ => vec![0; casters.len()],
+    };
+    let evidence = Evidence {
+        scene: world.scene,
+        casters,
+        rays: rays.as_ref(),
+        centre: &centre,
+        jittered_found: &jittered_found,
+    };
+    let mut hits = Vec::new();
+    for (id, caster) in casters.casters.iter().enumerate() {
+        if caster.receiver_only {
+            continue;
+        }
+        report.pairs += 1;
+        let ray_n = centre.any[id];
+        let ray = ray_n > 0;
+        let ras = raster_useful[id];
+        if ray == ras {
+            report.agreeing += 1;
+            continue;
+        }
+        let ras_all = raster.texels.get(light).map_or(0, |t| t[id]);
+        let ras_opaque = raster.texels_opaque.get(light).map_or(0, |t| t[id]);
+        let cause = evidence.cause(id, ray, (ras_all, ras_opaque), &mut hits);
+        if cause.is_none() {
+            report.unexplained += 1;
+        }
+        let (chunk, kind, index, group) = describe(world.scene, casters, id);
+        report.disagreements.push(Disagreement {
+            chunk,
+            kind,
+            index,
+            group,
+            light,
+            light_name: light_name.clone(),
+            ray_cast: ray,
+            raster: ras,
+            ray_texels: ray_n,
+            raster_texels: ras_all.max(ras_opaque),
+            cause,
+        });
+    }
+}
+
+/// What one light's re-tests found, to explain its disagreements by.
+struct Evidence<'a> {
+    scene: &'a Scene,
+    casters: &'a CasterTable,
+    /// `None`: the light reaches nothing.
+    rays: Option<&'a LightRays<'a>>,
+    centre: &'a CentrePass,
+    /// Per caster, texels where rays off the centres find it useful (the
+    /// raster-only casters alone).
+    jittered_found: &'a [u64],
+}
+
+impl Evidence<'_> {
+    /// Why caster `id` is useful to one method and not the other (`ray`:
+    /// the ray cast's answer; `(all, opaque)`: the raster's samples in
+    /// either variant); `None`: unexplained.
+    fn cause(
+        &self,
+        id: usize,
+        ray: bool,
+        (ras_all, ras_opaque): (u64, u64),
+        hits: &mut Vec<RayHit>,
+    ) -> Option<String> {
+        match (self.rays, ray) {
+            (Some(rays), true) => {
+                let watched = &self.centre.watched;
+                let from = watched.partition_point(|&(c, _)| c < id as u32);
+                let to = watched.partition_point(|&(c, _)| c <= id as u32);
+                let causes: Vec<(Texel, TexelCause)> = watched[from..to]
+                    .iter()
+                    .map(|&(c, t)| (t, texel_cause(rays, hits, c, t)))
+                    .collect();
+                describe_ray_only(self.casters, self.scene, &causes)
+            }
+            // Each raster sample must have a near ray to back it.
+            (Some(_), false) => (ras_all.max(ras_opaque) <= self.jittered_found[id]).then(|| {
+                format!(
+                    "edge: rays 1/{EDGE_JITTER_PER_TEXEL} texel off the centres find it useful at {} texel(s), \
+                     the raster passes {} sample(s) (all groups {ras_all}, opaque groups {ras_opaque})",
+                    self.jittered_found[id],
+                    ras_all.max(ras_opaque)
+                )
+            }),
+            (None, _) => None,
+        }
+    }
 }
 
 /// The cause of a ray-only disagreement from its texels' causes: explained

@@ -15,8 +15,8 @@ use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
 use crate::formats::bake_settings::LightKind;
 use crate::scene::Scene;
-use crate::trace::{Bvh, TraceRay};
-use glam::DVec3;
+use crate::trace::{Bvh, TraceRay, TraceTriangle};
+use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 
 /// Light reaching surfaces that face away from the light, so their shape
@@ -170,6 +170,41 @@ pub fn camera_view_from(
     camera: &CameraSpec,
     source: Source,
 ) -> Result<Picture, RenderError> {
+    check_camera(camera)?;
+    let world = BakeWorld::new(scene);
+    let (verdicts, _) = verdicts(&world, config, light, source)?;
+    let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
+    let (position, target) = camera.resolve(bounds);
+    let forward = (target - position).normalize_or_zero();
+    if forward == DVec3::ZERO || !forward.is_finite() {
+        return Err(RenderError::BadCamera(format!(
+            "camera {position} and look-at {target} are the same point: no direction to look in"
+        )));
+    }
+    let reference = (bounds.0 + bounds.1) * 0.5;
+    let geometry = all_geometry(scene, &world.casters, reference);
+    let view = View {
+        frame: Frame::new(forward, camera.fov_degrees, camera.width, camera.height),
+        position,
+        origin: (position - reference).as_vec3(),
+        bvh: Bvh::build(&geometry.triangles),
+        triangles: &geometry.triangles,
+        classes: &verdicts.classes,
+        light_kind: &config.lights[light].kind,
+    };
+    let (classes, rgb) = view.draw(camera.width, camera.height);
+    Ok(Picture {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        classes,
+        light: verdicts.light,
+        notes: notes(position, target, camera.fov_degrees),
+    })
+}
+
+/// Refuses a picture size, field of view or points a camera cannot use.
+fn check_camera(camera: &CameraSpec) -> Result<(), RenderError> {
     check_size(camera.width, camera.height)?;
     if !(camera.fov_degrees > 0.0 && camera.fov_degrees < 180.0) {
         return Err(RenderError::BadCamera(format!(
@@ -184,93 +219,99 @@ pub fn camera_view_from(
             )));
         }
     }
-    let world = BakeWorld::new(scene);
-    let (verdicts, _) = verdicts(&world, config, light, source)?;
-    let bounds = world_bounds(scene).ok_or(RenderError::EmptyWorld)?;
-    let (position, target) = camera.resolve(bounds);
-    let forward = (target - position).normalize_or_zero();
-    if forward == DVec3::ZERO || !forward.is_finite() {
-        return Err(RenderError::BadCamera(format!(
-            "camera {position} and look-at {target} are the same point: no direction to look in"
-        )));
-    }
-    let frame = Frame::new(forward, camera.fov_degrees, camera.width, camera.height);
+    Ok(())
+}
 
-    let reference = (bounds.0 + bounds.1) * 0.5;
-    let geometry = all_geometry(scene, &world.casters, reference);
-    let bvh = Bvh::build(&geometry.triangles);
-    let light_kind = &config.lights[light].kind;
-    let origin = (position - reference).as_vec3();
+/// What one pixel's ray needs: the camera, every triangle (relative to the
+/// world's centre, as `origin` is) and the verdicts and light that colour
+/// them.
+struct View<'a> {
+    frame: Frame,
+    /// The camera in world coordinates, for the light's direction at a hit.
+    position: DVec3,
+    /// The camera relative to the triangles' reference point.
+    origin: Vec3,
+    bvh: Bvh,
+    triangles: &'a [TraceTriangle],
+    classes: &'a [Class],
+    light_kind: &'a LightKind,
+}
 
-    let rows: Vec<Vec<(Class, [u8; 3])>> = (0..camera.height)
-        .into_par_iter()
-        .map(|row| {
-            let sy = 1.0 - (row as f64 + 0.5) / camera.height as f64 * 2.0;
-            (0..camera.width)
-                .map(|column| {
-                    let sx = (column as f64 + 0.5) / camera.width as f64 * 2.0 - 1.0;
-                    let direction = frame.direction(sx, sy);
-                    let ray = TraceRay {
-                        origin,
-                        direction: direction.as_vec3(),
-                        t_min: 0.0,
-                        t_max: f32::INFINITY,
-                    };
-                    let Some(hit) = bvh.closest_hit(&ray) else {
-                        return (Class::Nothing, SKY);
-                    };
-                    let Some(triangle) = geometry.triangles.get(hit.triangle as usize) else {
-                        return (Class::Nothing, SKY);
-                    };
-                    let class = verdicts
-                        .classes
-                        .get(hit.caster as usize)
-                        .copied()
-                        .unwrap_or(Class::Nothing);
-                    let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
-                    let mut normal = (b - a).cross(c - a).normalize_or_zero();
-                    if normal.dot(direction) > 0.0 {
-                        normal = -normal;
-                    }
-                    let point = position + direction * hit.t as f64;
-                    let to_light = match light_kind {
-                        LightKind::Directional { direction, .. } => -*direction,
-                        LightKind::Spot { position, .. } | LightKind::Point { position, .. } => {
-                            *position - point
-                        }
-                    }
-                    .normalize_or_zero();
-                    let lambert = normal.dot(to_light).max(0.0);
-                    (class, shaded(class, AMBIENT + (1.0 - AMBIENT) * lambert))
-                })
-                .collect()
-        })
-        .collect();
-    let mut rgb = Vec::with_capacity(camera.width as usize * camera.height as usize * 3);
-    let mut classes = Vec::with_capacity(camera.width as usize * camera.height as usize);
-    for (class, colour) in rows.into_iter().flatten() {
-        classes.push(class);
-        rgb.extend(colour);
+impl View<'_> {
+    /// Every pixel's class and colour, row by row from the top.
+    fn draw(&self, width: u32, height: u32) -> (Vec<Class>, Vec<u8>) {
+        let rows: Vec<Vec<(Class, [u8; 3])>> = (0..height)
+            .into_par_iter()
+            .map(|row| {
+                let sy = 1.0 - (row as f64 + 0.5) / height as f64 * 2.0;
+                (0..width)
+                    .map(|column| {
+                        let sx = (column as f64 + 0.5) / width as f64 * 2.0 - 1.0;
+                        self.pixel(self.frame.direction(sx, sy))
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut rgb = Vec::with_capacity(width as usize * height as usize * 3);
+        let mut classes = Vec::with_capacity(width as usize * height as usize);
+        for (class, colour) in rows.into_iter().flatten() {
+            classes.push(class);
+            rgb.extend(colour);
+        }
+        (classes, rgb)
     }
-    let notes = vec![
+
+    /// The nearest surface along `direction`: its caster's class, lit by
+    /// the light (Lambert with ambient); the sky when nothing is hit.
+    fn pixel(&self, direction: DVec3) -> (Class, [u8; 3]) {
+        let ray = TraceRay {
+            origin: self.origin,
+            direction: direction.as_vec3(),
+            t_min: 0.0,
+            t_max: f32::INFINITY,
+        };
+        let Some(hit) = self.bvh.closest_hit(&ray) else {
+            return (Class::Nothing, SKY);
+        };
+        let Some(triangle) = self.triangles.get(hit.triangle as usize) else {
+            return (Class::Nothing, SKY);
+        };
+        let class = self
+            .classes
+            .get(hit.caster as usize)
+            .copied()
+            .unwrap_or(Class::Nothing);
+        let [a, b, c] = triangle.vertices.map(|v| v.as_dvec3());
+        let mut normal = (b - a).cross(c - a).normalize_or_zero();
+        if normal.dot(direction) > 0.0 {
+            normal = -normal;
+        }
+        let point = self.position + direction * hit.t as f64;
+        let to_light = match self.light_kind {
+            LightKind::Directional { direction, .. } => -*direction,
+            LightKind::Spot { position, .. } | LightKind::Point { position, .. } => {
+                *position - point
+            }
+        }
+        .normalize_or_zero();
+        let lambert = normal.dot(to_light).max(0.0);
+        (class, shaded(class, AMBIENT + (1.0 - AMBIENT) * lambert))
+    }
+}
+
+/// The legend's account of the camera and the lighting.
+fn notes(position: DVec3, target: DVec3, fov_degrees: f64) -> Vec<String> {
+    vec![
         format!(
             "camera view: from ({:.2}, {:.2}, {:.2}) looking at ({:.2}, {:.2}, {:.2}), vertical field of view {}°",
-            position.x, position.y, position.z, target.x, target.y, target.z, camera.fov_degrees
+            position.x, position.y, position.z, target.x, target.y, target.z, fov_degrees
         ),
         format!(
             "surfaces lit by the light's direction (Lambert, {:.0} % ambient, no shadows); sky dark blue",
             AMBIENT * 100.0
         ),
         "casters outside the light's reach are never useful for it, so they show as culled".to_string(),
-    ];
-    Ok(Picture {
-        width: camera.width,
-        height: camera.height,
-        rgb,
-        classes,
-        light: verdicts.light,
-        notes,
-    })
+    ]
 }
 
 #[cfg(test)]

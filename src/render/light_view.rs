@@ -14,6 +14,7 @@
 
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
 use crate::bake::setup::BakeWorld;
+use crate::bake::trace_light::LightRays;
 use crate::bake::BakeConfig;
 use crate::light::{TexelGrid, CUBE_FACE_NAMES};
 use crate::scene::Scene;
@@ -101,8 +102,8 @@ pub fn light_view_from(
     max_size: Option<(u32, u32)>,
     source: Source,
 ) -> Result<Picture, RenderError> {
-    let (max_w, max_h) = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
-    check_size(max_w, max_h)?;
+    let max_size = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
+    check_size(max_size.0, max_size.1)?;
     let world = BakeWorld::new(scene);
     let (verdicts, setup) = verdicts(&world, config, light, source)?;
     let Some(setup) = setup else {
@@ -114,25 +115,75 @@ pub fn light_view_from(
     let grid = &setup.grid;
     // front_hit does not classify: the passes play no part.
     let rays_of_light = setup.rays(&world, config);
+    let layout = MapLayout::of(grid, max_size);
+    let pixels = front_surfaces(&rays_of_light, &verdicts.classes, &layout);
+    let depths = DepthRange::of(&pixels);
+    let mut rgb = depths.shade(&pixels);
+    if grid.faces() == 6 {
+        label_faces(&mut rgb, layout.width, layout.height);
+    }
+    Ok(Picture {
+        width: layout.width,
+        height: layout.height,
+        rgb,
+        classes: pixels.into_iter().map(|(class, _)| class).collect(),
+        light: verdicts.light,
+        notes: notes(grid, &layout, &depths),
+    })
+}
 
-    // At most 6 × 2^18 columns (`light::MAX_SIDE`): u64 arithmetic has room to spare.
-    let native_w = grid.faces() as u64 * grid.width() as u64;
-    let native_h = grid.height() as u64;
-    let (width, height) = fit((native_w, native_h), (max_w, max_h));
-    let rows: Vec<Vec<(Class, f32)>> = (0..height)
+/// The shadow map's size laid out flat (faces side by side) and the
+/// picture's size.
+struct MapLayout {
+    /// At most 6 × 2^18 columns (`light::MAX_SIDE`): u64 arithmetic has
+    /// room to spare.
+    native_w: u64,
+    native_h: u64,
+    /// Texels across one face.
+    face_width: u64,
+    width: u32,
+    height: u32,
+}
+
+impl MapLayout {
+    fn of(grid: &TexelGrid, max_size: (u32, u32)) -> MapLayout {
+        let native_w = grid.faces() as u64 * grid.width() as u64;
+        let native_h = grid.height() as u64;
+        let (width, height) = fit((native_w, native_h), max_size);
+        MapLayout {
+            native_w,
+            native_h,
+            face_width: grid.width() as u64,
+            width,
+            height,
+        }
+    }
+
+    fn is_one_to_one(&self) -> bool {
+        (self.width as u64, self.height as u64) == (self.native_w, self.native_h)
+    }
+}
+
+/// Each pixel's texel's front surface, row by row from the top: its
+/// caster's class and its distance (`NaN` where nothing is hit).
+fn front_surfaces(
+    rays_of_light: &LightRays<'_>,
+    classes: &[Class],
+    layout: &MapLayout,
+) -> Vec<(Class, f32)> {
+    let rows: Vec<Vec<(Class, f32)>> = (0..layout.height)
         .into_par_iter()
         .map(|row| {
-            let native_row = centre_sample(row, height, native_h);
-            let y = (native_h - 1 - native_row) as u32;
-            (0..width)
+            let native_row = centre_sample(row, layout.height, layout.native_h);
+            let y = (layout.native_h - 1 - native_row) as u32;
+            (0..layout.width)
                 .map(|column| {
-                    let native_column = centre_sample(column, width, native_w);
-                    let face = (native_column / grid.width() as u64) as usize;
-                    let x = (native_column % grid.width() as u64) as u32;
+                    let native_column = centre_sample(column, layout.width, layout.native_w);
+                    let face = (native_column / layout.face_width) as usize;
+                    let x = (native_column % layout.face_width) as u32;
                     match rays_of_light.front_hit(face, x, y) {
                         Some(hit) => (
-                            verdicts
-                                .classes
+                            classes
                                 .get(hit.caster as usize)
                                 .copied()
                                 .unwrap_or(Class::Nothing),
@@ -144,28 +195,48 @@ pub fn light_view_from(
                 .collect()
         })
         .collect();
-    let pixels: Vec<(Class, f32)> = rows.into_iter().flatten().collect();
+    rows.into_iter().flatten().collect()
+}
 
-    let (near, far) = pixels
-        .iter()
-        .filter(|(class, _)| *class != Class::Nothing)
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (_, t)| {
-            (lo.min(*t), hi.max(*t))
-        });
-    let range = (far - near) as f64;
-    let mut rgb = Vec::with_capacity(pixels.len() * 3);
-    for (class, t) in &pixels {
-        let shade = if range > 0.0 {
-            1.0 - (1.0 - FAR_SHADE) * ((t - near) as f64 / range)
-        } else {
-            1.0
-        };
-        rgb.extend(shaded(*class, shade));
+/// The nearest and farthest surface in the picture (infinite when none).
+#[derive(Clone, Copy)]
+struct DepthRange {
+    near: f32,
+    far: f32,
+}
+
+impl DepthRange {
+    fn of(pixels: &[(Class, f32)]) -> DepthRange {
+        let (near, far) = pixels
+            .iter()
+            .filter(|(class, _)| *class != Class::Nothing)
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (_, t)| {
+                (lo.min(*t), hi.max(*t))
+            });
+        DepthRange { near, far }
     }
 
-    if grid.faces() == 6 {
-        label_faces(&mut rgb, width, height);
+    /// The pixels' colours, from full brightness at `near` down to
+    /// [`FAR_SHADE`] at `far`.
+    fn shade(&self, pixels: &[(Class, f32)]) -> Vec<u8> {
+        let range = (self.far - self.near) as f64;
+        let mut rgb = Vec::with_capacity(pixels.len() * 3);
+        for (class, t) in pixels {
+            let shade = if range > 0.0 {
+                1.0 - (1.0 - FAR_SHADE) * ((t - self.near) as f64 / range)
+            } else {
+                1.0
+            };
+            rgb.extend(shaded(*class, shade));
+        }
+        rgb
     }
+}
+
+/// The legend's account of the picture: layout, sampling, face labels and
+/// the distance range.
+fn notes(grid: &TexelGrid, layout: &MapLayout, depths: &DepthRange) -> Vec<String> {
+    let (width, height) = (layout.width, layout.height);
     let mut notes = vec![format!(
         "light view: shadow map {} × {} texels{}, shown at {} × {} ({})",
         grid.width(),
@@ -180,7 +251,7 @@ pub fn light_view_from(
         },
         width,
         height,
-        if (width as u64, height as u64) == (native_w, native_h) {
+        if layout.is_one_to_one() {
             "1:1, one pixel per texel".to_string()
         } else {
             "each pixel is the texel under its centre".to_string()
@@ -198,20 +269,14 @@ pub fn light_view_from(
          double-sided, mirrored, below ground; All pass), brighter = nearer the light"
             .to_string(),
     );
+    let DepthRange { near, far } = *depths;
     if near.is_finite() {
         notes.push(format!(
             "distance range along the rays: {near:.3} m (full brightness) to {far:.3} m ({:.0} %)",
             FAR_SHADE * 100.0
         ));
     }
-    Ok(Picture {
-        width,
-        height,
-        rgb,
-        classes: pixels.into_iter().map(|(class, _)| class).collect(),
-        light: verdicts.light,
-        notes,
-    })
+    notes
 }
 
 /// The picture size for a `native` map within `max`: native when it fits,

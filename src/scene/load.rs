@@ -9,8 +9,8 @@
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
-use crate::files::{self, ResPaths};
 use crate::formats::chunk::{self, ChunkFile};
+use crate::files::{self, ResPaths};
 use crate::formats::space_settings;
 use crate::formats::{
     self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
@@ -64,281 +64,28 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 /// [`load_scene`], telling `progress` how many chunks, models and terrain
 /// blocks are done.
 pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
-    let log = ReadLog::default();
-    let space = files::normalise(&config.space);
-    let settings_name = format!("{space}/space.settings");
-    let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
-        Error::invalid(
-            &space,
-            format!(
-                "no space.settings for space `{space}` in any res path ({}); check <space> and <resPaths>",
-                config
-                    .res_paths
-                    .roots
-                    .iter()
-                    .map(|p| p.display().to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ),
-        )
-    })?;
-    let space_dir = settings_path
-        .parent()
-        .map(Path::to_path_buf)
-        .unwrap_or_default();
-    let settings = read_parsed(&settings_path, &log, space_settings::parse)?;
-
-    // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
-    // space.settings says <singleDir>.
-    // Entries that are not regular files (a FIFO, a link to a device) are
-    // never opened: each is a problem.
-    let walk = files::walk(&space_dir, ".chunk", !settings.single_dir)?;
-    let chunk_files = walk.files;
-    let mut problems: Vec<Problem> = walk
-        .refused
-        .into_iter()
-        .map(|(path, err)| Problem {
-            what: path.display().to_string(),
-            why: format!("{err}; ignored"),
-        })
-        .collect();
-    if chunk_files.is_empty() {
-        return Err(Error::invalid(
-            &space_dir,
-            match problems.first() {
-                None => "the space holds no .chunk files: nothing to bake".to_string(),
-                Some(p) => format!("the space holds no readable .chunk file: {}", p.why),
-            },
-        ));
-    }
-    let counter = Counter::begin(progress, Phase::Chunks, None, chunk_files.len() as u64);
-    let parsed: Vec<(PathBuf, Result<ChunkFile>)> = chunk_files
-        .par_iter()
-        .map(|path| {
-            let chunk = read_chunk(path, &log);
-            counter.add(1);
-            (path.clone(), chunk)
-        })
-        .collect();
-    counter.finish();
-
-    // Chunks sorted by name; a name seen twice (sep sub-folders and the
-    // space folder both holding it) keeps the first path in sorted order.
-    let mut by_name: BTreeMap<String, (PathBuf, ChunkFile)> = BTreeMap::new();
-    for (path, chunk) in parsed {
-        let name = chunk_name(&path);
-        match chunk {
-            Err(err) => problems.push(Problem {
-                what: path.display().to_string(),
-                why: err.to_string(),
-            }),
-            Ok(chunk) => {
-                if let Some((kept, _)) = by_name.get(&name) {
-                    problems.push(Problem {
-                        what: path.display().to_string(),
-                        why: format!("duplicate of chunk {}; ignored", kept.display()),
-                    });
-                    continue;
-                }
-                if let Some((x, z)) = space_settings::parse_outdoor_chunk_name(&name) {
-                    if !settings.contains(x, z) {
-                        problems.push(Problem {
-                            what: path.display().to_string(),
-                            why: format!(
-                                "outdoor chunk ({x}, {z}) lies outside the space bounds in space.settings; ignored"
-                            ),
-                        });
-                        continue;
-                    }
-                }
-                by_name.insert(name, (path, chunk));
-            }
-        }
-    }
-    if by_name.is_empty() {
-        return Err(Error::invalid(
-            &space_dir,
-            format!(
-                "no readable chunk in the space ({} problems, first: {})",
-                problems.len(),
-                problems.first().map(|p| p.why.as_str()).unwrap_or("")
-            ),
-        ));
-    }
-
-    // Each distinct model resource once, in name order, loaded in parallel.
-    let mut model_names: BTreeMap<String, usize> = BTreeMap::new();
-    let mut first_reference: BTreeMap<String, PathBuf> = BTreeMap::new();
-    for (path, chunk) in by_name.values() {
-        for instance in &chunk.instances {
-            for resource in &instance.resources {
-                let name = files::normalise(resource);
-                first_reference
-                    .entry(name.clone())
-                    .or_insert_with(|| path.clone());
-                model_names.insert(name, 0);
-            }
-        }
-    }
-    let counter = Counter::begin(progress, Phase::Models, None, first_reference.len() as u64);
-    let loaded: Vec<(String, Result<Model>)> = first_reference
-        .into_iter()
-        .collect::<Vec<_>>()
-        .into_par_iter()
-        .map(|(name, referenced_by)| {
-            let model = load_model(&config.res_paths, &name, &referenced_by, &log);
-            counter.add(1);
-            (name, model)
-        })
-        .collect();
-    counter.finish();
-    let mut models = Vec::new();
-    for (name, model) in loaded {
-        match model {
-            Ok(model) => {
-                model_names.insert(name, models.len());
-                models.push(model);
-            }
-            Err(err) => {
-                model_names.remove(&name);
-                problems.push(Problem {
-                    what: name,
-                    why: err.to_string(),
-                });
-            }
-        }
-    }
-
-    let region = SpaceRegion::of(&settings);
-
-    let mut chunks = Vec::new();
-    let mut instances = Vec::new();
-    let mut terrain = Vec::new();
-    // Held for the whole bake: sized exactly rather than grown by doubling.
-    instances.reserve_exact(by_name.values().map(|(_, f)| f.instances.len()).sum());
-    let terrain_jobs: Vec<(usize, PathBuf, String, DMat4)> = {
-        let mut jobs = Vec::new();
-        for (name, (path, file)) in &by_name {
-            let grid = space_settings::parse_outdoor_chunk_name(name);
-            let transform = match (grid, file.transform) {
-                (_, Some(indoor)) => indoor,
-                (Some((x, z)), None) => DMat4::from_translation(DVec3::new(
-                    x as f64 * settings.chunk_size,
-                    0.0,
-                    z as f64 * settings.chunk_size,
-                )),
-                (None, None) => {
-                    problems.push(Problem {
-                        what: path.display().to_string(),
-                        why: "indoor chunk without <transform>; identity used".into(),
-                    });
-                    DMat4::IDENTITY
-                }
-            };
-            let chunk_index = chunks.len();
-            let first_instance = instances.len();
-            for element in &file.instances {
-                let what = format!("{} <{}>", path.display(), element.path);
-                let world = transform * element.transform;
-                if !world.is_finite() {
-                    problems.push(Problem {
-                        what,
-                        why: "transform holds NaN or infinite values; instance left out".into(),
-                    });
-                    continue;
-                }
-                let determinant = world.determinant();
-                if determinant.abs() < SINGULAR_DETERMINANT {
-                    problems.push(Problem {
-                        what,
-                        why: format!(
-                            "singular transform (determinant {determinant:e}, zero scale); instance left out"
-                        ),
-                    });
-                    continue;
-                }
-                if element.resources.is_empty() {
-                    problems.push(Problem {
-                        what,
-                        why: "no <resource>; instance left out".into(),
-                    });
-                    continue;
-                }
-                let parts: Vec<Option<usize>> = element
-                    .resources
-                    .iter()
-                    .map(|r| model_names.get(&files::normalise(r)).copied())
-                    .collect();
-                instances.push(Instance {
-                    chunk: chunk_index,
-                    index: element.index,
-                    kind: element.kind,
-                    resources: element.resources.clone(),
-                    parts,
-                    world,
-                    mirrored: determinant < 0.0,
-                    casts_shadow: element.casts_shadow,
-                });
-            }
-            if let Some(element) = &file.terrain {
-                jobs.push((
-                    chunk_index,
-                    path.clone(),
-                    element.resource.clone(),
-                    transform,
-                ));
-            }
-            chunks.push(Chunk {
-                name: name.clone(),
-                file: path.clone(),
-                grid,
-                transform,
-                instances: first_instance..instances.len(),
-                instance_elements: file.instances.len(),
-                terrain: None,
-            });
-        }
-        jobs
+    let mut loader = Loader {
+        config,
+        progress,
+        log: ReadLog::default(),
+        problems: Vec::new(),
     };
-
-    let counter = Counter::begin(progress, Phase::Terrain, None, terrain_jobs.len() as u64);
-    let blocks: Vec<(usize, Result<TerrainBlock>)> = terrain_jobs
-        .into_par_iter()
-        .map(|(chunk, chunk_path, resource, transform)| {
-            let block = load_terrain(
-                &config.res_paths,
-                &log,
-                &chunk_path,
-                &resource,
-                transform.w_axis.truncate(),
-                settings.chunk_size,
-            );
-            counter.add(1);
-            (chunk, block)
-        })
-        .collect();
-    counter.finish();
-    for (chunk, block) in blocks {
-        match block {
-            Ok(block) if !region.contains(block.bounds().0, block.bounds().1) => {
-                let (min, max) = block.bounds();
-                problems.push(Problem {
-                    what: format!("{} <terrain>", chunks[chunk].file.display()),
-                    why: region.stray_reason(min, max),
-                });
-            }
-            Ok(block) => {
-                chunks[chunk].terrain = Some(terrain.len());
-                terrain.push(block);
-            }
-            Err(err) => problems.push(Problem {
-                what: format!("{} <terrain>", chunks[chunk].file.display()),
-                why: err.to_string(),
-            }),
-        }
-    }
+    let (space_dir, settings) = loader.read_space_settings()?;
+    let parsed = loader.parse_chunk_files(&space_dir, &settings)?;
+    let by_name = loader.keep_chunks_by_name(parsed, &space_dir, &settings)?;
+    let (models, model_names) = loader.load_models(&by_name);
+    let Placed {
+        mut chunks,
+        mut instances,
+        terrain_jobs,
+    } = loader.place_chunks(&by_name, &settings, &model_names);
+    let region = SpaceRegion::of(&settings);
+    let terrain = loader.load_terrain_blocks(terrain_jobs, &settings, &region, &mut chunks);
     // Instances are held to the terrain's heights, known only now.
     let region = region.around_terrain(&terrain);
+    let Loader {
+        log, mut problems, ..
+    } = loader;
     drop_strays(&mut chunks, &mut instances, &models, &region, &mut problems);
     problems.sort();
     Ok(Scene {
@@ -351,6 +98,394 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         problems,
         inputs: log.into_sorted(),
     })
+}
+
+/// What every step of a load shares: where the world is, whom to tell of
+/// progress, the files read so far and the problems found so far.
+struct Loader<'a> {
+    config: &'a LoadConfig,
+    progress: &'a dyn Progress,
+    log: ReadLog,
+    problems: Vec<Problem>,
+}
+
+/// The chunks in name order with their instances placed in the world, and
+/// the terrain blocks still to read.
+struct Placed {
+    chunks: Vec<Chunk>,
+    instances: Vec<Instance>,
+    terrain_jobs: Vec<TerrainJob>,
+}
+
+/// A chunk's terrain block to read: the chunk's index and file, the
+/// block's resource name and the chunk's transform.
+struct TerrainJob {
+    chunk: usize,
+    chunk_path: PathBuf,
+    resource: String,
+    transform: DMat4,
+}
+
+impl Loader<'_> {
+    /// The space's folder and its `space.settings`, found in the res paths.
+    fn read_space_settings(&self) -> Result<(PathBuf, space_settings::SpaceSettings)> {
+        let config = self.config;
+        let space = files::normalise(&config.space);
+        let settings_name = format!("{space}/space.settings");
+        let settings_path = config.res_paths.resolve(&settings_name).ok_or_else(|| {
+            Error::invalid(
+                &space,
+                format!(
+                    "no space.settings for space `{space}` in any res path ({}); check <space> and <resPaths>",
+                    config
+                        .res_paths
+                        .roots
+                        .iter()
+                        .map(|p| p.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            )
+        })?;
+        let space_dir = settings_path
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_default();
+        let settings = read_parsed(&settings_path, &self.log, space_settings::parse)?;
+        Ok((space_dir, settings))
+    }
+
+    /// Every `.chunk` file of the space, parsed in parallel (in path order).
+    fn parse_chunk_files(
+        &mut self,
+        space_dir: &Path,
+        settings: &space_settings::SpaceSettings,
+    ) -> Result<Vec<(PathBuf, Result<ChunkFile>)>> {
+        // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
+        // space.settings says <singleDir>.
+        // Entries that are not regular files (a FIFO, a link to a device) are
+        // never opened: each is a problem.
+        let walk = files::walk(space_dir, ".chunk", !settings.single_dir)?;
+        let chunk_files = walk.files;
+        self.problems
+            .extend(walk.refused.into_iter().map(|(path, err)| Problem {
+                what: path.display().to_string(),
+                why: format!("{err}; ignored"),
+            }));
+        if chunk_files.is_empty() {
+            return Err(Error::invalid(
+                space_dir,
+                match self.problems.first() {
+                    None => "the space holds no .chunk files: nothing to bake".to_string(),
+                    Some(p) => format!("the space holds no readable .chunk file: {}", p.why),
+                },
+            ));
+        }
+        let log = &self.log;
+        let counter = Counter::begin(self.progress, Phase::Chunks, None, chunk_files.len() as u64);
+        let parsed = chunk_files
+            .par_iter()
+            .map(|path| {
+                let chunk = read_chunk(path, log);
+                counter.add(1);
+                (path.clone(), chunk)
+            })
+            .collect();
+        counter.finish();
+        Ok(parsed)
+    }
+
+    /// The chunks sorted by name; a name seen twice (sep sub-folders and
+    /// the space folder both holding it) keeps the first path in sorted
+    /// order. Unreadable chunks and outdoor chunks outside the space's
+    /// bounds are problems.
+    fn keep_chunks_by_name(
+        &mut self,
+        parsed: Vec<(PathBuf, Result<ChunkFile>)>,
+        space_dir: &Path,
+        settings: &space_settings::SpaceSettings,
+    ) -> Result<BTreeMap<String, (PathBuf, ChunkFile)>> {
+        let problems = &mut self.problems;
+        let mut by_name: BTreeMap<String, (PathBuf, ChunkFile)> = BTreeMap::new();
+        for (path, chunk) in parsed {
+            let name = chunk_name(&path);
+            match chunk {
+                Err(err) => problems.push(Problem {
+                    what: path.display().to_string(),
+                    why: err.to_string(),
+                }),
+                Ok(chunk) => {
+                    if let Some((kept, _)) = by_name.get(&name) {
+                        problems.push(Problem {
+                            what: path.display().to_string(),
+                            why: format!("duplicate of chunk {}; ignored", kept.display()),
+                        });
+                        continue;
+                    }
+                    if let Some((x, z)) = space_settings::parse_outdoor_chunk_name(&name) {
+                        if !settings.contains(x, z) {
+                            problems.push(Problem {
+                                what: path.display().to_string(),
+                                why: format!(
+                                    "outdoor chunk ({x}, {z}) lies outside the space bounds in space.settings; ignored"
+                                ),
+                            });
+                            continue;
+                        }
+                    }
+                    by_name.insert(name, (path, chunk));
+                }
+            }
+        }
+        if by_name.is_empty() {
+            return Err(Error::invalid(
+                space_dir,
+                format!(
+                    "no readable chunk in the space ({} problems, first: {})",
+                    problems.len(),
+                    problems.first().map(|p| p.why.as_str()).unwrap_or("")
+                ),
+            ));
+        }
+        Ok(by_name)
+    }
+
+    /// Each distinct model resource the chunks place, once, in name order,
+    /// loaded in parallel; with each loaded name's index in the models.
+    fn load_models(
+        &mut self,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+    ) -> (Vec<Model>, BTreeMap<String, usize>) {
+        let mut model_names: BTreeMap<String, usize> = BTreeMap::new();
+        let mut first_reference: BTreeMap<String, PathBuf> = BTreeMap::new();
+        for (path, chunk) in by_name.values() {
+            for instance in &chunk.instances {
+                for resource in &instance.resources {
+                    let name = files::normalise(resource);
+                    first_reference
+                        .entry(name.clone())
+                        .or_insert_with(|| path.clone());
+                    model_names.insert(name, 0);
+                }
+            }
+        }
+        let (res_paths, log) = (&self.config.res_paths, &self.log);
+        let counter = Counter::begin(
+            self.progress,
+            Phase::Models,
+            None,
+            first_reference.len() as u64,
+        );
+        let loaded: Vec<(String, Result<Model>)> = first_reference
+            .into_iter()
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|(name, referenced_by)| {
+                let model = load_model(res_paths, &name, &referenced_by, log);
+                counter.add(1);
+                (name, model)
+            })
+            .collect();
+        counter.finish();
+        let mut models = Vec::new();
+        for (name, model) in loaded {
+            match model {
+                Ok(model) => {
+                    model_names.insert(name, models.len());
+                    models.push(model);
+                }
+                Err(err) => {
+                    model_names.remove(&name);
+                    self.problems.push(Problem {
+                        what: name,
+                        why: err.to_string(),
+                    });
+                }
+            }
+        }
+        (models, model_names)
+    }
+
+    /// Every chunk with its world transform and its instances placed in
+    /// the world (those that cannot be placed are problems), and the
+    /// terrain blocks to read.
+    fn place_chunks(
+        &mut self,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+        settings: &space_settings::SpaceSettings,
+        model_names: &BTreeMap<String, usize>,
+    ) -> Placed {
+        let mut chunks = Vec::new();
+        let mut instances = Vec::new();
+        let mut terrain_jobs = Vec::new();
+        // Held for the whole bake: sized exactly rather than grown by doubling.
+        instances.reserve_exact(by_name.values().map(|(_, f)| f.instances.len()).sum());
+        for (name, (path, file)) in by_name {
+            let grid = space_settings::parse_outdoor_chunk_name(name);
+            let transform = self.chunk_transform(path, file, grid, settings.chunk_size);
+            let chunk_index = chunks.len();
+            let first_instance = instances.len();
+            for element in &file.instances {
+                if let Some(instance) =
+                    self.place_instance(path, chunk_index, transform, element, model_names)
+                {
+                    instances.push(instance);
+                }
+            }
+            if let Some(element) = &file.terrain {
+                terrain_jobs.push(TerrainJob {
+                    chunk: chunk_index,
+                    chunk_path: path.clone(),
+                    resource: element.resource.clone(),
+                    transform,
+                });
+            }
+            chunks.push(Chunk {
+                name: name.clone(),
+                file: path.clone(),
+                grid,
+                transform,
+                instances: first_instance..instances.len(),
+                instance_elements: file.instances.len(),
+                terrain: None,
+            });
+        }
+        Placed {
+            chunks,
+            instances,
+            terrain_jobs,
+        }
+    }
+
+    /// A chunk's world transform: an indoor chunk's own, else its place on
+    /// the outdoor grid (identity, and a problem, for neither).
+    fn chunk_transform(
+        &mut self,
+        path: &Path,
+        file: &ChunkFile,
+        grid: Option<(i32, i32)>,
+        chunk_size: f64,
+    ) -> DMat4 {
+        match (grid, file.transform) {
+            (_, Some(indoor)) => indoor,
+            (Some((x, z)), None) => DMat4::from_translation(DVec3::new(
+                x as f64 * chunk_size,
+                0.0,
+                z as f64 * chunk_size,
+            )),
+            (None, None) => {
+                self.problems.push(Problem {
+                    what: path.display().to_string(),
+                    why: "indoor chunk without <transform>; identity used".into(),
+                });
+                DMat4::IDENTITY
+            }
+        }
+    }
+
+    /// One chunk element placed in the world, or a problem when its
+    /// transform is not finite or singular, or it names no resource.
+    fn place_instance(
+        &mut self,
+        chunk_path: &Path,
+        chunk_index: usize,
+        chunk_transform: DMat4,
+        element: &chunk::InstanceElement,
+        model_names: &BTreeMap<String, usize>,
+    ) -> Option<Instance> {
+        let what = format!("{} <{}>", chunk_path.display(), element.path);
+        let world = chunk_transform * element.transform;
+        if !world.is_finite() {
+            self.problems.push(Problem {
+                what,
+                why: "transform holds NaN or infinite values; instance left out".into(),
+            });
+            return None;
+        }
+        let determinant = world.determinant();
+        if determinant.abs() < SINGULAR_DETERMINANT {
+            self.problems.push(Problem {
+                what,
+                why: format!(
+                    "singular transform (determinant {determinant:e}, zero scale); instance left out"
+                ),
+            });
+            return None;
+        }
+        if element.resources.is_empty() {
+            self.problems.push(Problem {
+                what,
+                why: "no <resource>; instance left out".into(),
+            });
+            return None;
+        }
+        let parts: Vec<Option<usize>> = element
+            .resources
+            .iter()
+            .map(|r| model_names.get(&files::normalise(r)).copied())
+            .collect();
+        Some(Instance {
+            chunk: chunk_index,
+            index: element.index,
+            kind: element.kind,
+            resources: element.resources.clone(),
+            parts,
+            world,
+            mirrored: determinant < 0.0,
+            casts_shadow: element.casts_shadow,
+        })
+    }
+
+    /// The chunks' terrain blocks, read in parallel; each kept block is
+    /// linked from its chunk. Unreadable blocks and blocks outside
+    /// `region` are problems.
+    fn load_terrain_blocks(
+        &mut self,
+        jobs: Vec<TerrainJob>,
+        settings: &space_settings::SpaceSettings,
+        region: &SpaceRegion,
+        chunks: &mut [Chunk],
+    ) -> Vec<TerrainBlock> {
+        let (res_paths, log) = (&self.config.res_paths, &self.log);
+        let counter = Counter::begin(self.progress, Phase::Terrain, None, jobs.len() as u64);
+        let blocks: Vec<(usize, Result<TerrainBlock>)> = jobs
+            .into_par_iter()
+            .map(|job| {
+                let block = load_terrain(
+                    res_paths,
+                    log,
+                    &job.chunk_path,
+                    &job.resource,
+                    job.transform.w_axis.truncate(),
+                    settings.chunk_size,
+                );
+                counter.add(1);
+                (job.chunk, block)
+            })
+            .collect();
+        counter.finish();
+        let mut terrain = Vec::new();
+        for (chunk, block) in blocks {
+            match block {
+                Ok(block) if !region.contains(block.bounds().0, block.bounds().1) => {
+                    let (min, max) = block.bounds();
+                    self.problems.push(Problem {
+                        what: format!("{} <terrain>", chunks[chunk].file.display()),
+                        why: region.stray_reason(min, max),
+                    });
+                }
+                Ok(block) => {
+                    chunks[chunk].terrain = Some(terrain.len());
+                    terrain.push(block);
+                }
+                Err(err) => self.problems.push(Problem {
+                    what: format!("{} <terrain>", chunks[chunk].file.display()),
+                    why: err.to_string(),
+                }),
+            }
+        }
+        terrain
+    }
 }
 
 fn chunk_name(path: &Path) -> String {
@@ -528,60 +663,19 @@ fn load_model(
     referenced_by: &Path,
     log: &ReadLog,
 ) -> Result<Model> {
-    let (model_path, bytes) = read_resource(res_paths, name, referenced_by, log)?;
-    let model_file = formats::parse_data_section(&bytes)
-        .and_then(|root| model::parse_model(&root))
-        .map_err(|e| e.in_source(&model_path, &bytes))?;
-    let candidates = model::visual_candidates(&model_file);
-    let Some((visual_resource, visual_path)) = candidates
-        .iter()
-        .find_map(|c| res_paths.resolve(c).map(|p| (c.clone(), p)))
-    else {
-        return Err(Error::NotFound {
-            name: candidates.join(" or "),
-            referenced_by: model_path,
-            searched: res_paths.roots.clone(),
-        });
+    let (model_path, visual_resource, visual_path) =
+        find_visual(res_paths, name, referenced_by, log)?;
+    let visual = read_visual(res_paths, &visual_path, log)?;
+    let mut sections = PrimitiveSections {
+        res_paths,
+        log,
+        visual_path: &visual_path,
+        primitives_file: visual::primitives_name(&visual_resource),
+        containers: BTreeMap::new(),
     };
-    let mut visual = read_parsed(&visual_path, log, visual::parse_visual)?;
-    visual
-        .resolve_materials(&mut |mfm| {
-            let path = res_paths.resolve(mfm)?;
-            read_logged(&path, log).ok()
-        })
-        .map_err(|e| e.in_file(&visual_path))?;
-
-    let primitives_file = visual::primitives_name(&visual_resource);
-    // Each .primitives file read once per model, however many geometries use it.
-    let mut containers: BTreeMap<String, (PathBuf, Vec<u8>)> = BTreeMap::new();
-    let mut section = |file: &str, section: &str| -> Result<(PathBuf, Vec<u8>, usize)> {
-        if !containers.contains_key(file) {
-            let (path, bytes) = read_resource(res_paths, file, &visual_path, log)?;
-            containers.insert(file.to_string(), (path, bytes));
-        }
-        let (path, bytes) = &containers[file];
-        let container = binsection::parse(bytes).map_err(|e| e.in_file(path))?;
-        let (data, offset) = container.get(section).ok_or_else(|| {
-            Error::invalid(
-                path,
-                format!(
-                    "no section `{section}` (named by {}); it holds: {}",
-                    visual_path.display(),
-                    container
-                        .entries
-                        .iter()
-                        .map(|e| e.name.as_str())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-            )
-        })?;
-        Ok((path.clone(), data.to_vec(), offset))
-    };
-
     let mut geometry_model = Model {
         resource: name.to_string(),
-        file: model_path.clone(),
+        file: model_path,
         ..Model::default()
     };
     for (render_set_index, render_set) in visual.render_sets.iter().enumerate() {
@@ -602,54 +696,154 @@ fn load_model(
                 .collect(),
         );
         for (geometry_index, geometry) in render_set.geometries.iter().enumerate() {
-            let split = |name: &str| {
-                visual::split_section_resource(&primitives_file, name).ok_or_else(|| {
-                    Error::invalid(
-                        &visual_path,
-                        format!("<{}>: `{name}` names no section", geometry.path),
-                    )
-                })
+            let place = GeometryPlace {
+                render_set: render_set_index,
+                geometry: geometry_index,
+                node_to_model,
             };
-            let (vertices_file, vertices_section) = split(&geometry.vertices)?;
-            let (indices_file, indices_section) = split(&geometry.primitive)?;
-            let (path, data, offset) = section(&vertices_file, &vertices_section)?;
-            let vertices =
-                primitives::read_vertices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
-            let (path, data, offset) = section(&indices_file, &indices_section)?;
-            let indices =
-                primitives::read_indices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
-
-            let base = geometry_model.positions.len() as u32;
-            geometry_model
-                .positions
-                .extend(vertices.positions.iter().map(|p| {
-                    node_to_model
-                        .transform_point3(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                        .as_vec3()
-                }));
-            for group in &geometry.groups {
-                let triangle_indices = primitives::group_triangles(
-                    &indices,
-                    group.index as usize,
-                    vertices.positions.len(),
-                )
-                .map_err(|e| e.shifted(offset).in_file(&path))?;
-                let first = geometry_model.triangles.len();
-                geometry_model.triangles.extend(
-                    triangle_indices
-                        .chunks_exact(3)
-                        .map(|t| [base + t[0], base + t[1], base + t[2]]),
-                );
-                geometry_model.groups.push(Group {
-                    render_set: render_set_index,
-                    geometry: geometry_index,
-                    primitive_group: group.index as usize,
-                    triangles: first..geometry_model.triangles.len(),
-                    alpha_tested: group.flags.alpha_tested(),
-                    double_sided: group.flags.double_sided(),
-                });
-            }
+            add_geometry(&mut geometry_model, &mut sections, geometry, &place)?;
         }
     }
     Ok(geometry_model)
+}
+
+/// A model's file and the visual it names that exists: the visual's
+/// resource name and file.
+fn find_visual(
+    res_paths: &ResPaths,
+    name: &str,
+    referenced_by: &Path,
+    log: &ReadLog,
+) -> Result<(PathBuf, String, PathBuf)> {
+    let (model_path, bytes) = read_resource(res_paths, name, referenced_by, log)?;
+    let model_file = formats::parse_data_section(&bytes)
+        .and_then(|root| model::parse_model(&root))
+        .map_err(|e| e.in_source(&model_path, &bytes))?;
+    let candidates = model::visual_candidates(&model_file);
+    let Some((visual_resource, visual_path)) = candidates
+        .iter()
+        .find_map(|c| res_paths.resolve(c).map(|p| (c.clone(), p)))
+    else {
+        return Err(Error::NotFound {
+            name: candidates.join(" or "),
+            referenced_by: model_path,
+            searched: res_paths.roots.clone(),
+        });
+    };
+    Ok((model_path, visual_resource, visual_path))
+}
+
+/// A visual with its materials' flags resolved (`.mfm` files it names).
+fn read_visual(res_paths: &ResPaths, visual_path: &Path, log: &ReadLog) -> Result<visual::Visual> {
+    let mut visual = read_parsed(visual_path, log, visual::parse_visual)?;
+    visual
+        .resolve_materials(&mut |mfm| {
+            let path = res_paths.resolve(mfm)?;
+            read_logged(&path, log).ok()
+        })
+        .map_err(|e| e.in_file(visual_path))?;
+    Ok(visual)
+}
+
+/// The `.primitives` sections a visual's geometries name, each container
+/// file read once per model however many geometries use it.
+struct PrimitiveSections<'a> {
+    res_paths: &'a ResPaths,
+    log: &'a ReadLog,
+    visual_path: &'a Path,
+    /// The visual's own `.primitives` file, for section names without one.
+    primitives_file: String,
+    containers: BTreeMap<String, (PathBuf, Vec<u8>)>,
+}
+
+impl PrimitiveSections<'_> {
+    /// A geometry's section name split into container file and section.
+    fn split(&self, geometry: &visual::Geometry, name: &str) -> Result<(String, String)> {
+        visual::split_section_resource(&self.primitives_file, name).ok_or_else(|| {
+            Error::invalid(
+                self.visual_path,
+                format!("<{}>: `{name}` names no section", geometry.path),
+            )
+        })
+    }
+
+    /// A section's bytes, with its container's path and the section's
+    /// offset in it (for errors).
+    fn section(&mut self, file: &str, section: &str) -> Result<(PathBuf, Vec<u8>, usize)> {
+        if !self.containers.contains_key(file) {
+            let (path, bytes) = read_resource(self.res_paths, file, self.visual_path, self.log)?;
+            self.containers.insert(file.to_string(), (path, bytes));
+        }
+        let (path, bytes) = &self.containers[file];
+        let container = binsection::parse(bytes).map_err(|e| e.in_file(path))?;
+        let (data, offset) = container.get(section).ok_or_else(|| {
+            Error::invalid(
+                path,
+                format!(
+                    "no section `{section}` (named by {}); it holds: {}",
+                    self.visual_path.display(),
+                    container
+                        .entries
+                        .iter()
+                        .map(|e| e.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            )
+        })?;
+        Ok((path.clone(), data.to_vec(), offset))
+    }
+}
+
+/// Where a geometry sits in its model: its render set and index there, and
+/// the transform of its vertices into model space.
+struct GeometryPlace {
+    render_set: usize,
+    geometry: usize,
+    node_to_model: DMat4,
+}
+
+/// Appends a geometry's vertices (in model space) and one group per
+/// primitive group to `model`.
+fn add_geometry(
+    model: &mut Model,
+    sections: &mut PrimitiveSections<'_>,
+    geometry: &visual::Geometry,
+    place: &GeometryPlace,
+) -> Result<()> {
+    let (vertices_file, vertices_section) = sections.split(geometry, &geometry.vertices)?;
+    let (indices_file, indices_section) = sections.split(geometry, &geometry.primitive)?;
+    let (path, data, offset) = sections.section(&vertices_file, &vertices_section)?;
+    let vertices =
+        primitives::read_vertices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
+    let (path, data, offset) = sections.section(&indices_file, &indices_section)?;
+    let indices = primitives::read_indices(&data).map_err(|e| e.shifted(offset).in_file(&path))?;
+
+    let base = model.positions.len() as u32;
+    model.positions.extend(vertices.positions.iter().map(|p| {
+        place
+            .node_to_model
+            .transform_point3(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            .as_vec3()
+    }));
+    for group in &geometry.groups {
+        let triangle_indices =
+            primitives::group_triangles(&indices, group.index as usize, vertices.positions.len())
+                .map_err(|e| e.shifted(offset).in_file(&path))?;
+        let first = model.triangles.len();
+        model.triangles.extend(
+            triangle_indices
+                .chunks_exact(3)
+                .map(|t| [base + t[0], base + t[1], base + t[2]]),
+        );
+        model.groups.push(Group {
+            render_set: place.render_set,
+            geometry: place.geometry,
+            primitive_group: group.index as usize,
+            triangles: first..model.triangles.len(),
+            alpha_tested: group.flags.alpha_tested(),
+            double_sided: group.flags.double_sided(),
+        });
+    }
+    Ok(())
 }

@@ -16,8 +16,7 @@
 //! A beam only culls: the triangle test of each ray decides its hits, so
 //! every ray gets the hits of the single-ray traversal.
 
-use super::boxtree::PAD_EPSILONS;
-use super::{ToModel, TraceRay};
+use super::{ToModel, TraceRay, PAD_EPSILONS};
 use glam::{DMat3, DVec3, Vec3};
 use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 

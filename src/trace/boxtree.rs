@@ -16,7 +16,7 @@
 //! on the tree's shape.
 
 use super::beam::Beam;
-use super::TraceRay;
+use super::{TraceRay, PAD_EPSILONS};
 use glam::{UVec2, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
@@ -25,11 +25,6 @@ use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 use obvhs::cwbvh::CwBvh;
 use obvhs::ploc::PlocBuilder;
 use obvhs::BvhBuildParams;
-
-/// Box padding in units of f32::EPSILON × magnitude. The build's rounding
-/// (child − node origin, quantization exponent) and the slab arithmetic each
-/// err by a few ulps of the magnitude; this leaves a wide margin.
-pub(crate) const PAD_EPSILONS: f32 = 256.0;
 
 /// Direction components smaller than this are raised to it (keeping the
 /// sign) so the slab arithmetic stays finite; the position error it causes,

@@ -65,6 +65,13 @@ pub struct TraceTriangle {
 /// and near enough to f32::MAX that box arithmetic would overflow.
 pub const MAX_COORDINATE: f32 = 1e15;
 
+/// Box padding in units of f32::EPSILON × magnitude, shared by the box
+/// tree's single-ray node test (`BoxRay`) and the packet's beam, so a beam
+/// culls no box a ray of it would enter. The build's rounding (child − node
+/// origin, quantization exponent) and the slab arithmetic each err by a few
+/// ulps of the magnitude; this leaves a wide margin.
+pub(crate) const PAD_EPSILONS: f32 = 256.0;
+
 impl TraceTriangle {
     /// False for NaN, infinite or absurdly large (> [`MAX_COORDINATE`])
     /// coordinates: such a triangle is never built into a BVH and never hit.
@@ -252,16 +259,14 @@ impl Tracer<'_> {
 
 /// Packets of at most this many rays go ray by ray: a packet's frame and
 /// beam cost more than they save over so few rays (refinement's first
-/// surface points: on `bench`, one thread, 4.3 µs a ray as packets of two).
+/// surface points).
 const LONE_RAYS: usize = 2;
 
 /// Packets of at most this many parallel rays (one direction: a
 /// directional light's) go ray by ray too: their beam is as wide as their
-/// origins lie apart all along its length, and over terrain its walk tests
-/// every cell under it (on `bench`, refinement's corner probes of the
-/// sun's terrain blocks; the sun's refinement 2 % faster at two threads,
-/// nine alternating rounds; a point light's probes, whose beam is a thin
-/// cone, were slower ray by ray).
+/// origins lie apart all along its length, so over terrain its walk tests
+/// every cell under it (refinement's corner probes of terrain blocks). A
+/// spot or point light's few rays share a thin cone, which still pays.
 const LONE_PARALLEL_RAYS: usize = 4;
 
 /// `keep` marking all of `rays` rays, and their count: the answer of the

@@ -282,8 +282,8 @@ impl Frame {
     /// Keeps the rays (this frame's copy, and their lane) `keep` accepts;
     /// true if it dropped any.
     fn retain_where(&mut self, keep: impl Fn(&TraceRay, u8) -> bool) -> bool {
-        // Rays seldom go (none of `bench`'s sun rays settle), and this runs
-        // after every entry that reported a hit: read before moving anything.
+        // Rays seldom go, and this runs after every entry that reported a
+        // hit: read before moving anything.
         let Some(first_dropped) =
             (0..self.rays.len()).position(|i| !keep(&self.rays[i], self.lanes[i]))
         else {
@@ -792,6 +792,8 @@ impl TopLevel {
         }
     }
 
+    /// A packet's rays against one entry of the top level: a placed part's
+    /// bottom level, or a terrain block's height field.
     #[allow(clippy::too_many_arguments)]
     fn entry_packet(
         &self,
@@ -810,97 +812,167 @@ impl TopLevel {
                 first_caster,
                 to_model,
             } => {
-                let bvh = &bottom.models[index as usize];
-                let world = to_model.world_linear();
-                // Parallel rays: only those whose origin lies in the image
-                // of the instance's box in the shear plane can hit it.
-                let image = light.plane.zip(bvh.bounds()).and_then(|(plane, bounds)| {
-                    // The longest stretch of a ray from its origin.
-                    let behind = light.rays.iter().fold(0.0f32, |m, r| m.max(-r.t_min));
-                    let reach = reach_of(light, t_max).max(behind);
-                    plane.instance_image(&to_model, world, bounds, light.origin_max, reach)
-                });
-                let inside = |r: &TraceRay| {
-                    let Some(([x0, y0, x1, y1], plane)) = image.zip(light.plane) else {
-                        return true;
-                    };
-                    let (x, y) = plane.point(r.origin);
-                    x >= x0 && x <= x1 && y >= y0 && y <= y1
+                let part = PlacedPart {
+                    bvh: &bottom.models[index as usize],
+                    first_caster,
+                    to_model,
                 };
-                // The rays enter the model's frame only once the beam
-                // reaches one of its triangles (half of a spot or point
-                // packet's instances it reaches none of): the model beam's
-                // padding takes a bound on the mapped origins instead of
-                // their largest.
-                let fill = |model: &mut Frame| {
-                    let mut last: Option<(Vec3, Vec3)> = None;
-                    let rays = light
-                        .rays
-                        .iter()
-                        .zip(&light.lanes)
-                        .filter(|(r, _)| inside(r));
-                    model.fill(
-                        rays.map(|(r, &l)| {
-                            let direction = match last {
-                                Some((light_direction, mapped))
-                                    if same_bits(light_direction, r.direction) =>
-                                {
-                                    mapped
-                                }
-                                _ => to_model.direction(r.direction),
-                            };
-                            last = Some((r.direction, direction));
-                            (l, to_model.ray_with(r, direction))
-                        }),
-                        bvh.tree.magnitude,
-                    );
-                };
-                let origin_bound = to_model.origin_bound(light.origin_max);
-                let model_beam = beam.to_model(&to_model, world, bvh.tree.magnitude, origin_bound);
-                let direction = to_model.direction(light.direction());
-                let mut relay = |lane: usize, hit: Hit| {
-                    on_hit(
-                        lane,
-                        Hit {
-                            caster: first_caster + hit.caster,
-                            ..hit
-                        },
-                    )
-                };
-                let cull = Culled { cull, first_caster };
-                let lazy = LazyFrame {
-                    frame: model,
-                    fill: Some(fill),
-                    direction,
-                };
-                bvh_packet(bvh, lazy, model_beam, t_max, &cull, &mut relay);
+                part.packet(beam, light, model, t_max, cull, on_hit);
             }
             Entry::Block { block, caster } => {
-                // The top level's beam: its padding covers the tile
-                // corners' rounding, as the single-ray node test's does.
-                let (grid, field) = &bottom.terrain[block as usize];
-                let reference = self.reference;
-                field.walk(grid, reference, light.direction(), |step| match step {
-                    Step::Tile(min, max) => beam.touches(min, max),
-                    Step::Cell(cell, min, max) => {
-                        if beam.touches(min, max) {
-                            for (tri, index) in grid
-                                .cell_trace_triangles(cell, reference, caster)
-                                .into_iter()
-                                .flatten()
-                            {
-                                let cull = Culled {
-                                    cull,
-                                    first_caster: 0,
-                                };
-                                light.triangle(&tri, index, t_max, &cull, on_hit);
-                            }
-                        }
-                        true
-                    }
-                });
+                self.block_packet(bottom, block, caster, beam, light, t_max, cull, on_hit);
             }
         }
+    }
+
+    /// A terrain block's cells under the packet's beam, their triangles
+    /// tested in the light's frame.
+    #[allow(clippy::too_many_arguments)]
+    fn block_packet(
+        &self,
+        bottom: &BottomLevels,
+        block: u32,
+        caster: u32,
+        beam: &Beam,
+        light: &mut Frame,
+        t_max: &mut [f32],
+        cull: &FaceCull,
+        on_hit: &mut impl FnMut(usize, Hit) -> f32,
+    ) {
+        // The top level's beam: its padding covers the tile
+        // corners' rounding, as the single-ray node test's does.
+        let (grid, field) = &bottom.terrain[block as usize];
+        let reference = self.reference;
+        field.walk(grid, reference, light.direction(), |step| match step {
+            Step::Tile(min, max) => beam.touches(min, max),
+            Step::Cell(cell, min, max) => {
+                if beam.touches(min, max) {
+                    for (tri, index) in grid
+                        .cell_trace_triangles(cell, reference, caster)
+                        .into_iter()
+                        .flatten()
+                    {
+                        let cull = Culled {
+                            cull,
+                            first_caster: 0,
+                        };
+                        light.triangle(&tri, index, t_max, &cull, on_hit);
+                    }
+                }
+                true
+            }
+        });
+    }
+}
+
+/// One placed part of the top level: its model's bottom level, the caster
+/// id of its first group, and the map into its model space.
+struct PlacedPart<'b> {
+    bvh: &'b Bvh,
+    first_caster: u32,
+    to_model: ToModel,
+}
+
+impl PlacedPart<'_> {
+    /// The packet's rays through the part's bottom level in model space,
+    /// under the packet's beam mapped there; hits carry the part's caster
+    /// ids.
+    fn packet(
+        &self,
+        beam: &Beam,
+        light: &mut Frame,
+        model: &mut Frame,
+        t_max: &mut [f32],
+        cull: &FaceCull,
+        on_hit: &mut impl FnMut(usize, Hit) -> f32,
+    ) {
+        let (bvh, first_caster, to_model) = (self.bvh, self.first_caster, self.to_model);
+        let world = to_model.world_linear();
+        let image = self.origin_image(light, t_max, world);
+        // The rays enter the model's frame only once the beam reaches one
+        // of its triangles (it reaches none of many of a spot or point
+        // packet's instances): the model beam's padding takes a bound on
+        // the mapped origins instead of their largest.
+        let light: &Frame = light;
+        let fill = |model: &mut Frame| self.fill_model_frame(model, light, image);
+        let origin_bound = to_model.origin_bound(light.origin_max);
+        let model_beam = beam.to_model(&to_model, world, bvh.tree.magnitude, origin_bound);
+        let direction = to_model.direction(light.direction());
+        let mut relay = |lane: usize, hit: Hit| {
+            on_hit(
+                lane,
+                Hit {
+                    caster: first_caster + hit.caster,
+                    ..hit
+                },
+            )
+        };
+        let cull = Culled { cull, first_caster };
+        let lazy = LazyFrame {
+            frame: model,
+            fill: Some(fill),
+            direction,
+        };
+        bvh_packet(bvh, lazy, model_beam, t_max, &cull, &mut relay);
+    }
+
+    /// Parallel rays: only those whose origin lies in the image of the
+    /// instance's box in the shear plane can hit it. `None`: no such
+    /// image (rays not parallel, or not bounded), every ray may.
+    fn origin_image(
+        &self,
+        light: &Frame,
+        t_max: &[f32],
+        world: glam::DMat3,
+    ) -> Option<([f32; 4], ShearPlane)> {
+        let image = light
+            .plane
+            .zip(self.bvh.bounds())
+            .and_then(|(plane, bounds)| {
+                // The longest stretch of a ray from its origin.
+                let behind = light.rays.iter().fold(0.0f32, |m, r| m.max(-r.t_min));
+                let reach = reach_of(light, t_max).max(behind);
+                plane.instance_image(&self.to_model, world, bounds, light.origin_max, reach)
+            });
+        image.zip(light.plane)
+    }
+
+    /// `model` filled with the light frame's rays in model space, those
+    /// whose origin lies outside `image` left out; a run of rays sharing
+    /// a direction maps it once.
+    fn fill_model_frame(
+        &self,
+        model: &mut Frame,
+        light: &Frame,
+        image: Option<([f32; 4], ShearPlane)>,
+    ) {
+        let inside = |r: &TraceRay| {
+            let Some(([x0, y0, x1, y1], plane)) = image else {
+                return true;
+            };
+            let (x, y) = plane.point(r.origin);
+            x >= x0 && x <= x1 && y >= y0 && y <= y1
+        };
+        let to_model = &self.to_model;
+        let mut last: Option<(Vec3, Vec3)> = None;
+        let rays = light
+            .rays
+            .iter()
+            .zip(&light.lanes)
+            .filter(|(r, _)| inside(r));
+        model.fill(
+            rays.map(|(r, &l)| {
+                let direction = match last {
+                    Some((light_direction, mapped)) if same_bits(light_direction, r.direction) => {
+                        mapped
+                    }
+                    _ => to_model.direction(r.direction),
+                };
+                last = Some((r.direction, direction));
+                (l, to_model.ray_with(r, direction))
+            }),
+            self.bvh.tree.magnitude,
+        );
     }
 }
 

@@ -144,8 +144,8 @@ fn mkfifo(path: &Path) {
 #[cfg(unix)]
 #[test]
 fn fifo_chunk_and_cdata_are_problems_not_hangs() {
-    // `mkfifo W/spaces/small/x.chunk` used to block inspect and bake
-    // forever (opening a FIFO waits for a writer).
+    // `mkfifo W/spaces/small/x.chunk` must not block inspect and bake
+    // (opening a FIFO waits for a writer).
     let dir = small_world();
     let settings = coarse_settings(dir.path());
     let space = dir.path().join(SPACE);
@@ -192,7 +192,7 @@ fn fifo_chunk_and_cdata_are_problems_not_hangs() {
 #[cfg(unix)]
 #[test]
 fn links_to_dev_zero_and_oversized_files_are_refused_without_reading() {
-    // A chunk linked to /dev/zero used to be read until memory ran out.
+    // A chunk linked to /dev/zero would be read until memory ran out.
     let dir = small_world();
     let settings = coarse_settings(dir.path());
     let space = dir.path().join(SPACE);
@@ -246,10 +246,10 @@ fn group_masks(report: &Path) -> Vec<(String, usize, Vec<u64>)> {
 
 #[test]
 fn stacked_coincident_copies_bake_in_near_linear_time_and_tie() {
-    // The issue: 300 copies of one house at one transform took `small` from
-    // 0.1 s to 33 s, because each ray re-sorted its hit list after every
-    // tied hit. 2 000 copies on coarse lights took minutes that way; the
-    // bound is ten times what a debug build needs now.
+    // Copies of one house at one transform (a level editor's duplicate
+    // key) tie at every ray through them: a ray that re-sorted its hit list
+    // after every tied hit would take quadratic time in the copies. The
+    // bound leaves a debug build ten times its need.
     const COPIES: usize = 2000;
     let single = small_world();
     let stacked = small_world();
@@ -305,9 +305,9 @@ fn stacked_coincident_copies_bake_in_near_linear_time_and_tie() {
 
 #[test]
 fn a_stray_placement_is_a_problem_and_the_sun_grid_stays_the_space() {
-    // The issue's edit: model 0's <row3> moved 2^31 m along z made every
-    // light fail ("the shadow map would be 1 × 3103009112 × 10343362205
-    // texels") while inspect said "no problems". Model 1 lifted 20 km.
+    // Model 0's <row3> moved 2^31 m along z must not make every light
+    // fail (a shadow map of billions of texels a side) while inspect says
+    // "no problems". Model 1 lifted 20 km.
     let clean = small_world();
     let stray = small_world();
     replace_text(
@@ -801,10 +801,11 @@ fn temporary_of(folder: &Path, chunk: &str, host: &str, pid: u32, age: Duration)
 
 #[test]
 fn a_rerun_that_changes_nothing_still_removes_stale_temporaries() {
-    // The sweep used to cover only the folders a run wrote: a re-run
-    // finding every chunk baked ("wrote 0 of 4") left them. And a
-    // temporary of another machine sharing the volume is judged by its
-    // age, not by a process id this machine cannot look up.
+    // The sweep covers every folder of the output, not only those a run
+    // writes: a re-run finding every chunk baked ("wrote 0 of 4") still
+    // removes them. And a temporary of another machine sharing the volume
+    // is judged by its age, not by a process id this machine cannot look
+    // up.
     let dir = small_world();
     let settings = coarse_settings(dir.path());
     let out = tempfile::tempdir().unwrap();

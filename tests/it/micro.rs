@@ -1,5 +1,9 @@
-//! Micro worlds built in memory, one per rule of docs/contract.md §4, each with the masks
-//! worked out from its design (see the comment on each test).
+//! Micro worlds built in memory for the rule tests (`bake_rules`,
+//! `occlusion`, `ground`, `nomiss` and others): a few chunks, meshes placed
+//! by hand, terrain from a height function, a directional light, and `run`,
+//! which bakes a world and checks its masks against the brute-force oracle.
+//! The tests that build them work out the expected masks from each world's
+//! design.
 
 use glam::{DMat4, DVec3, Vec3};
 use shadowcull::bake::{self, BakeConfig, BakeResult, Silent};

@@ -1,8 +1,7 @@
 //! The bake in a studio pipeline: broken input fails, every
 //! light is checked before any is traced, `--light` and `<bit>` keep other
 //! bits, `plan` and `--max-memory`, progress for machines, `--check`,
-//! `--dry-run`, the report's files and versions, and small things. Each
-//! test fails on the code before that issue.
+//! `--dry-run`, the report's files and versions, and small things.
 
 use crate::cli::shadowcull;
 use serde_json::Value;
@@ -101,7 +100,7 @@ fn masks(report: &Value) -> BTreeMap<(String, String, i64), (u64, Vec<u64>)> {
 #[test]
 fn broken_input_fails_the_bake_writes_nothing_and_lists_every_problem() {
     let dir = small();
-    // A truncated chunk and a missing .model: the issue's two.
+    // A truncated chunk and a missing .model.
     let chunk = dir.path().join("spaces/small/0000ffffo.chunk");
     let bytes = std::fs::read(&chunk).unwrap();
     std::fs::write(&chunk, &bytes[..bytes.len() / 2]).unwrap();
@@ -276,9 +275,9 @@ fn errors_give_line_and_column() {
 
 #[test]
 fn every_light_is_validated_before_any_is_traced() {
-    // The issue: a spot of 8192² (67 M rays) then a light over the grid
-    // limits traced the spot, then failed. The last light here is a sun of
-    // 0.1 mm texels: millions per side, over `light::MAX_SIDE`.
+    // A spot of 8192² (67 M rays) then a light over the grid limits: the
+    // spot must not be traced before the bake fails. The last light here
+    // is a sun of 0.1 mm texels: millions per side, over `light::MAX_SIDE`.
     let dir = small();
     edit(dir.path(), SETTINGS_FILE, "\t64\t", "\t8192\t");
     edit(
@@ -579,11 +578,14 @@ fn plan_and_bake(dir: &TempDir) -> [f64; 4] {
     [seconds, bytes, measured_seconds, measured_bytes]
 }
 
+/// A ratio of measured times: other work on the machine moves it, so it
+/// runs only where `SHADOWCULL_SLOW` is set (`.ci/run` sets it), never in a
+/// plain `cargo test`.
 #[test]
 fn plan_estimates_are_within_a_factor_two_on_the_fixtures() {
-    if !Path::new("/usr/bin/time").exists() {
+    if std::env::var_os("SHADOWCULL_SLOW").is_none() || !Path::new("/usr/bin/time").exists() {
         crate::support::say_not_run(
-            "plan_estimates_are_within_a_factor_two_on_the_fixtures needs /usr/bin/time",
+            "plan_estimates_are_within_a_factor_two_on_the_fixtures times bakes: set SHADOWCULL_SLOW=1 (.ci/run does) and install /usr/bin/time",
         );
         return;
     }
@@ -595,7 +597,7 @@ fn plan_estimates_are_within_a_factor_two_on_the_fixtures() {
 fn plan_estimates_are_within_a_factor_two_on_bench() {
     if std::env::var_os("SHADOWCULL_SLOW").is_none() || !Path::new("/usr/bin/time").exists() {
         crate::support::say_not_run(
-            "plan_estimates_are_within_a_factor_two_on_bench is slow: set SHADOWCULL_SLOW=1 (.ci/run does)",
+            "plan_estimates_are_within_a_factor_two_on_bench is slow: set SHADOWCULL_SLOW=1 (.ci/run does) and install /usr/bin/time",
         );
         return;
     }
@@ -651,7 +653,7 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
         );
     }
     // Preparing the output and writing it advance chunk by chunk, file by
-    // file: a long write has an ETA (it used to jump from 0 to the total).
+    // file: a long write has an ETA, not a jump from 0 to the total.
     let out = dir.path().join("out");
     let written = run(&[
         "bake",

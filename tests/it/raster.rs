@@ -113,7 +113,7 @@ fn small_fixture_agrees_and_tiling_changes_nothing() {
 #[test]
 fn village_fixture_agrees_with_every_face_culling_mode() {
     let (scene, mut config) = fixture("village");
-    // Back (the fixture's own setting) and none: 549 of 549 agree.
+    // Back (the fixture's own setting) and none: every pair agrees.
     check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
     config.face_culling = FaceCulling::None;
     check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
@@ -121,9 +121,8 @@ fn village_fixture_agrees_with_every_face_culling_mode() {
     // the bottoms of the two parts of one instance, level with each other,
     // and of two boulders 6e-5 m apart: each is useful at one texel where
     // the other is within ε (docs/contract.md §4 keeps both), and LEQUAL on one depth
-    // keeps one. Measured 547 of 549; those ties are the contract's rule, so
-    // this mode's bar is that every disagreement is a tie found by the
-    // re-test, not 99.9 %.
+    // keeps one. Those ties are the contract's rule, so this mode's bar is
+    // that every disagreement is a tie found by the re-test, not 99.9 %.
     config.face_culling = FaceCulling::Front;
     let report = check(&scene, &config, raster::DEFAULT_MAX_TILE, 990);
     for d in &report.disagreements {
@@ -150,8 +149,8 @@ fn a_world_of_real_models_agrees() {
     };
     // The dungeon tunnel's floor lies in the plane of the ground slab: the
     // rays keep both (within ε), LEQUAL one of them, so the raster counts
-    // 4.9 % fewer texels (measured 47 082 against 44 785, with 2 948 tied),
-    // inside the tie allowance of `within_edge_tolerance`; the masks agree.
+    // fewer texels, inside the tie allowance of `within_edge_tolerance`;
+    // the masks agree.
     let report = check(&scene, &config, raster::DEFAULT_MAX_TILE, 999);
     let light = &report.lights[0];
     assert!(
@@ -482,11 +481,11 @@ fn counters_agree_and_the_self_check_catches_a_tampered_count() {
 
 /// `bench` with the sun at 0.25 m (9 tiles of up to 2048²): occlusion
 /// queries without the flushes overcount one tile on Mesa 22.3's llvmpipe
-/// (746 323 samples where 741 130 were drawn: see `src/raster/mod.rs`); the
-/// atomic counters and the flushed queries agree caster by caster with each
-/// other and with the samples drawn, and the cross-check explains every
-/// disagreement. Several minutes in a test build: runs when
-/// SHADOWCULL_RASTER_SLOW is set (`.ci/run` sets it).
+/// (more samples than were drawn: see `src/raster/mod.rs`); the atomic
+/// counters and the flushed queries agree caster by caster with each other
+/// and with the samples drawn, and the cross-check explains every
+/// disagreement. Slow in a test build: runs when SHADOWCULL_RASTER_SLOW is
+/// set (`.ci/run` sets it).
 #[test]
 fn bench_sun_at_a_quarter_metre_counts_exactly() {
     if std::env::var_os("SHADOWCULL_RASTER_SLOW").is_none() {

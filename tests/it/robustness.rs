@@ -770,15 +770,12 @@ fn one_by_one_grids() {
     assert_eq!(terrain_mask(&result, 0), 0);
 }
 
-/// The spot grid of the large-grid test: 16384² (268 M
-/// rays, about 14 s in the test profile on 2 cores). Memory does not grow
-/// with it: texels are traced in 32×32 tiles generated on the fly
+/// The spot grid of the large-grid test: 16384² (268 M rays). Memory does
+/// not grow with it: texels are traced in 32×32 tiles generated on the fly
 /// (`TexelGrid::ray` is a pure function of the texel), each thread folds its
 /// results into one bitset of casters (`CasterSet`, one bit per caster) and
 /// one reused hit list, and the sets are OR-ed at the end — there is no
-/// per-texel buffer anywhere. Measured by hand (`/usr/bin/time -f %M`): the
-/// release binary's peak RSS baking the `small` world's spot at 16384² is
-/// 5.6 MB, against 5.4 MB at 512².
+/// per-texel buffer anywhere.
 const LARGE_GRID: u32 = 16384;
 
 /// The process's peak resident set (`VmHWM`, KiB), where Linux reports it.
@@ -995,8 +992,8 @@ fn absurd_finite_vertices_and_scales_are_left_out_not_fatal() {
     // or a placement scaled by 1e20. Such geometry can never be traced in
     // f32 (the trace drops anything beyond MAX_COORDINATE = 1e15 m), so it
     // is left out and counted like a NaN triangle — and it must not stretch
-    // the world bounds: before this was fixed, one such vertex made the sun's
-    // grid "18446744073709551615 texels wide" and the whole bake failed.
+    // the world bounds: one such vertex would make the sun's grid
+    // impossibly wide and fail the whole bake.
     // Here: a card over flat terrain whose group also holds a triangle with
     // a 1e30 vertex, and a unit box placed with scale 1e20 (12 triangles).
     // The sun's grid is the 16 m world's (64² at 0.25 m), the card is useful,

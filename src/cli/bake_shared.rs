@@ -1,0 +1,344 @@
+//! What `bake`, `bake --shard` and `merge` share: the options that decide
+//! a bake's answer, loading the scene (with the refusal of broken input),
+//! and writing the chunks, the report and the per-light table.
+
+use super::load_config;
+use super::pipeline::{self, count, PipelineArgs};
+use super::progress::{ProgressArgs, Reporter};
+use anyhow::{Context, Result};
+use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
+use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
+use shadowcull::files::{self, ResPaths};
+use shadowcull::scene::{self, Scene};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Where a bake's (or a merge's) results go.
+#[derive(Debug, clap::Args)]
+pub struct OutputArgs {
+    /// Write every chunk of the space under DIR (at its path relative to its
+    /// res root) instead of in place.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Write the machine-readable report (JSON) to FILE (`-`: standard
+    /// output; the table then goes to standard error).
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<PathBuf>,
+}
+
+/// The options that decide a bake's answer and how it runs: `bake`, `bake
+/// --shard` and `merge` take the same ones.
+#[derive(Debug, clap::Args)]
+pub struct BakeOptions {
+    /// Worker threads (default: one per core). Results are identical for any N.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    threads: Option<u16>,
+    /// Override <faceCulling>.
+    #[arg(long, value_name = "MODE", value_parser = ["back", "front", "none"])]
+    face_culling: Option<String>,
+    /// Override <heightBias> (metres).
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
+    height_bias: Option<f64>,
+    /// Override <tieEpsilon> (metres along a ray).
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
+    tie_epsilon: Option<f64>,
+    /// Rays per texel side: k traces a k×k pattern per texel.
+    #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    supersample: u32,
+    /// After the grid, aim extra rays at the surfaces of casters not yet
+    /// useful (catches casters smaller than a texel). A distributed bake
+    /// refines in `merge`.
+    #[arg(long)]
+    pub refine: bool,
+    /// Rays per caster for --refine, at area-weighted points of its surface
+    /// (64: the sweep reference's; they find slivers thinner than the
+    /// footprint lattice).
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    refine_samples: u32,
+    /// Rays per texel side with which --refine samples the light-space
+    /// footprint of every caster the grid did not prove useful (8: the
+    /// lattice of a grid 8× denser).
+    #[arg(long, value_name = "D", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    refine_density: u32,
+    /// Trace each texel's beam instead of its centre ray: keep every caster
+    /// that some placement of the shadow-map grid could make useful (never a
+    /// missing shadow at any grid offset; keeps more).
+    #[arg(long)]
+    conservative: bool,
+    /// PCF margin in texels: a caster front-most at a texel is also useful
+    /// for surfaces behind its depth up to K texels away (0: docs/contract.md §4).
+    #[arg(long, value_name = "K", default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=16))]
+    filter_radius: u32,
+    /// Trace every ray against every triangle instead of the BVH (the
+    /// correctness oracle; slow).
+    #[arg(long, hide = true)]
+    brute_force: bool,
+    #[command(flatten)]
+    pub pipeline: PipelineArgs,
+    #[command(flatten)]
+    pub progress: ProgressArgs,
+}
+
+impl BakeOptions {
+    /// The settings file's values with these overrides and the `--light`
+    /// selection.
+    pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
+        let mut config = BakeConfig {
+            brute_force: self.brute_force,
+            supersample: self.supersample,
+            refine_samples: if self.refine { self.refine_samples } else { 0 },
+            refine_density: if self.refine { self.refine_density } else { 0 },
+            grid_mode: if self.conservative {
+                GridMode::Conservative
+            } else {
+                GridMode::Centres
+            },
+            filter_radius: self.filter_radius,
+            ..BakeConfig::from_settings(settings)
+        };
+        if let Some(mode) = &self.face_culling {
+            config.face_culling = FaceCulling::from_name(mode).context("face culling mode")?;
+        }
+        for (value, name) in [
+            (self.height_bias, "--height-bias"),
+            (self.tie_epsilon, "--tie-epsilon"),
+        ] {
+            if let Some(v) = value {
+                anyhow::ensure!(
+                    v.is_finite() && v >= 0.0,
+                    "{name} must be a number ≥ 0, got {v}"
+                );
+            }
+        }
+        if let Some(bias) = self.height_bias {
+            config.height_bias = bias;
+        }
+        if let Some(epsilon) = self.tie_epsilon {
+            config.tie_epsilon = epsilon;
+        }
+        let config = pipeline::select_lights(config, &self.pipeline.lights, settings_file)?;
+        anyhow::ensure!(
+            !config.lights.is_empty(),
+            "{}: no <light> in <lights>: nothing to bake",
+            settings_file.display()
+        );
+        Ok(config)
+    }
+
+    /// Runs `work` on a pool of `--threads` workers.
+    pub fn in_pool<T: Send>(&self, work: impl FnOnce() -> Result<T> + Send) -> Result<T> {
+        super::thread_pool(self.threads)?.install(work)
+    }
+}
+
+/// Loads the scene of `settings` with progress, says what it holds, and
+/// refuses it when it has problems (unless `--keep-going`).
+pub fn load_scene_told(
+    settings: &BakeSettings,
+    options: &BakeOptions,
+    reporter: &Reporter,
+) -> Result<Scene> {
+    let started = Instant::now();
+    let scene = scene::load_scene_with(&load_config(settings), reporter)?;
+    let keep_going = options.pipeline.keep_going;
+    // `refuse_problems` lists them either way; no report is written when
+    // they fail the bake.
+    let problems = match (scene.problems.len(), keep_going) {
+        (0, _) => String::new(),
+        (n, false) => format!("; {} (listed below)", count(n, "problem", "problems")),
+        (n, true) => format!(
+            "; {} (listed below), left out by --keep-going",
+            count(n, "problem", "problems")
+        ),
+    };
+    reporter.say(&format!("{}{problems}", loaded_line(&scene, started)));
+    pipeline::refuse_problems(&scene, keep_going)?;
+    Ok(scene)
+}
+
+/// Warns, before any ray is traced, about every chunk of the space an
+/// in-place bake could not replace (read-only as version control leaves
+/// files not checked out, another user's, not a regular file). Which chunks
+/// change is known only after tracing: a locked chunk whose bytes stay the
+/// same is no problem, one that must change makes the write refuse the
+/// whole batch (nothing written, every such file named), so a build
+/// engineer can stop here instead of after hours of tracing.
+pub fn warn_locked_chunks(scene: &Scene, output_args: &OutputArgs, options: &BakeOptions) {
+    if output_args.out.is_some() || options.pipeline.writes_nothing() {
+        return;
+    }
+    let checked = files::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()));
+    if let Err(shadowcull::error::Error::Refused { files }) = checked {
+        eprintln!(
+            "warning: {} chunk file(s) cannot be replaced; if the bake changes any of them it writes nothing and fails at the end (make them writable, e.g. check them out, or bake with --out DIR):",
+            files.len()
+        );
+        for (file, why) in &files {
+            eprintln!("  {}: {why}", file.display());
+        }
+    }
+}
+
+/// What [`write_results`] writes from.
+pub struct Results<'a> {
+    pub scene: &'a Scene,
+    pub res_paths: &'a [PathBuf],
+    pub config: &'a BakeConfig,
+    pub started: Instant,
+}
+
+/// Keeps the bits of lights not baked, writes the chunks (unless
+/// `--dry-run`/`--check`) and the report as `output_args` says, and prints
+/// the per-light table: the end of `bake` and of `merge`.
+pub fn write_results(
+    output_args: &OutputArgs,
+    options: &BakeOptions,
+    results: &Results,
+    mut result: BakeResult,
+    reporter: &Reporter,
+) -> Result<()> {
+    let scene = results.scene;
+    let res_paths = ResPaths::new(results.res_paths.to_vec());
+    let outputs = output::chunk_outputs(
+        scene,
+        &mut result,
+        &res_paths,
+        output_args.out.as_deref(),
+        reporter,
+    )?;
+    let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
+    let written = if options.pipeline.writes_nothing() {
+        Vec::new()
+    } else {
+        output::write_outputs(&outputs, reporter)?;
+        changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect()
+    };
+    let to_stdout = output_args.report.as_deref() == Some(Path::new("-"));
+    if let Some(path) = &output_args.report {
+        let mut report = output::report(scene, &result);
+        report.files_changed = changed
+            .iter()
+            .map(|o| o.target.display().to_string())
+            .collect();
+        report.files_written = written.clone();
+        let json = serde_json::to_vec_pretty(&report).context("report")?;
+        if to_stdout {
+            let mut stdout = std::io::stdout().lock();
+            stdout.write_all(&json)?;
+            writeln!(stdout)?;
+        } else {
+            files::write_atomic(path, &json)?;
+        }
+    }
+    let summary = summary(
+        output_args,
+        options,
+        results,
+        &result,
+        &outputs,
+        &changed,
+        written.len(),
+    );
+    if to_stdout {
+        eprint!("{summary}");
+    } else {
+        print!("{summary}");
+    }
+    if options.pipeline.check && !changed.is_empty() {
+        anyhow::bail!(
+            "--check: {} would change (listed above); the baked masks are stale",
+            count(changed.len(), "chunk file", "chunk files")
+        );
+    }
+    Ok(())
+}
+
+/// What loading found and how long it took.
+fn loaded_line(scene: &Scene, started: Instant) -> String {
+    let stats = scene.stats();
+    format!(
+        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s",
+        stats.chunks,
+        stats.instances,
+        stats.triangles,
+        stats.terrain_blocks,
+        started.elapsed().as_secs_f64(),
+    )
+}
+
+/// The per-light table, the files that would change (`--dry-run`,
+/// `--check`) and the closing line.
+fn summary(
+    output_args: &OutputArgs,
+    options: &BakeOptions,
+    results: &Results,
+    result: &BakeResult,
+    outputs: &[output::ChunkOutput],
+    changed: &[&output::ChunkOutput],
+    written: usize,
+) -> String {
+    let (config, started) = (results.config, results.started);
+    use std::fmt::Write as _;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9} {:>9} {:>8} {:>8} {:>8}",
+        "bit",
+        "light",
+        "kind",
+        "rays",
+        "triangles",
+        "bvh s",
+        "trace s",
+        "Mrays/s",
+        "useful",
+        "culled"
+    );
+    for light in &result.lights {
+        let _ = writeln!(
+            out,
+            "{:<3} {:<16} {:<12} {:>11} {:>10} {:>9.3} {:>9.3} {:>8.2} {:>8} {:>8}",
+            light.bit,
+            light.name,
+            light.kind,
+            light.rays,
+            light.triangles,
+            light.bvh_seconds,
+            light.trace_seconds,
+            light.rays as f64 / light.trace_seconds.max(1e-9) / 1e6,
+            light.useful_casters,
+            light.culled_casters
+        );
+    }
+    let skipped_lights = config.lights.len() - result.lights.len();
+    if skipped_lights > 0 {
+        let _ = writeln!(
+            out,
+            "{} skipped: see the report's `skipped`",
+            count(skipped_lights, "light", "lights")
+        );
+    }
+    let dry = options.pipeline.writes_nothing();
+    if dry {
+        for o in changed {
+            let _ = writeln!(out, "would change {}", o.target.display());
+        }
+    }
+    let _ = writeln!(
+        out,
+        "{} {} of {} chunk files{}; {:.2} s in all",
+        if dry { "would change" } else { "wrote" },
+        if dry { changed.len() } else { written },
+        outputs.len(),
+        match &output_args.out {
+            Some(dir) => format!(" under {}", dir.display()),
+            None => " in place".to_string(),
+        },
+        started.elapsed().as_secs_f64()
+    );
+    out
+}
