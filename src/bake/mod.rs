@@ -521,8 +521,8 @@ impl trace_light::RayCounter for Counter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formats::bake_settings::{BakeSettings, FaceCulling, LightKind, LightSettings};
     use crate::files::ResPaths;
+    use crate::formats::bake_settings::{BakeSettings, FaceCulling, LightKind, LightSettings};
     use crate::progress::{Call, Recorded};
 
     /// The `small` fixture and its settings, every light coarse (these

@@ -9,8 +9,8 @@
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
-use crate::formats::chunk::{self, ChunkFile};
 use crate::files::{self, ResPaths};
+use crate::formats::chunk::{self, ChunkFile};
 use crate::formats::space_settings;
 use crate::formats::{
     self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
