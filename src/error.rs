@@ -184,6 +184,54 @@ impl Error {
     }
 }
 
+impl Error {
+    /// The message without the leading file name, for lists that already
+    /// name the file (a problem's `what`), so the path is said once.
+    pub fn detail(&self) -> String {
+        match self {
+            Error::Io {
+                action, os_error, ..
+            } => format!("cannot {action}: {os_error}"),
+            Error::Format {
+                at,
+                message,
+                position,
+                ..
+            } => {
+                let place = at.to_string();
+                match position {
+                    Some(p) => format!("line {}, column {}{place}: {message}", p.line, p.column),
+                    None if place.is_empty() => message.clone(),
+                    None => format!("{}: {message}", place.trim_start()),
+                }
+            }
+            Error::Invalid { message, .. } => message.clone(),
+            other => other.to_string(),
+        }
+    }
+
+    /// [`Error::detail`] when the error is about `file`, else the whole
+    /// message (it names another file).
+    pub fn detail_for(&self, file: &std::path::Path) -> String {
+        if self.path() == Some(file) {
+            self.detail()
+        } else {
+            self.to_string()
+        }
+    }
+
+    /// The file the error is about, when it names one.
+    pub fn path(&self) -> Option<&std::path::Path> {
+        match self {
+            Error::Io { path, .. } | Error::Format { path, .. } | Error::Invalid { path, .. } => {
+                Some(path)
+            }
+            Error::NotFound { referenced_by, .. } => Some(referenced_by),
+            Error::Refused { .. } => None,
+        }
+    }
+}
+
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 #[cfg(test)]

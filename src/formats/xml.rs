@@ -57,7 +57,7 @@ pub fn parse(bytes: &[u8]) -> Result<Section, FormatError> {
             break;
         }
     }
-    tree.finish()
+    tree.finish(bytes.len())
 }
 
 /// The tree as the events build it.
@@ -136,22 +136,17 @@ impl Builder {
         }
     }
 
-    /// The root, or the error of a file that ends too soon.
-    fn finish(self) -> Result<Section, FormatError> {
-        if let Some(open) = self.stack.first() {
+    /// The root, or the error of a file that ends too soon: located where
+    /// the input ended (`len`), in the innermost element still open, since
+    /// that is where the file was cut.
+    fn finish(self, len: usize) -> Result<Section, FormatError> {
+        if let Some(innermost) = self.stack.last() {
             return Err(FormatError::new(
                 Location::Element {
-                    path: self
-                        .stack
-                        .last()
-                        .map(|s| s.path.clone())
-                        .unwrap_or_default(),
-                    offset: open.span.start as u64,
+                    path: innermost.path.clone(),
+                    offset: len as u64,
                 },
-                format!(
-                    "file ends before element <{}> is closed (truncated?)",
-                    open.name
-                ),
+                "the file ends here, before this element is closed (is the file truncated?)",
             ));
         }
         self.root
@@ -283,9 +278,18 @@ mod tests {
     }
 
     #[test]
-    fn truncated_file_names_the_open_element() {
-        let err = parse(b"<root>\n\t<model>\n\t\t<resource>\tx\t</resource>\n").unwrap_err();
-        assert!(err.message.contains("<root>"), "{err}");
+    fn truncated_file_names_the_innermost_open_element_where_the_input_ends() {
+        let text = b"<root>\n\t<model>\n\t\t<resource>\tx\t</resource>\n";
+        let err = parse(text).unwrap_err();
+        assert_eq!(
+            err.at,
+            Location::Element {
+                path: "root/model".into(),
+                offset: text.len() as u64
+            },
+            "{err}"
+        );
+        assert!(err.message.contains("truncated"), "{err}");
     }
 
     #[test]

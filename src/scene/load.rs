@@ -212,7 +212,7 @@ impl Loader<'_> {
             match chunk {
                 Err(err) => problems.push(Problem {
                     what: path.display().to_string(),
-                    why: err.to_string(),
+                    why: err.detail_for(&path),
                 }),
                 Ok(chunk) => {
                     if let Some((kept, _)) = by_name.get(&name) {

@@ -64,10 +64,36 @@ fn xml_syntax_error_in_a_chunk_names_file_and_byte_and_keeps_the_others() {
     let scene = load(dir.path()).unwrap();
     let problem = problem(&scene, "00000000o.chunk");
     assert!(
-        problem.why.contains("00000000o.chunk") && problem.why.contains("at byte"),
+        problem.why.starts_with("line ") && problem.why.contains("at byte"),
         "{problem:?}"
     );
+    assert!(
+        !problem.why.contains("00000000o.chunk"),
+        "the path is said once, in `what`: {problem:?}"
+    );
     assert_eq!(scene.chunks.len(), 3, "the other three chunks load");
+}
+
+#[test]
+fn a_truncated_chunk_is_blamed_where_its_bytes_end_naming_the_path_once() {
+    let dir = small_world();
+    let mut cut = 0;
+    edit(dir.path(), CHUNK, |bytes| {
+        // Cut inside the second <model>, so two elements are still open.
+        let text = String::from_utf8(bytes.clone()).unwrap();
+        let second = text.match_indices("<model>").nth(1).unwrap().0;
+        cut = second + "<model>".len() + 3;
+        bytes.truncate(cut);
+    });
+    let scene = load(dir.path()).unwrap();
+    let problem = problem(&scene, "00000000o.chunk");
+    assert!(!problem.why.contains("00000000o.chunk"), "{problem:?}");
+    assert!(
+        problem.why.contains(&format!("(byte {cut})")),
+        "blamed where the input ends, not at the root's start: {problem:?}"
+    );
+    assert!(problem.why.contains("<root/model>"), "{problem:?}");
+    assert!(problem.why.contains("truncated"), "{problem:?}");
 }
 
 #[test]
