@@ -185,38 +185,39 @@ impl Error {
 }
 
 impl Error {
-    /// The message without the leading file name, for lists that already
-    /// name the file (a problem's `what`), so the path is said once.
-    pub fn detail(&self) -> String {
+    /// The error as a problem about `file`: what (the file, with line and
+    /// column in a text file, `path:line:column` as editors take it) and
+    /// why (the rest), so a list that prints `what: why` says the path
+    /// once. An error about another file keeps its whole message.
+    pub fn as_problem_of(&self, file: &std::path::Path) -> (String, String) {
+        let what = file.display().to_string();
+        if self.path() != Some(file) {
+            return (what, self.to_string());
+        }
         match self {
             Error::Io {
                 action, os_error, ..
-            } => format!("cannot {action}: {os_error}"),
+            } => (what, format!("cannot {action}: {os_error}")),
             Error::Format {
                 at,
                 message,
                 position,
                 ..
             } => {
+                let what = match position {
+                    Some(p) => format!("{what}:{p}"),
+                    None => what,
+                };
                 let place = at.to_string();
-                match position {
-                    Some(p) => format!("line {}, column {}{place}: {message}", p.line, p.column),
-                    None if place.is_empty() => message.clone(),
-                    None => format!("{}: {message}", place.trim_start()),
-                }
+                let why = if place.is_empty() {
+                    message.clone()
+                } else {
+                    format!("{}: {message}", place.trim_start())
+                };
+                (what, why)
             }
-            Error::Invalid { message, .. } => message.clone(),
-            other => other.to_string(),
-        }
-    }
-
-    /// [`Error::detail`] when the error is about `file`, else the whole
-    /// message (it names another file).
-    pub fn detail_for(&self, file: &std::path::Path) -> String {
-        if self.path() == Some(file) {
-            self.detail()
-        } else {
-            self.to_string()
+            Error::Invalid { message, .. } => (what, message.clone()),
+            other => (what, other.to_string()),
         }
     }
 

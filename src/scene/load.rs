@@ -210,10 +210,10 @@ impl Loader<'_> {
         for (path, chunk) in parsed {
             let name = chunk_name(&path);
             match chunk {
-                Err(err) => problems.push(Problem {
-                    what: path.display().to_string(),
-                    why: err.detail_for(&path),
-                }),
+                Err(err) => {
+                    let (what, why) = err.as_problem_of(&path);
+                    problems.push(Problem { what, why });
+                }
                 Ok(chunk) => {
                     if let Some((kept, _)) = by_name.get(&name) {
                         problems.push(Problem {

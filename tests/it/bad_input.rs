@@ -50,6 +50,14 @@ fn problem<'a>(scene: &'a Scene, what_contains: &str) -> &'a Problem {
         .unwrap_or_else(|| panic!("no problem about {what_contains}: {:#?}", scene.problems))
 }
 
+/// The `line:column` a problem's `what` ends with (`path:line:column`).
+fn line_and_column(what: &str) -> Option<(usize, usize)> {
+    let mut fields = what.rsplitn(3, ':');
+    let column = fields.next()?.parse().ok()?;
+    let line = fields.next()?.parse().ok()?;
+    Some((line, column))
+}
+
 #[test]
 fn undamaged_small_world_has_no_problems() {
     let dir = small_world();
@@ -64,7 +72,7 @@ fn xml_syntax_error_in_a_chunk_names_file_and_byte_and_keeps_the_others() {
     let scene = load(dir.path()).unwrap();
     let problem = problem(&scene, "00000000o.chunk");
     assert!(
-        problem.why.starts_with("line ") && problem.why.contains("at byte"),
+        problem.why.starts_with("at byte") && line_and_column(&problem.what).is_some(),
         "{problem:?}"
     );
     assert!(
@@ -93,6 +101,7 @@ fn a_truncated_chunk_is_blamed_where_its_bytes_end_naming_the_path_once() {
         "blamed where the input ends, not at the root's start: {problem:?}"
     );
     assert!(problem.why.contains("<root/model>"), "{problem:?}");
+    assert!(line_and_column(&problem.what).is_some(), "{problem:?}");
     assert!(problem.why.contains("truncated"), "{problem:?}");
 }
 

@@ -62,6 +62,10 @@ fn inspect_text_summary_is_readable() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn inspect_of_arctic_lists_every_missing_primitives_file() {
     let Some(root) = realdata("inspect_of_arctic_lists_every_missing_primitives_file") else {
         return;

@@ -17,6 +17,10 @@ fn same_tree(a: &Section, b: &Section) -> bool {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn every_real_text_file_survives_packing() {
     let Some(root) = realdata("every_real_text_file_survives_packing") else {
         return;

@@ -94,6 +94,10 @@ fn decode_all(bytes: &[u8]) -> Result<Decoded, FormatError> {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn real_primitives_decode_and_agree_with_their_headers() {
     let Some(root) = realdata("real_primitives_decode_and_agree_with_their_headers") else {
         return;
@@ -215,6 +219,10 @@ fn real_primitives_decode_and_agree_with_their_headers() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn damaged_real_primitives_give_errors_not_panics() {
     let Some(root) = realdata("damaged_real_primitives_give_errors_not_panics") else {
         return;

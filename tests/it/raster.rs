@@ -132,6 +132,10 @@ fn village_fixture_agrees_with_every_face_culling_mode() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn a_world_of_real_models_agrees() {
     let Some(root) = realdata("a_world_of_real_models_agrees") else {
         return;

@@ -66,6 +66,10 @@ fn header_triangles(primitives_file: &Path) -> BTreeMap<String, Vec<u32>> {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn every_real_model_loads_with_its_index_header_counts() {
     let Some(root) = realdata("every_real_model_loads_with_its_index_header_counts") else {
         return;
@@ -166,6 +170,10 @@ pub(crate) fn world_on_a_slab(
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn a_world_of_real_models_bakes_identically_with_the_oracle() {
     // Every real model in a row over a thin ground slab (the real unit cube
     // scaled), lit from above at an angle: BVH and brute force must agree
@@ -221,6 +229,10 @@ fn a_world_of_real_models_bakes_identically_with_the_oracle() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn arctic_loads_and_lists_every_missing_resource() {
     let Some(root) = realdata("arctic_loads_and_lists_every_missing_resource") else {
         return;

@@ -167,6 +167,10 @@ fn check_chunk(name: &str, original: &[u8], seed: u64) -> usize {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn every_real_arctic_chunk_round_trips() {
     let Some(data) = realdata("every_real_arctic_chunk_round_trips") else {
         return;

@@ -181,15 +181,11 @@ fn shards_merged_equal_one_bake_with_conservative_filter_margin_and_refinement()
 }
 
 #[test]
+#[cfg_attr(
+    any(not(shadowcull_slow), debug_assertions),
+    ignore = "eight bakes of bench: run `SHADOWCULL_SLOW=1 cargo test --release --test it shards_merged_equal_one_bake_on_bench` (.ci/run does)"
+)]
 fn shards_merged_equal_one_bake_on_bench() {
-    // Eight bakes of bench: minutes in a debug build, so release only
-    // (`.ci/run` runs it with `cargo test --release`).
-    if std::env::var_os("SHADOWCULL_SLOW").is_none() || cfg!(debug_assertions) {
-        crate::support::say_not_run(
-            "shards on bench; run `SHADOWCULL_SLOW=1 cargo test --release --test it shards_merged_equal_one_bake_on_bench` (.ci/run does)",
-        );
-        return;
-    }
     let dir = tempfile::tempdir().unwrap();
     let settings = world(Preset::Bench, &dir.path().join("world"));
     for shards in [1, 2, 3, 7] {

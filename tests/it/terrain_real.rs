@@ -39,6 +39,10 @@ fn u32_at(b: &[u8], at: usize) -> u32 {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn blank_cdata_is_a_flat_block_of_its_header_size() {
     let Some(cdata) = blank_cdata("blank_cdata_is_a_flat_block_of_its_header_size") else {
         return;
@@ -157,6 +161,10 @@ fn torture(
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn damaged_blank_cdata_never_panics() {
     let Some(cdata) = blank_cdata("damaged_blank_cdata_never_panics") else {
         return;

@@ -36,6 +36,10 @@ fn groups(v: &Visual) -> Vec<&shadowcull::formats::visual::PrimitiveGroup> {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn every_real_model_and_visual_reads() {
     let Some(root) = realdata("every_real_model_and_visual_reads") else {
         return;
@@ -84,6 +88,10 @@ fn every_real_model_and_visual_reads() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn bigworld_facts() {
     let Some(root) = realdata("bigworld_facts") else {
         return;
@@ -141,6 +149,10 @@ fn bigworld_facts() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn arctic_readme_table() {
     let Some(root) = realdata("arctic_readme_table") else {
         return;

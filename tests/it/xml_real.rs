@@ -29,6 +29,10 @@ pub fn files_with_extensions(dir: &Path, extensions: &[&str]) -> Vec<PathBuf> {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn every_real_text_file_parses() {
     let Some(root) = realdata("every_real_text_file_parses") else {
         return;
@@ -45,6 +49,10 @@ fn every_real_text_file_parses() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shadowcull_realdata),
+    ignore = "needs real BigWorld data: set SHADOWCULL_REALDATA (README.md, Development)"
+)]
 fn arctic_chunk_roots_have_both_naming_styles() {
     let Some(root) = realdata("arctic_chunk_roots_have_both_naming_styles") else {
         return;
