@@ -20,7 +20,7 @@
 //! whole grid's answer, so it runs in `merge` (through
 //! [`super::bake_from`]), never in a shard.
 
-use super::config::BakeConfig;
+use super::config::{BakeConfig, GridMode};
 use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{
     tile_count, tile_rect, CasterSet, LightRays, RayCounter, TileReach, TILE,
@@ -28,6 +28,7 @@ use super::trace_light::{
 use super::{grid_pass, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::files::ResPaths;
+use crate::formats::bake_settings::LightKind;
 use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
 use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
@@ -149,9 +150,15 @@ pub fn shard_from_env(
         Ok((shard, format!("shard {shard} from {said}")))
     };
     if let Some(id) = number("SLURM_ARRAY_TASK_ID")? {
+        let task_count = number("SLURM_ARRAY_TASK_COUNT")?;
+        if task_count == Some(1) {
+            if let Some(original) = resubmitted_array(env, shards)? {
+                return make_resubmitted(id, original);
+            }
+        }
         let min = number("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
         let step = number("SLURM_ARRAY_TASK_STEP")?.unwrap_or(1).max(1);
-        let count = count_from(number("SLURM_ARRAY_TASK_COUNT")?, "SLURM_ARRAY_TASK_COUNT")?;
+        let count = count_from(task_count, "SLURM_ARRAY_TASK_COUNT")?;
         let said = format!("SLURM_ARRAY_TASK_ID={id} (min {min}, step {step}, count {count})");
         if (id - min) % step != 0 {
             return Err(ShardError::Auto(format!(
@@ -182,6 +189,102 @@ pub fn shard_from_env(
     Err(ShardError::Auto(
         "none of SLURM_ARRAY_TASK_ID, JOB_COMPLETION_INDEX, AWS_BATCH_JOB_ARRAY_INDEX is set: run it as an array task or give --shard I/N".into(),
     ))
+}
+
+/// The variable naming a Slurm array's original ids (`A-B` or `A-B:S`),
+/// for a task re-submitted alone (`sbatch --array=17`), whose own
+/// `SLURM_ARRAY_TASK_*` describe a one-task array. `deploy/slurm` records
+/// it beside the partials.
+pub const ARRAY_VAR: &str = "SHADOWCULL_ARRAY";
+
+/// The original ids of a Slurm array whose task was re-submitted alone: from
+/// [`ARRAY_VAR`], else `0-(N-1)` when `--shards N` (N > 1) says the array
+/// had more than this one task; `None` for a genuine one-task array.
+fn resubmitted_array(
+    env: &dyn Fn(&str) -> Option<String>,
+    shards: Option<u32>,
+) -> Result<Option<IdRange>, ShardError> {
+    if let Some(text) = env(ARRAY_VAR) {
+        let range = IdRange::parse(&text).ok_or_else(|| {
+            ShardError::Auto(format!(
+                "{ARRAY_VAR}={text} is not an array range A-B or A-B:S"
+            ))
+        })?;
+        if let Some(n) = shards.filter(|&n| n != range.count()) {
+            return Err(ShardError::Auto(format!(
+                "{ARRAY_VAR}={text} has {} ids but --shards {n}; drop --shards or make them agree",
+                range.count()
+            )));
+        }
+        return Ok(Some(range));
+    }
+    Ok(shards.filter(|&n| n > 1).map(|n| IdRange {
+        first: 0,
+        last: n as i64 - 1,
+        step: 1,
+    }))
+}
+
+/// Shard of task `id`, re-submitted alone, of the array `original`.
+fn make_resubmitted(id: i64, original: IdRange) -> Result<(ShardIndex, String), ShardError> {
+    let said = format!(
+        "SLURM_ARRAY_TASK_ID={id}, a task re-submitted alone of the array {original} ({} shards)",
+        original.count()
+    );
+    match original.index_of(id) {
+        Some(index) => {
+            let shard = ShardIndex {
+                index,
+                count: original.count(),
+            };
+            Ok((shard, format!("shard {shard} from {said}")))
+        }
+        None => Err(ShardError::Auto(format!(
+            "{said}: {id} is not one of its ids; re-submit with --array set to an id of {original}, or set {ARRAY_VAR} to the original array"
+        ))),
+    }
+}
+
+/// A Slurm array's ids `first..=last` every `step`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IdRange {
+    first: i64,
+    last: i64,
+    step: i64,
+}
+
+impl IdRange {
+    /// `A-B` or `A-B:S` (A ≤ B, S ≥ 1), as `sbatch --array` takes it.
+    pub fn parse(text: &str) -> Option<IdRange> {
+        let (range, step) = match text.trim().split_once(':') {
+            Some((range, step)) => (range, step.parse().ok()?),
+            None => (text.trim(), 1),
+        };
+        let (first, last) = range.split_once('-')?;
+        let (first, last): (i64, i64) = (first.parse().ok()?, last.parse().ok()?);
+        (first >= 0 && first <= last && step >= 1).then_some(IdRange { first, last, step })
+    }
+
+    /// How many ids (shards) it holds.
+    pub fn count(&self) -> u32 {
+        ((self.last - self.first) / self.step + 1) as u32
+    }
+
+    /// The shard index of task id `id`.
+    fn index_of(&self, id: i64) -> Option<u32> {
+        let inside = (self.first..=self.last).contains(&id) && (id - self.first) % self.step == 0;
+        inside.then(|| ((id - self.first) / self.step) as u32)
+    }
+}
+
+impl std::fmt::Display for IdRange {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}-{}", self.first, self.last)?;
+        if self.step != 1 {
+            write!(f, ":{}", self.step)?;
+        }
+        Ok(())
+    }
 }
 
 /// One light's range of tiles.
@@ -361,27 +464,93 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
         .collect()
 }
 
+/// The settings a shard's answer depends on, one (key, value) each: keys
+/// are the settings file's element paths (`lights/light[0]/texelSize`) or
+/// the flags (`--supersample`), values as written, so a difference reads as
+/// the element and its two values.
+pub fn settings_lines(config: &BakeConfig) -> Vec<(String, String)> {
+    let v3 = |v: glam::DVec3| format!("{} {} {}", v.x, v.y, v.z);
+    let mut lines = vec![
+        (
+            "shadowcull".to_string(),
+            format!(
+                "{} (partial format {})",
+                env!("CARGO_PKG_VERSION"),
+                partial::VERSION
+            ),
+        ),
+        ("faceCulling".into(), config.face_culling.name().into()),
+        ("heightBias".into(), config.height_bias.to_string()),
+        ("tieEpsilon".into(), config.tie_epsilon.to_string()),
+        (
+            "--supersample".into(),
+            config.supersample.max(1).to_string(),
+        ),
+        ("--brute-force".into(), config.brute_force.to_string()),
+        (
+            "--conservative".into(),
+            (config.grid_mode == GridMode::Conservative).to_string(),
+        ),
+        ("--filter-radius".into(), config.filter_radius.to_string()),
+        (
+            "grid offset".into(),
+            format!("{} {}", config.grid_offset.0, config.grid_offset.1),
+        ),
+        ("lights".into(), config.lights.len().to_string()),
+    ];
+    for (index, light) in config.lights.iter().enumerate() {
+        let key = |name: &str| format!("lights/light[{index}]/{name}");
+        lines.push((key("name"), light.name.clone()));
+        lines.push((key("type"), light.kind.type_name().into()));
+        let values: Vec<(&str, String)> = match &light.kind {
+            LightKind::Directional {
+                direction,
+                texel_size,
+            } => vec![
+                ("direction", v3(*direction)),
+                ("texelSize", texel_size.to_string()),
+            ],
+            LightKind::Spot {
+                position,
+                direction,
+                fov_degrees,
+                near,
+                far,
+                resolution,
+            } => vec![
+                ("position", v3(*position)),
+                ("direction", v3(*direction)),
+                ("fov", fov_degrees.to_string()),
+                ("near", near.to_string()),
+                ("far", far.to_string()),
+                ("resolution", resolution.to_string()),
+            ],
+            LightKind::Point {
+                position,
+                near,
+                far,
+                resolution,
+            } => vec![
+                ("position", v3(*position)),
+                ("near", near.to_string()),
+                ("far", far.to_string()),
+                ("resolution", resolution.to_string()),
+            ],
+        };
+        lines.extend(values.into_iter().map(|(name, value)| (key(name), value)));
+    }
+    lines
+}
+
 /// The inputs of a bake, to compare between shards and the merge: the
 /// settings that decide the grid's answer (supersampling, grid mode, filter
 /// radius; refinement runs in the merge and is not among them) and every file the load read, by its name relative to
 /// its res root (so machines mounting the roots elsewhere agree).
 pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> Fingerprint {
-    let mut settings = format!(
-        "shadowcull {} (partial format {})\nfaceCulling = {:?}\nheightBias = {:?}\ntieEpsilon = {:?}\nsupersample = {}\nbruteForce = {}\ngridMode = {:?}\nfilterRadius = {}\ngridOffset = {:?}\n",
-        env!("CARGO_PKG_VERSION"),
-        partial::VERSION,
-        config.face_culling,
-        config.height_bias,
-        config.tie_epsilon,
-        config.supersample.max(1),
-        config.brute_force,
-        config.grid_mode,
-        config.filter_radius,
-        config.grid_offset,
-    );
-    for (index, light) in config.lights.iter().enumerate() {
-        settings.push_str(&format!("light {index} = {light:?}\n"));
-    }
+    let settings: String = settings_lines(config)
+        .into_iter()
+        .map(|(key, value)| format!("{key} = {value}\n"))
+        .collect();
     let mut files: Vec<(String, Digest)> = scene
         .inputs
         .iter()
@@ -507,13 +676,16 @@ impl GridSource for Merged {
 /// Checks `partials` (file, content) against this merge's own fingerprint
 /// and the plan of as many shards as they name, and ORs their units. Every
 /// problem names its files; any problem refuses the whole merge. `command`
-/// is how to re-run a shard, for the message about missing ones.
+/// is how to re-run a shard, for the message about missing ones; `locate`
+/// says where one of this merge's settings is set (`file:line`), when it
+/// can, for the message about partials made from other settings.
 pub fn merge(
     world: &BakeWorld,
     config: &BakeConfig,
     own: &Fingerprint,
     partials: &[(PathBuf, Partial)],
     command: &str,
+    locate: &dyn Fn(&str) -> Option<String>,
 ) -> Result<(Merged, Plan), ShardError> {
     let shards = partials.first().map_or(1, |(_, p)| p.shards).max(1);
     let plan = Plan::new(world, config, shards)?;
@@ -521,10 +693,15 @@ pub fn merge(
         own,
         plan: &plan,
         casters: world.casters.len(),
+        locate,
     };
     let (seen, mut problems) = expected.one_partial_per_shard(partials);
+    // A shard whose partial was refused is not missing: its refusal says
+    // what to do.
+    let given: std::collections::BTreeSet<u32> = partials.iter().map(|(_, p)| p.shard).collect();
     let missing: Vec<u32> = (0..shards)
-        .filter(|s| !seen.contains_key(s) && !plan.units[*s as usize].is_empty())
+        .filter(|s| !given.contains(s) && !seen.contains_key(s))
+        .filter(|s| !plan.units[*s as usize].is_empty())
         .collect();
     if !missing.is_empty() {
         problems.push(missing_shards(&missing, shards, command));
@@ -542,6 +719,8 @@ struct Expected<'m> {
     /// This merge's plan, of as many shards as the first partial names.
     plan: &'m Plan,
     casters: usize,
+    /// Where one of this merge's settings is set.
+    locate: &'m dyn Fn(&str) -> Option<String>,
 }
 
 /// Per shard, the file and content of its first partial that agrees with
@@ -558,10 +737,17 @@ impl Expected<'_> {
     ) -> (PerShard<'p>, Vec<String>) {
         let shards = self.plan.shards;
         let mut problems = Vec::new();
+        // Partials refused for one reason are named together, the reason
+        // said once.
+        let mut refused: Vec<(String, Vec<String>)> = Vec::new();
         let mut seen = PerShard::new();
         for (path, partial) in partials {
-            if let Some(problem) = self.refusal(path, partial, &partials[0].0) {
-                problems.push(problem);
+            if let Some(why) = self.refusal(partial, &partials[0].0) {
+                let name = path.display().to_string();
+                match refused.iter_mut().find(|(reason, _)| *reason == why) {
+                    Some((_, names)) => names.push(name),
+                    None => refused.push((why, vec![name])),
+                }
                 continue;
             }
             match seen.get(&partial.shard) {
@@ -586,27 +772,24 @@ impl Expected<'_> {
                 }
             }
         }
-        (seen, problems)
+        let refusals = refused
+            .into_iter()
+            .map(|(why, names)| format!("{}: {why}", names.join(", ")));
+        (seen, refusals.chain(problems).collect())
     }
 
-    /// Why `partial` (read from `path`) cannot be merged here, if it
-    /// cannot: made from other inputs, of another split than the first
+    /// Why `partial` cannot be merged here, if it cannot: made from other inputs, of another split than the first
     /// partial's (read from `first`), or by another plan.
-    fn refusal(&self, path: &Path, partial: &Partial, first: &Path) -> Option<String> {
-        let name = path.display();
+    fn refusal(&self, partial: &Partial, first: &Path) -> Option<String> {
         let shards = self.plan.shards;
-        if let Some(why) = fingerprint_difference(self.own, &partial.fingerprint) {
-            return Some(format!(
-                "{name}: made from other inputs than this merge: {why}"
-            ));
+        if let Some(why) = fingerprint_difference(self.own, &partial.fingerprint, self.locate) {
+            return Some(format!("made from other inputs than this merge: {why}"));
         }
         if partial.shards != shards {
             return Some(format!(
-                "{name}: shard {}/{} of another split than {} ({} shards): merge the partials of one split",
-                partial.shard,
+                "of another split ({} shards) than {} ({shards} shards): merge the partials of one split",
                 partial.shards,
                 first.display(),
-                shards
             ));
         }
         let expected_units = self.plan.units.get(partial.shard as usize);
@@ -621,7 +804,7 @@ impl Expected<'_> {
             || partial.casters != self.casters as u64
         {
             return Some(format!(
-                "{name}: its plan differs from this merge's plan of {shards} shards (made by another shadowcull?)"
+                "its plan differs from this merge's plan of {shards} shards (made by another shadowcull?)"
             ));
         }
         None
@@ -682,18 +865,15 @@ impl Merged {
 }
 
 /// Why two fingerprints differ, in a sentence, or `None` when they agree.
-fn fingerprint_difference(own: &Fingerprint, theirs: &Fingerprint) -> Option<String> {
+/// `locate` says where a setting of this merge comes from (`file:line`),
+/// when it can.
+fn fingerprint_difference(
+    own: &Fingerprint,
+    theirs: &Fingerprint,
+    locate: &dyn Fn(&str) -> Option<String>,
+) -> Option<String> {
     if own.settings != theirs.settings {
-        let line = own
-            .settings
-            .lines()
-            .zip(theirs.settings.lines())
-            .find(|(a, b)| a != b)
-            .map(|(a, b)| format!("the partial has `{b}`, this merge `{a}`"))
-            .unwrap_or_else(|| "another number of lights".into());
-        return Some(format!(
-            "settings differ ({line}); give merge the settings file and flags the shards had"
-        ));
+        return Some(settings_difference(&own.settings, &theirs.settings, locate));
     }
     if own.files == theirs.files {
         return None;
@@ -718,6 +898,48 @@ fn fingerprint_difference(own: &Fingerprint, theirs: &Fingerprint) -> Option<Str
         differences.join(", "),
         if count > 5 { ", …" } else { "" }
     ))
+}
+
+/// The first setting that differs between this merge's `own` settings
+/// lines and a partial's (`theirs`), as the element (or flag), both values
+/// and where this merge's value is set.
+fn settings_difference(own: &str, theirs: &str, locate: &dyn Fn(&str) -> Option<String>) -> String {
+    let pairs = |text: &str| -> BTreeMap<String, String> {
+        text.lines()
+            .filter_map(|line| line.split_once(" = "))
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect()
+    };
+    let (ours, them) = (pairs(own), pairs(theirs));
+    let order = own
+        .lines()
+        .chain(theirs.lines())
+        .filter_map(|l| l.split_once(" = "));
+    let differing = order
+        .map(|(key, _)| key)
+        .find(|key| ours.get(*key) != them.get(*key));
+    let said = match differing {
+        Some(key) => {
+            let value = |v: Option<&String>| match v {
+                Some(v) => format!("`{v}`"),
+                None => "not set".to_string(),
+            };
+            let element =
+                if key.starts_with("--") || !key.chars().next().is_some_and(char::is_alphabetic) {
+                    key.to_string()
+                } else {
+                    format!("<{key}>")
+                };
+            let place = locate(key).map(|at| format!(" ({at})")).unwrap_or_default();
+            format!(
+                "{element} is {} in the partial but {} in this merge{place}",
+                value(them.get(key)),
+                value(ours.get(key))
+            )
+        }
+        None => "the settings are written differently (another shadowcull?)".into(),
+    };
+    format!("settings differ: {said}; give merge the settings file and flags the shards had")
 }
 
 #[cfg(test)]
@@ -772,6 +994,61 @@ mod tests {
         assert!(shard_from_env(&env(&past), None).is_err());
         let garbage = [("SLURM_ARRAY_TASK_ID", "x")];
         assert!(shard_from_env(&env(&garbage), Some(2)).is_err());
+    }
+
+    #[test]
+    fn a_slurm_task_resubmitted_alone_is_its_shard_of_the_original_array() {
+        // `sbatch --array=17 shard.sbatch`: Slurm describes a one-task array.
+        let alone = |id: &'static str| {
+            [
+                ("SLURM_ARRAY_TASK_ID", id),
+                ("SLURM_ARRAY_TASK_MIN", id),
+                ("SLURM_ARRAY_TASK_MAX", id),
+                ("SLURM_ARRAY_TASK_STEP", "1"),
+                ("SLURM_ARRAY_TASK_COUNT", "1"),
+            ]
+        };
+        // With --shards N: the array was 0-(N-1).
+        let (shard, said) = shard_from_env(&env(&alone("17")), Some(64)).unwrap();
+        assert_eq!(
+            shard,
+            ShardIndex {
+                index: 17,
+                count: 64
+            }
+        );
+        assert!(said.contains("re-submitted"), "{said}");
+        // With the recorded array (ids need not start at 0).
+        let mut recorded = alone("5").to_vec();
+        recorded.push((ARRAY_VAR, "1-7:2"));
+        let (shard, _) = shard_from_env(&env(&recorded), None).unwrap();
+        assert_eq!(shard, ShardIndex { index: 2, count: 4 });
+        assert!(
+            shard_from_env(&env(&recorded), Some(3)).is_err(),
+            "4 ids, not 3"
+        );
+        // An id the original array never had.
+        let mut foreign = alone("4").to_vec();
+        foreign.push((ARRAY_VAR, "1-7:2"));
+        let err = shard_from_env(&env(&foreign), None)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("1-7:2"), "{err}");
+        assert!(shard_from_env(&env(&alone("64")), Some(64)).is_err());
+        // A genuine one-task array is one shard, as before.
+        let (shard, _) = shard_from_env(&env(&alone("0")), None).unwrap();
+        assert_eq!(shard, ShardIndex { index: 0, count: 1 });
+    }
+
+    #[test]
+    fn array_ranges_parse_as_sbatch_writes_them() {
+        let range = IdRange::parse("1-7:2").unwrap();
+        assert_eq!(range.count(), 4);
+        assert_eq!(range.to_string(), "1-7:2");
+        assert_eq!(IdRange::parse("0-63").unwrap().count(), 64);
+        for bad in ["", "7-1", "1-7:0", "a-b", "3", "-1-4"] {
+            assert!(IdRange::parse(bad).is_none(), "{bad}");
+        }
     }
 
     #[test]

@@ -11,7 +11,8 @@ use anyhow::Result;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, shard};
 use shadowcull::files::{self, ResPaths};
-use std::path::PathBuf;
+use shadowcull::formats::{self, Section};
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
@@ -51,7 +52,8 @@ pub fn run(args: MergeArgs) -> Result<()> {
         let world = BakeWorld::build(&scene, &reporter);
         let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));
         let command = format!("shadowcull bake {}", args.settings.settings.display());
-        let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command)?;
+        let locate = setting_locator(&args.settings.settings);
+        let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command, &locate)?;
         let units = partials.iter().flat_map(|(_, p)| &p.units);
         let (rays, seconds) = units.fold((0u64, 0f64), |(r, s), u| (r + u.rays, s + u.seconds));
         eprintln!(
@@ -69,4 +71,26 @@ pub fn run(args: MergeArgs) -> Result<()> {
         };
         write_results(&args.output, &args.options, &results, result, &reporter)
     })
+}
+
+/// Where the settings file at `path` sets `key` (an element path such as
+/// `lights/light[0]/texelSize`), as `file:line`; `None` for flags and
+/// elements the file does not hold.
+fn setting_locator(path: &Path) -> impl Fn(&str) -> Option<String> + '_ {
+    let bytes = files::read_file(path).ok();
+    let root = bytes
+        .as_deref()
+        .and_then(|b| formats::parse_data_section(b).ok());
+    move |key| {
+        let (bytes, root) = (bytes.as_deref()?, root.as_ref()?);
+        let element = key.split('/').try_fold(root, |section: &Section, step| {
+            let (name, nth) = match step.split_once('[') {
+                Some((name, rest)) => (name, rest.trim_end_matches(']').parse().ok()?),
+                None => (step, 0),
+            };
+            section.children_named(name).nth(nth)
+        })?;
+        let position = formats::text_position(bytes, element.location().offset()?)?;
+        Some(format!("{}:{}", path.display(), position.line))
+    }
 }

@@ -279,8 +279,14 @@ fn a_partial_of_other_inputs_is_refused_naming_it_and_the_file() {
     assert!(!out.exists());
     // The grid mode and the filter radius decide the grid's answer too.
     for (flag, setting) in [
-        (&["--conservative"][..], "gridMode"),
-        (&["--filter-radius", "1"][..], "filterRadius"),
+        (
+            &["--conservative"][..],
+            "--conservative is `false` in the partial but `true`",
+        ),
+        (
+            &["--filter-radius", "1"][..],
+            "--filter-radius is `0` in the partial but `1`",
+        ),
     ] {
         let mut args = vec![
             "merge",
@@ -294,6 +300,36 @@ fn a_partial_of_other_inputs_is_refused_naming_it_and_the_file() {
         refused(shadowcull(&args), &["p0.part", setting]);
         assert!(!out.exists());
     }
+    // A light edited in the settings file: the element, both values and
+    // the line that sets this merge's, said once for every partial, with
+    // no debug text and no shard called missing.
+    let original = std::fs::read_to_string(&settings).unwrap();
+    let at = original.find("<texelSize>").unwrap();
+    let line = original[..at].matches('\n').count() + 1;
+    let value_start = at + "<texelSize>".len();
+    let value_end = value_start + original[value_start..].find("</texelSize>").unwrap();
+    let old_value: f64 = original[value_start..value_end].trim().parse().unwrap();
+    let edited = format!(
+        "{}\t0.3\t{}",
+        &original[..value_start],
+        &original[value_end..]
+    );
+    std::fs::write(&settings, edited).unwrap();
+    let stderr = refused(
+        merge(&settings, &[&parts[0], &parts[1], &parts[2]], &out),
+        &[
+            "<lights/light[0]/texelSize>",
+            &format!("`{old_value}` in the partial but `0.3` in this merge"),
+            &format!("bake.xml:{line})"),
+        ],
+    );
+    assert!(
+        !stderr.contains("LightSettings") && !stderr.contains("DVec3"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("missing shard"), "{stderr}");
+    assert_eq!(stderr.matches("settings differ").count(), 1, "{stderr}");
+    std::fs::write(&settings, original).unwrap();
     // The right partials merge.
     ok(
         merge(&settings, &[&parts[0], &parts[1], &parts[2]], &out),
