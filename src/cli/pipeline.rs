@@ -2,6 +2,7 @@
 //! `--keep-going`, a subset of lights, a memory ceiling, CI checks. Kept
 //! apart from the bake's own settings so each stays small.
 
+use super::messages::{self, ProblemOutcome};
 use anyhow::{bail, Result};
 use shadowcull::bake::BakeConfig;
 use shadowcull::scene::Scene;
@@ -59,7 +60,7 @@ pub fn select_lights(config: BakeConfig, names: &[String], file: &Path) -> Resul
 pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
     if keep_going {
         for problem in &scene.problems {
-            eprintln!("warning: left out: {}: {}", problem.what, problem.why);
+            messages::problem(&problem.what, &problem.why, ProblemOutcome::LeftOut);
         }
         return Ok(());
     }
@@ -67,7 +68,7 @@ pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
         return Ok(());
     }
     for problem in &scene.problems {
-        eprintln!("  {}: {}", problem.what, problem.why);
+        messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
     }
     bail!(
         "{} in the input (listed above); nothing was written. Fix them, or bake what loaded with --keep-going",
