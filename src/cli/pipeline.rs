@@ -12,8 +12,9 @@ use std::path::Path;
 pub struct PipelineArgs {
     /// Bake what loaded even when some input is broken (missing or
     /// damaged files, bad or stray transforms): those parts are left out
-    /// and listed in the report. Without it any problem fails the bake
-    /// (exit 1) and nothing is written.
+    /// and listed in the report; an unknown element of the settings file
+    /// is only a warning. Without it any of these fails the bake (exit 1)
+    /// and nothing is written.
     #[arg(long)]
     pub keep_going: bool,
     /// Bake only this light (repeatable); every other bit of the existing
