@@ -57,8 +57,14 @@ pub struct LightPlan {
     pub height: u32,
     /// Texel rays (texels × supersample²) plus refinement rays.
     pub rays: u64,
+    /// Model parts in reach, receiver-only ones too: one per `<resource>`
+    /// of an instance (an instance with two is two), so more than the
+    /// scene's instances when all are in reach. The report's `instances`
+    /// counts the same.
     pub instances: usize,
     pub terrain_blocks: usize,
+    /// Hittable triangles in reach: the parts' models' (each part counts
+    /// its model's) plus two per visible terrain cell that is not a hole.
     pub triangles: u64,
     pub top_level_bytes: usize,
     /// The calibration: rays traced and their wall time.

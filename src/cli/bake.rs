@@ -7,8 +7,9 @@
 
 use super::bake_shared::{load_scene_told, warn_locked_chunks, write_results};
 use super::bake_shared::{BakeOptions, OutputArgs, Results};
+use super::messages::StderrForm;
 use super::progress::Reporter;
-use super::{load_settings, SettingsArgs};
+use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
@@ -27,8 +28,15 @@ pub struct BakeArgs {
     shard: super::shard::ShardArgs,
 }
 
+impl BakeArgs {
+    pub fn stderr_form(&self) -> StderrForm {
+        self.options.progress.stderr_form()
+    }
+}
+
 pub fn run(args: BakeArgs) -> Result<()> {
-    let settings = load_settings(&args.settings)?;
+    let unknown = UnknownElements::for_bake(args.options.pipeline.keep_going);
+    let settings = load_settings_with(&args.settings, unknown)?;
     let config = args.options.config(&settings, &args.settings.settings)?;
     if args.shard.is_set() {
         return args
@@ -48,9 +56,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
     let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;
-    for line in super::plan::plan_lines(&plan) {
-        reporter.say(&line);
-    }
+    super::plan::say_plan(&plan, &reporter);
     super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
     // The plan's calibration tiles are not traced twice.
     let result = bake::bake_from(&world, config, &reporter, &plan)

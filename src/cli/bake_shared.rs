@@ -3,6 +3,7 @@
 //! and writing the chunks, the report and the per-light table.
 
 use super::load_config;
+use super::messages;
 use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
 use anyhow::{Context, Result};
@@ -142,8 +143,18 @@ pub fn load_scene_told(
     let started = Instant::now();
     let scene = scene::load_scene_with(&load_config(settings), reporter)?;
     let keep_going = options.pipeline.keep_going;
-    // `refuse_problems` lists them either way; no report is written when
-    // they fail the bake.
+    say_loaded(&scene, started, keep_going, reporter);
+    pipeline::refuse_problems(&scene, keep_going)?;
+    Ok(scene)
+}
+
+/// The `loaded` line: what loading found, how long it took, and how many
+/// problems follow (`refuse_problems` lists them either way; no report is
+/// written when they fail the bake).
+fn say_loaded(scene: &Scene, started: Instant, keep_going: bool, reporter: &Reporter) {
+    let stats = scene.stats();
+    let parts = placed_parts(scene);
+    let seconds = started.elapsed().as_secs_f64();
     let problems = match (scene.problems.len(), keep_going) {
         (0, _) => String::new(),
         (n, false) => format!("; {} (listed below)", count(n, "problem", "problems")),
@@ -152,9 +163,33 @@ pub fn load_scene_told(
             count(n, "problem", "problems")
         ),
     };
-    reporter.say(&format!("{}{problems}", loaded_line(&scene, started)));
-    pipeline::refuse_problems(&scene, keep_going)?;
-    Ok(scene)
+    let text = format!(
+        "loaded {} chunks, {} instances ({} model parts), {} model triangles, {} terrain blocks in {seconds:.2} s{problems}",
+        stats.chunks, stats.instances, parts, stats.triangles, stats.terrain_blocks,
+    );
+    let fields = serde_json::json!({
+        "chunks": stats.chunks,
+        "instances": stats.instances,
+        "model_parts": parts,
+        "model_triangles": stats.triangles,
+        "terrain_blocks": stats.terrain_blocks,
+        "seconds": seconds,
+        "problems": scene.problems.len(),
+        "keep_going": keep_going,
+    });
+    reporter.say("loaded", &text, fields);
+}
+
+/// The model parts a bake places: one per `<resource>` of every instance
+/// whose resources all loaded (an instance with two is two parts), the
+/// unit a light's reach counts.
+pub fn placed_parts(scene: &Scene) -> usize {
+    scene
+        .instances
+        .iter()
+        .filter(|i| i.is_complete())
+        .map(|i| i.parts.len())
+        .sum()
 }
 
 /// Warns, before any ray is traced, about every chunk of the space an
@@ -170,13 +205,14 @@ pub fn warn_locked_chunks(scene: &Scene, output_args: &OutputArgs, options: &Bak
     }
     let checked = files::check_replaceable(scene.chunks.iter().map(|c| c.file.as_path()));
     if let Err(shadowcull::error::Error::Refused { files }) = checked {
-        eprintln!(
-            "warning: {} chunk file(s) cannot be replaced; if the bake changes any of them it writes nothing and fails at the end (make them writable, e.g. check them out, or bake with --out DIR):",
+        let mut text = format!(
+            "{} chunk file(s) cannot be replaced; if the bake changes any of them it writes nothing and fails at the end (make them writable, e.g. check them out, or bake with --out DIR):",
             files.len()
         );
         for (file, why) in &files {
-            eprintln!("  {}: {why}", file.display());
+            text += &format!("\n  {}: {why}", file.display());
         }
+        messages::warning(&text);
     }
 }
 
@@ -244,7 +280,9 @@ pub fn write_results(
         written.len(),
     );
     if to_stdout {
-        eprint!("{summary}");
+        for line in summary.lines() {
+            messages::say("summary", line, serde_json::json!({}));
+        }
     } else {
         print!("{summary}");
     }
@@ -255,19 +293,6 @@ pub fn write_results(
         );
     }
     Ok(())
-}
-
-/// What loading found and how long it took.
-fn loaded_line(scene: &Scene, started: Instant) -> String {
-    let stats = scene.stats();
-    format!(
-        "loaded {} chunks, {} instances, {} triangles, {} terrain blocks in {:.2} s",
-        stats.chunks,
-        stats.instances,
-        stats.triangles,
-        stats.terrain_blocks,
-        started.elapsed().as_secs_f64(),
-    )
 }
 
 /// The per-light table, the files that would change (`--dry-run`,

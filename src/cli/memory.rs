@@ -44,14 +44,21 @@ fn current() -> Option<Phase> {
     slot.checked_sub(1).and_then(|i| Phase::ALL.get(i)).copied()
 }
 
-/// Writes the message and exits without allocating (the heap is what
+/// Writes the message (an `error` event with `--progress json`: nothing in
+/// it needs escaping) and exits without allocating (the heap is what
 /// failed) and without unwinding.
 fn out_of_memory(bytes: usize) -> ! {
     let phase = current().map_or("starting", Phase::name);
-    let mut buffer = [0u8; 320];
+    let json = super::messages::is_json();
+    let mut buffer = [0u8; 400];
     let mut len = 0;
     for part in [
-        "error: out of memory in phase `",
+        if json {
+            "{\"event\":\"error\",\"message\":\""
+        } else {
+            "error: "
+        },
+        "out of memory in phase `",
         phase,
         "`: could not allocate ",
     ] {
@@ -61,8 +68,10 @@ fn out_of_memory(bytes: usize) -> ! {
     len += copy(
         &mut buffer[len..],
         b" bytes (chunk files are replaced whole or not at all). Run `shadowcull plan` for the \
-estimate, then free memory, bake fewer lights at once (--light) or raise <texelSize>.\n",
+estimate, then free memory, bake fewer lights at once (--light) or raise <texelSize>.",
     );
+    let end: &[u8] = if json { b"\"}\n" } else { b"\n" };
+    len += copy(&mut buffer[len..], end);
     // SAFETY: writing a byte buffer we own to stderr, then ending the
     // process without running anything that could allocate.
     unsafe {

@@ -1,12 +1,15 @@
 //! `shadowcull merge SETTINGS PARTIAL...`: checks the partial results of a
-//! distributed bake against this machine's inputs, ORs them, refines if
-//! asked, and writes the chunks and report exactly as `bake` does.
+//! distributed bake against this machine's inputs, ORs them (no grid ray
+//! is traced here: its grid phase is `merging`), refines if asked (those
+//! rays are traced here), and writes the chunks and report exactly as
+//! `bake` does.
 
 use super::bake_shared::{
     load_scene_told, warn_locked_chunks, write_results, BakeOptions, OutputArgs, Results,
 };
-use super::progress::Reporter;
-use super::{load_settings, SettingsArgs};
+use super::messages::{self, StderrForm};
+use super::progress::{GridAnswers, Reporter};
+use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::Result;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, shard};
@@ -29,8 +32,15 @@ pub struct MergeArgs {
     options: BakeOptions,
 }
 
+impl MergeArgs {
+    pub fn stderr_form(&self) -> StderrForm {
+        self.options.progress.stderr_form()
+    }
+}
+
 pub fn run(args: MergeArgs) -> Result<()> {
-    let settings = load_settings(&args.settings)?;
+    let unknown = UnknownElements::for_bake(args.options.pipeline.keep_going);
+    let settings = load_settings_with(&args.settings, unknown)?;
     let config = args.options.config(&settings, &args.settings.settings)?;
     args.options.in_pool(|| {
         let started = Instant::now();
@@ -45,7 +55,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
         if !damaged.is_empty() {
             return Err(shard::ShardError::Refused(damaged).into());
         }
-        let reporter = Reporter::new(&args.options.progress);
+        let reporter = Reporter::with_grid(&args.options.progress, GridAnswers::Merged);
         let scene = load_scene_told(&settings, &args.options, &reporter)?;
         warn_locked_chunks(&scene, &args.output, &args.options);
         bake::validate_lights(&scene, &config)?;
@@ -56,10 +66,26 @@ pub fn run(args: MergeArgs) -> Result<()> {
         let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command, &locate)?;
         let units = partials.iter().flat_map(|(_, p)| &p.units);
         let (rays, seconds) = units.fold((0u64, 0f64), |(r, s), u| (r + u.rays, s + u.seconds));
-        eprintln!(
-            "merging {} partial(s) of {} shards: {rays} rays traced in {seconds:.1} s (summed over the shards)",
-            partials.len(),
-            plan.shards
+        let refining = if args.options.refine {
+            "; --refine: refinement rays are traced here, after each light's merge"
+        } else {
+            ""
+        };
+        messages::say(
+            "merge",
+            &format!(
+                "merge: OR-ing the grid answers of {} partial(s) of {} shards ({rays} rays traced \
+                 in {seconds:.1} s, summed over the shards); no grid ray is traced here{refining}",
+                partials.len(),
+                plan.shards
+            ),
+            serde_json::json!({
+                "partials": partials.len(),
+                "shards": plan.shards,
+                "shard_rays": rays,
+                "shard_seconds": seconds,
+                "refine": args.options.refine,
+            }),
         );
         let result = bake::bake_from(&world, &config, &reporter, &merged)?;
         drop((merged, world));

@@ -1,10 +1,12 @@
 //! Command-line parsing and the subcommands' glue. Library errors become
-//! messages here; nothing below this module prints.
+//! messages here; nothing below this module prints. Standard error is
+//! written through `messages`, which knows whether it takes text or JSON.
 
 mod bake;
 mod bake_shared;
 pub mod memory;
 mod merge;
+mod messages;
 mod pipeline;
 mod plan;
 mod progress;
@@ -15,6 +17,7 @@ mod xcheck;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
+use messages::{ProblemOutcome, StderrForm};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::{self, LoadConfig};
@@ -35,7 +38,8 @@ struct Cli {
 /// Values of the settings file that every subcommand may override.
 #[derive(Debug, clap::Args)]
 pub(crate) struct SettingsArgs {
-    /// The bake settings file (XML, see README). Paths in it are relative to it.
+    /// The bake settings file (XML, its elements in docs/contract.md §3).
+    /// Paths in it are relative to it.
     settings: PathBuf,
     /// Replace the settings file's <resPaths> (repeatable, searched in order).
     #[arg(long = "res-path", value_name = "DIR")]
@@ -57,13 +61,15 @@ enum Command {
     Merge(merge::MergeArgs),
     /// Classification error against run time over a ladder of settings.
     Sweep(sweep::SweepArgs),
-    /// Print what the world holds, without baking.
+    /// Print what the world holds, and every problem in it, without baking.
     Inspect {
         #[command(flatten)]
         settings: SettingsArgs,
         /// Print one JSON object instead of the readable summary.
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        progress: progress::ProgressArgs,
     },
     /// Draw what the bake decides for one light: its shadow map or a camera view (PNG + legend).
     Render(render::RenderArgs),
@@ -88,6 +94,13 @@ enum Command {
 pub fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
+        Err(err) if err.use_stderr() && messages::json_asked(std::env::args_os()) => {
+            messages::set_form(StderrForm::Json);
+            let text = err.to_string();
+            let text = text.trim_end();
+            messages::error(text.strip_prefix("error: ").unwrap_or(text));
+            return ExitCode::from(2);
+        }
         Err(err) => {
             let _ = err.print();
             return if err.use_stderr() {
@@ -97,11 +110,28 @@ pub fn main() -> ExitCode {
             };
         }
     };
+    messages::set_form(cli.command.stderr_form());
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
+            messages::error(&format!("{err:#}"));
             ExitCode::from(1)
+        }
+    }
+}
+
+impl Command {
+    /// `--progress json` makes every line on standard error a JSON object
+    /// (the commands without `--progress` write text).
+    fn stderr_form(&self) -> StderrForm {
+        match self {
+            Command::Bake(args) => args.stderr_form(),
+            Command::Merge(args) => args.stderr_form(),
+            Command::Plan(args) => args.stderr_form(),
+            Command::Inspect { progress, .. } => progress.stderr_form(),
+            Command::Sweep(_) | Command::Render(_) | Command::Xcheck(_) | Command::Gen { .. } => {
+                StderrForm::Text
+            }
         }
     }
 }
@@ -114,22 +144,11 @@ fn run(cli: Cli) -> Result<()> {
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),
-        Command::Inspect { settings, json } => {
-            let settings = load_settings(&settings)?;
-            let scene = scene::load_scene(&load_config(&settings))?;
-            let inspection = shadowcull::inspect::inspect(&scene);
-            if json {
-                println!("{}", inspection.to_json());
-            } else {
-                print!("{}", inspection.to_text());
-            }
-            anyhow::ensure!(
-                scene.problems.is_empty(),
-                "{} listed: a bake of this world fails unless --keep-going",
-                pipeline::count(scene.problems.len(), "problem", "problems")
-            );
-            Ok(())
-        }
+        Command::Inspect {
+            settings,
+            json,
+            progress,
+        } => inspect(&settings, json, &progress),
         Command::Gen {
             dir,
             preset,
@@ -174,14 +193,104 @@ pub(crate) fn thread_pool(threads: Option<u16>) -> Result<rayon::ThreadPool> {
         .context("cannot start worker threads")
 }
 
-/// Reads the settings file with the command line's overrides, and warns
-/// (`file:line:column`) about the elements in it that no setting reads (a
-/// typo such as `<heightBais>`): every subcommand reads its settings here,
-/// so each warns alike.
+/// `shadowcull inspect`: what the world holds and every problem, the
+/// settings file's unknown elements first; exit 1 when it lists any.
+fn inspect(
+    settings_args: &SettingsArgs,
+    json: bool,
+    progress: &progress::ProgressArgs,
+) -> Result<()> {
+    let settings = load_settings_with(settings_args, UnknownElements::LeaveToCaller)?;
+    let reporter = progress::Reporter::new(progress);
+    let scene = scene::load_scene_with(&load_config(&settings), &reporter)?;
+    drop(reporter);
+    let mut inspection = shadowcull::inspect::inspect(&scene);
+    let file = settings_args.settings.display();
+    let unknown = settings
+        .unknown
+        .iter()
+        .map(|u| shadowcull::inspect::ProblemEntry {
+            what: format!("{file}:{}", u.location()),
+            why: u.reason(),
+        });
+    inspection.problems.splice(0..0, unknown);
+    if json {
+        println!("{}", inspection.to_json());
+    } else {
+        print!("{}", inspection.to_text());
+    }
+    anyhow::ensure!(
+        inspection.problems.is_empty(),
+        "{} listed: a bake of this world fails unless --keep-going",
+        pipeline::count(inspection.problems.len(), "problem", "problems")
+    );
+    Ok(())
+}
+
+/// What a command does with the elements of its settings file that no
+/// setting reads (a typo such as `<heightBais>`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum UnknownElements {
+    /// A strict bake, merge or plan: each is listed (`file:line:column`,
+    /// the closest valid name) and the command fails before reading the
+    /// world, so nothing is written.
+    Refuse,
+    /// Each is a warning and is ignored (`--keep-going`, and the commands
+    /// that write no chunk: `render`, `sweep`, `xcheck`).
+    Warn,
+    /// Kept in [`BakeSettings::unknown`] for the caller to list (`inspect`).
+    LeaveToCaller,
+}
+
+impl UnknownElements {
+    /// A bake's or a merge's: refused unless `--keep-going`.
+    pub(crate) fn for_bake(keep_going: bool) -> UnknownElements {
+        if keep_going {
+            UnknownElements::Warn
+        } else {
+            UnknownElements::Refuse
+        }
+    }
+}
+
+/// [`load_settings_with`] for the commands that write no chunk: unknown
+/// elements are warnings.
 pub(crate) fn load_settings(args: &SettingsArgs) -> Result<BakeSettings> {
+    load_settings_with(args, UnknownElements::Warn)
+}
+
+/// Reads the settings file with the command line's overrides and deals
+/// with the elements nothing reads as `unknown` says: every subcommand
+/// reads its settings here, so each names them alike.
+pub(crate) fn load_settings_with(
+    args: &SettingsArgs,
+    unknown: UnknownElements,
+) -> Result<BakeSettings> {
     let mut settings = files::read_bake_settings(&args.settings)?;
-    for unknown in &settings.unknown {
-        eprintln!("warning: {}:{unknown}", args.settings.display());
+    let file = args.settings.display();
+    match unknown {
+        UnknownElements::Warn => {
+            for element in &settings.unknown {
+                messages::warning(&format!(
+                    "{file}:{}: {} is ignored; {}",
+                    element.location(),
+                    element.describe(),
+                    element.hint()
+                ));
+            }
+        }
+        UnknownElements::Refuse if !settings.unknown.is_empty() => {
+            for element in &settings.unknown {
+                let what = format!("{file}:{}", element.location());
+                messages::problem(&what, &element.reason(), ProblemOutcome::Fails);
+            }
+            anyhow::bail!(
+                "{} in the settings file {file} (listed above); the world was not loaded and nothing was written. \
+                 Correct the name, or bake with --keep-going to ignore such elements with a warning",
+                pipeline::count(settings.unknown.len(), "unknown element", "unknown elements")
+            );
+        }
+        UnknownElements::Refuse | UnknownElements::LeaveToCaller => {}
     }
     if !args.res_paths.is_empty() {
         settings.res_paths = args.res_paths.clone();
@@ -209,6 +318,39 @@ mod tests {
         // Every argument a conflict, requirement or default names exists,
         // and no two arguments share a name or a short flag.
         Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn every_document_the_help_cites_is_in_the_repository() {
+        // A document is cited by a path ending in `.md`, by the name before
+        // a `§`, or as the README: each must name a file of the repository.
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        let mut command = Cli::command();
+        let mut helps = vec![command.render_long_help().to_string()];
+        for sub in command.get_subcommands_mut() {
+            helps.push(sub.render_long_help().to_string());
+        }
+        let mut cited = Vec::new();
+        for help in &helps {
+            let words: Vec<&str> = help
+                .split(|c: char| c.is_whitespace() || "(),;:".contains(c))
+                .filter(|w| !w.is_empty())
+                .collect();
+            for (i, word) in words.iter().enumerate() {
+                let word = word.trim_end_matches('.');
+                let before_section = words.get(i + 1).is_some_and(|w| w.starts_with('§'));
+                if word.ends_with(".md") || before_section || word.eq_ignore_ascii_case("readme") {
+                    cited.push(word.to_string());
+                }
+            }
+        }
+        assert!(cited.iter().any(|c| c == "docs/contract.md"), "{cited:?}");
+        for document in &cited {
+            assert!(
+                root.join(document).is_file(),
+                "the help cites `{document}`, which is not a file of the repository"
+            );
+        }
     }
 
     #[test]

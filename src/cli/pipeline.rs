@@ -2,6 +2,7 @@
 //! `--keep-going`, a subset of lights, a memory ceiling, CI checks. Kept
 //! apart from the bake's own settings so each stays small.
 
+use super::messages::{self, ProblemOutcome};
 use anyhow::{bail, Result};
 use shadowcull::bake::BakeConfig;
 use shadowcull::scene::Scene;
@@ -11,8 +12,9 @@ use std::path::Path;
 pub struct PipelineArgs {
     /// Bake what loaded even when some input is broken (missing or
     /// damaged files, bad or stray transforms): those parts are left out
-    /// and listed in the report. Without it any problem fails the bake
-    /// (exit 1) and nothing is written.
+    /// and listed in the report; an unknown element of the settings file
+    /// is only a warning. Without it any of these fails the bake (exit 1)
+    /// and nothing is written.
     #[arg(long)]
     pub keep_going: bool,
     /// Bake only this light (repeatable); every other bit of the existing
@@ -59,7 +61,7 @@ pub fn select_lights(config: BakeConfig, names: &[String], file: &Path) -> Resul
 pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
     if keep_going {
         for problem in &scene.problems {
-            eprintln!("warning: left out: {}: {}", problem.what, problem.why);
+            messages::problem(&problem.what, &problem.why, ProblemOutcome::LeftOut);
         }
         return Ok(());
     }
@@ -67,7 +69,7 @@ pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
         return Ok(());
     }
     for problem in &scene.problems {
-        eprintln!("  {}: {}", problem.what, problem.why);
+        messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
     }
     bail!(
         "{} in the input (listed above); nothing was written. Fix them, or bake what loaded with --keep-going",

@@ -1,11 +1,12 @@
 //! `shadowcull plan SETTINGS`: what a bake will cost, printed before any
 //! light is traced (also the first lines of `bake`), and `--max-memory`.
 
+use super::messages::{self, ProblemOutcome, StderrForm};
 use super::pipeline;
 use super::progress::{ProgressArgs, Reporter};
-use super::{load_config, load_settings, SettingsArgs};
+use super::{load_config, load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
-use shadowcull::bake::estimate::{self, human_bytes, Baseline, Plan};
+use shadowcull::bake::estimate::{self, human_bytes, Baseline, LightPlan, Plan};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files;
@@ -35,9 +36,16 @@ pub struct PlanArgs {
     progress: ProgressArgs,
 }
 
+impl PlanArgs {
+    pub fn stderr_form(&self) -> StderrForm {
+        self.progress.stderr_form()
+    }
+}
+
 pub fn run(args: PlanArgs) -> Result<()> {
     let file = args.settings.settings.clone();
-    let settings = load_settings(&args.settings)?;
+    // A plan answers for the bake it predicts, which refuses them.
+    let settings = load_settings_with(&args.settings, UnknownElements::Refuse)?;
     let config = BakeConfig {
         supersample: args.supersample,
         ..BakeConfig::from_settings(&settings)
@@ -49,7 +57,7 @@ pub fn run(args: PlanArgs) -> Result<()> {
         let reporter = Reporter::new(&args.progress);
         let scene = scene::load_scene_with(&load_config(&settings), &reporter)?;
         for problem in &scene.problems {
-            eprintln!("  {}: {}", problem.what, problem.why);
+            messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
         }
         bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
         let world = BakeWorld::build(&scene, &reporter);
@@ -104,36 +112,67 @@ pub fn check_memory(plan: &Plan, max_memory: Option<u64>) -> Result<()> {
     Ok(())
 }
 
+/// The plan as `bake` says it before tracing: its lines, or with
+/// `--progress json` a `plan` event per light (the fields of `plan
+/// --json`'s `lights`) and a `plan_total`.
+pub fn say_plan(plan: &Plan, reporter: &Reporter) {
+    for light in &plan.lights {
+        let fields = serde_json::to_value(light).unwrap_or_default();
+        reporter.say("plan", &light_line(light), fields);
+    }
+    let fields = serde_json::json!({
+        "casters": plan.casters,
+        "bottom_level_bytes": plan.bottom_level_bytes,
+        "calibration_seconds": plan.calibration_seconds,
+        "estimated_seconds": plan.estimated_seconds,
+        "estimated_peak_bytes": plan.estimated_peak_bytes,
+    });
+    reporter.say("plan_total", &total_line(plan), fields);
+}
+
 /// One line per light and a total.
 pub fn plan_lines(plan: &Plan) -> Vec<String> {
-    let mut lines = Vec::new();
-    for light in &plan.lights {
-        let mut line = format!(
-            "plan: light {} `{}` ({}, bit {}): ",
-            light.index, light.name, light.kind, light.bit
-        );
-        match &light.nothing_to_trace {
-            Some(why) => line += &format!("nothing to trace ({why})"),
-            None => {
-                line += &format!(
-                    "{} × {} × {} texels, {} rays; in reach {} instances, {} terrain blocks, {} triangles; \
-                     est. {:.1} s at {:.2} Mrays/s, {} for its top level and tracing",
-                    light.faces,
-                    light.width,
-                    light.height,
-                    light.rays,
-                    light.instances,
-                    light.terrain_blocks,
-                    light.triangles,
-                    light.estimated_seconds,
-                    light.rays_per_second / 1e6,
-                    human_bytes(light.estimated_bytes)
-                );
-            }
+    let mut lines: Vec<String> = plan.lights.iter().map(light_line).collect();
+    lines.push(total_line(plan));
+    lines
+}
+
+/// A light's grid, rays, reach and estimate. Its reach is counted in model
+/// parts (an instance with two `<resource>`s is two), terrain blocks, and
+/// the hittable triangles of both, as the reach is built: so a sun over
+/// everything counts more parts than the `loaded` line's instances, and
+/// more triangles than its model triangles.
+fn light_line(light: &LightPlan) -> String {
+    let mut line = format!(
+        "plan: light {} `{}` ({}, bit {}): ",
+        light.index, light.name, light.kind, light.bit
+    );
+    match &light.nothing_to_trace {
+        Some(why) => line += &format!("nothing to trace ({why})"),
+        None => {
+            line += &format!(
+                "{} × {} × {} texels, {} rays; in reach {} model parts, {} terrain blocks, \
+                 {} triangles (parts' and blocks'); est. {:.1} s at {:.2} Mrays/s, {} for its \
+                 top level and tracing",
+                light.faces,
+                light.width,
+                light.height,
+                light.rays,
+                light.instances,
+                light.terrain_blocks,
+                light.triangles,
+                light.estimated_seconds,
+                light.rays_per_second / 1e6,
+                human_bytes(light.estimated_bytes)
+            );
         }
-        lines.push(line);
     }
-    lines.push(format!(
+    line
+}
+
+/// The whole bake's estimate and how it was made.
+fn total_line(plan: &Plan) -> String {
+    format!(
         "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
          Time is a calibration: {} tiles of 32×32 texels per light and their neighbours traced on this machine in {:.2} s; \
          memory is what this process holds now plus the largest light's top level and tracing, the masks \
@@ -144,6 +183,5 @@ pub fn plan_lines(plan: &Plan) -> Vec<String> {
         human_bytes(plan.bottom_level_bytes as u64),
         estimate::SAMPLE_TILES,
         plan.calibration_seconds
-    ));
-    lines
+    )
 }

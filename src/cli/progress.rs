@@ -1,8 +1,10 @@
 //! Progress for people and machines: a bar with an ETA on a terminal,
 //! plain lines (elapsed time, phase, light, ETA) when standard error is a
 //! pipe or a log, one JSON object per line with `--progress json`, nothing
-//! with `--quiet`. Everything goes to standard error.
+//! with `--quiet`. Everything goes to standard error, through `messages`
+//! (which knows the form), like every other line the binary writes there.
 
+use super::messages::{self, StderrForm};
 use indicatif::{ProgressBar, ProgressStyle};
 use shadowcull::progress::{LinePace, Phase, Progress};
 use std::io::IsTerminal;
@@ -27,7 +29,8 @@ pub enum ProgressMode {
 #[derive(Debug, Clone, clap::Args)]
 pub struct ProgressArgs {
     /// Progress on standard error: auto (a bar on a terminal, lines
-    /// otherwise), lines, json (one object per line) or none.
+    /// otherwise), lines, json (one object per line; every other line on
+    /// standard error is then a JSON object too) or none.
     #[arg(long, value_enum, default_value_t = ProgressMode::Auto)]
     progress: ProgressMode,
     /// No progress and no informational messages (errors and warnings
@@ -37,6 +40,27 @@ pub struct ProgressArgs {
     /// Seconds between progress lines of a phase (lines and json).
     #[arg(long, value_name = "S", default_value_t = 5.0, hide = true)]
     progress_interval: f64,
+}
+
+impl ProgressArgs {
+    /// The form of every line on standard error: `--progress json` makes
+    /// each a JSON object, `--quiet` or not.
+    pub fn stderr_form(&self) -> StderrForm {
+        match self.progress {
+            ProgressMode::Json => StderrForm::Json,
+            _ => StderrForm::Text,
+        }
+    }
+}
+
+/// Where a run's grid answers come from, which names its grid phase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GridAnswers {
+    /// Traced here: the phase is `tracing`.
+    Traced,
+    /// OR-ed from the shards' partial results (`merge`), no grid ray
+    /// traced: the phase is `merging`.
+    Merged,
 }
 
 enum Style {
@@ -61,6 +85,7 @@ struct Open {
 /// What the reporting threads and the heartbeat share.
 struct Shared {
     style: Style,
+    grid: GridAnswers,
     started: Instant,
     interval: Duration,
     open: Mutex<Option<Open>>,
@@ -80,7 +105,12 @@ impl Drop for Reporter {
 }
 
 impl Reporter {
+    /// A reporter for a run that traces its grids.
     pub fn new(args: &ProgressArgs) -> Reporter {
+        Reporter::with_grid(args, GridAnswers::Traced)
+    }
+
+    pub fn with_grid(args: &ProgressArgs, grid: GridAnswers) -> Reporter {
         let style = match (args.quiet, args.progress) {
             (true, _) | (_, ProgressMode::None) => Style::Silent,
             (_, ProgressMode::Json) => Style::Json,
@@ -91,6 +121,7 @@ impl Reporter {
         let lines = matches!(style, Style::Lines | Style::Json);
         let shared = Arc::new(Shared {
             style,
+            grid,
             started: Instant::now(),
             interval: Duration::from_secs_f64(
                 args.progress_interval
@@ -109,13 +140,14 @@ impl Reporter {
         }
     }
 
-    /// An informational message (not with `--quiet`; plain text also in
-    /// json mode, which only governs progress lines).
-    pub fn say(&self, message: &str) {
+    /// An informational message (not with `--quiet`): `text` for people,
+    /// or with `--progress json` the event `name` with `fields` and the
+    /// text as its `message`.
+    pub fn say(&self, name: &str, text: &str, fields: serde_json::Value) {
         if self.quiet {
             return;
         }
-        self.suspend(|| eprintln!("{message}"));
+        self.suspend(|| messages::say(name, text, fields));
     }
 
     fn suspend(&self, f: impl FnOnce()) {
@@ -133,6 +165,14 @@ impl Reporter {
 }
 
 impl Shared {
+    /// The phase's name in lines, bars and JSON.
+    fn phase_name(&self, phase: Phase) -> &'static str {
+        match (phase, self.grid) {
+            (Phase::Tracing, GridAnswers::Merged) => "merging",
+            _ => phase.name(),
+        }
+    }
+
     /// Until the reporter is dropped: a line for an open phase that has
     /// been silent for [`LinePace::HEARTBEAT`] (a long build hears of no
     /// progress), so a log gets one at least every
@@ -154,20 +194,20 @@ impl Shared {
         let elapsed = self.started.elapsed().as_secs_f64();
         let eta = eta_seconds(open, done);
         match self.style {
-            Style::Json => {
-                let object = serde_json::json!({
-                    "phase": open.phase.name(),
+            Style::Json => messages::event(
+                "progress",
+                serde_json::json!({
+                    "phase": self.phase_name(open.phase),
                     "light": open.light,
                     "done": done,
                     "total": open.total,
                     "eta_s": eta,
                     "elapsed_s": (elapsed * 1000.0).round() / 1000.0,
-                });
-                eprintln!("{object}");
-            }
-            Style::Lines => eprintln!(
+                }),
+            ),
+            Style::Lines => messages::write_line(&format!(
                 "[{elapsed:>7.1} s] {}{}: {done}/{} ({}%), eta {}",
-                open.phase.name(),
+                self.phase_name(open.phase),
                 open.light
                     .as_deref()
                     .map(|l| format!(" light {l}"))
@@ -176,7 +216,7 @@ impl Shared {
                 done * 100 / open.total.max(1),
                 eta.map(|s| format!("{s:.0} s"))
                     .unwrap_or_else(|| "?".into())
-            ),
+            )),
             Style::Bar | Style::Silent => {}
         }
     }
@@ -207,9 +247,10 @@ impl Progress for Reporter {
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
             );
+            let name = self.shared.phase_name(phase);
             bar.set_prefix(match light {
-                Some(light) => format!("{} {light}", phase.name()),
-                None => phase.name().to_string(),
+                Some(light) => format!("{name} {light}"),
+                None => name.to_string(),
             });
             bar
         });

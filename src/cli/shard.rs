@@ -3,6 +3,7 @@
 //! bake, written as a partial result for `merge`.
 
 use super::bake_shared::{load_scene_told, BakeOptions};
+use super::messages;
 use super::progress::Reporter;
 use anyhow::{Context, Result};
 use shadowcull::bake::setup::BakeWorld;
@@ -72,7 +73,11 @@ pub fn run(
     config: &BakeConfig,
 ) -> Result<()> {
     let (shard, said) = args.shard()?;
-    eprintln!("{said}");
+    messages::say(
+        "shard",
+        &said,
+        serde_json::json!({ "index": shard.index, "count": shard.count }),
+    );
     let path = partial_path(args.partial.as_deref().unwrap_or(Path::new("")), shard);
     let started = Instant::now();
     let reporter = Reporter::new(&options.progress);
@@ -83,7 +88,7 @@ pub fn run(
     let mean = plan.costs.iter().sum::<u64>() as f64 / shard.count as f64;
     let own = plan.units[shard.index as usize].len();
     let mrays = |cost: u64| cost as f64 / shard::COST_SCALE / 1e6;
-    eprintln!(
+    let said = format!(
         "plan of {} shards: this one bakes {own} unit(s), estimated cost {:.1} M ray-equivalents \
          ({:.2}× the mean; shards from {:.1} to {:.1}, mean {:.1})",
         shard.count,
@@ -93,6 +98,7 @@ pub fn run(
         mrays(plan.costs.iter().copied().max().unwrap_or(0)),
         mean / shard::COST_SCALE / 1e6,
     );
+    messages::say("shard_plan", &said, serde_json::json!({ "units": own }));
     let cpu_before = cpu_seconds();
     let units = shard::bake_shard(&world, config, &plan, shard.index, &reporter)?;
     let cpu = cpu_seconds() - cpu_before;

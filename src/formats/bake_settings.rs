@@ -66,7 +66,9 @@ pub struct BakeSettings {
     /// position in the file. Distinct, each below [`MAX_LIGHTS`].
     pub bits: Vec<u32>,
     /// Elements the file holds that no setting reads (a typo such as
-    /// `<heightBais>`): not errors, but the caller should say so.
+    /// `<heightBais>`): the caller decides (a strict bake refuses them,
+    /// docs/contract.md §3), so every value here is read as if they were
+    /// absent.
     pub unknown: Vec<UnknownElement>,
 }
 
@@ -79,24 +81,100 @@ pub struct UnknownElement {
     pub offset: usize,
     /// What the parent may hold instead.
     pub known: &'static [&'static str],
+    /// The valid name closest to it (a misspelling), if one is close.
+    pub suggestion: Option<&'static str>,
     /// Line and column in a text file (set by the reader that has the bytes).
     pub position: Option<crate::error::TextPosition>,
 }
 
+impl UnknownElement {
+    fn new(path: &str, offset: usize, known: &'static [&'static str]) -> UnknownElement {
+        let tag = path.rsplit('/').next().unwrap_or(path);
+        UnknownElement {
+            path: path.to_string(),
+            offset,
+            known,
+            suggestion: closest_name(tag, known),
+            position: None,
+        }
+    }
+
+    /// `line:column` in a text file, else `byte N`.
+    pub fn location(&self) -> String {
+        match self.position {
+            Some(p) => p.to_string(),
+            None => format!("byte {}", self.offset),
+        }
+    }
+
+    /// `unknown element <heightBais> (shadowcull/heightBais)`.
+    pub fn describe(&self) -> String {
+        let tag = self.path.rsplit('/').next().unwrap_or(&self.path);
+        format!("unknown element <{tag}> ({})", self.path)
+    }
+
+    /// `did you mean <heightBias>?`, or every name valid there when none
+    /// is close.
+    pub fn hint(&self) -> String {
+        match self.suggestion {
+            Some(name) => format!("did you mean <{name}>?"),
+            None => format!("expected one of {}", self.known.join(", ")),
+        }
+    }
+
+    /// What is wrong and what may be meant: [`describe`](Self::describe)
+    /// and [`hint`](Self::hint).
+    pub fn reason(&self) -> String {
+        format!("{}; {}", self.describe(), self.hint())
+    }
+}
+
 impl std::fmt::Display for UnknownElement {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let tag = self.path.rsplit('/').next().unwrap_or(&self.path);
-        match self.position {
-            Some(p) => write!(f, "{p}: ")?,
-            None => write!(f, "byte {}: ", self.offset)?,
-        }
-        write!(
-            f,
-            "unknown element <{tag}> ({}) is ignored; expected one of {}",
-            self.path,
-            self.known.join(", ")
-        )
+        write!(f, "{}: {}", self.location(), self.reason())
     }
+}
+
+/// The name of `known` nearest `name` by edit distance (case ignored, a
+/// swap of neighbours one edit), when it is close enough to be a
+/// misspelling of it: at most one edit per three characters, at least
+/// one. The first of equally near names wins.
+fn closest_name(name: &str, known: &'static [&'static str]) -> Option<&'static str> {
+    let lower = name.to_lowercase();
+    let allowed = (lower.chars().count() / 3).max(1);
+    known
+        .iter()
+        .map(|&candidate| (edit_distance(&lower, &candidate.to_lowercase()), candidate))
+        .filter(|&(distance, _)| distance <= allowed)
+        .min_by_key(|&(distance, _)| distance)
+        .map(|(_, candidate)| candidate)
+}
+
+/// Edits (insert, delete, replace, swap two neighbours) that turn `a` into
+/// `b`: the optimal string alignment distance, by characters.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let a: Vec<char> = a.chars().collect();
+    let b: Vec<char> = b.chars().collect();
+    // Rows i - 2, i - 1 and i of the table: distance of a[..i] to b[..j].
+    let mut before: Vec<usize> = vec![0; b.len() + 1];
+    let mut previous: Vec<usize> = (0..=b.len()).collect();
+    let mut current: Vec<usize> = vec![0; b.len() + 1];
+    for i in 1..=a.len() {
+        current[0] = i;
+        for j in 1..=b.len() {
+            let replace = usize::from(a[i - 1] != b[j - 1]);
+            let mut best = (previous[j] + 1)
+                .min(current[j - 1] + 1)
+                .min(previous[j - 1] + replace);
+            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                best = best.min(before[j - 2] + 1);
+            }
+            current[j] = best;
+        }
+        std::mem::swap(&mut before, &mut previous);
+        std::mem::swap(&mut previous, &mut current);
+    }
+    previous[b.len()]
 }
 
 /// The elements each level of the settings file may hold.
@@ -329,12 +407,7 @@ fn unknown_children(
 ) {
     for child in &section.children {
         if !known.contains(&child.name.as_str()) {
-            out.push(UnknownElement {
-                path: child.path.clone(),
-                offset: child.span.start,
-                known,
-                position: None,
-            });
+            out.push(UnknownElement::new(&child.path, child.span.start, known));
         }
     }
 }
@@ -739,6 +812,66 @@ mod tests {
             e.contains("light `light1` and light `sun` both use bit 0"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn edit_distance_counts_inserts_deletes_replacements_and_swaps() {
+        assert_eq!(edit_distance("", ""), 0);
+        assert_eq!(edit_distance("abc", ""), 3);
+        assert_eq!(edit_distance("", "ab"), 2);
+        assert_eq!(edit_distance("kitten", "sitting"), 3);
+        assert_eq!(edit_distance("heightbais", "heightbias"), 1);
+        assert_eq!(edit_distance("ab", "ba"), 1);
+        assert_eq!(edit_distance("texelsiz", "texelsize"), 1);
+        assert_eq!(edit_distance("fov", "fov"), 0);
+        assert_eq!(edit_distance("höhe", "hohe"), 1);
+    }
+
+    #[test]
+    fn the_closest_valid_name_is_suggested_only_when_close() {
+        assert_eq!(closest_name("heightBais", ROOT_TAGS), Some("heightBias"));
+        assert_eq!(closest_name("HeightBias", ROOT_TAGS), Some("heightBias"));
+        assert_eq!(closest_name("tieEpsilom", ROOT_TAGS), Some("tieEpsilon"));
+        assert_eq!(closest_name("light", ROOT_TAGS), Some("lights"));
+        assert_eq!(closest_name("texelSiz", LIGHT_TAGS), Some("texelSize"));
+        assert_eq!(closest_name("resoltion", LIGHT_TAGS), Some("resolution"));
+        assert_eq!(closest_name("paths", RES_PATHS_TAGS), Some("path"));
+        // Only names valid at that level: <texelSize> belongs in a light.
+        assert_eq!(closest_name("texelSize", ROOT_TAGS), None);
+        assert_eq!(closest_name("colour", LIGHT_TAGS), None);
+        assert_eq!(closest_name("x", LIGHT_TAGS), None);
+    }
+
+    #[test]
+    fn an_unknown_element_says_where_it_is_and_what_was_meant() {
+        let s = parse_it(&settings(
+            vec![tweak(sun(), "colour", Some("red"))],
+            vec![leaf("heightBais", "0.1")],
+        ))
+        .unwrap();
+        let [misspelt, stranger] = &s.unknown[..] else {
+            panic!("{:?}", s.unknown);
+        };
+        assert_eq!(
+            misspelt.reason(),
+            "unknown element <heightBais> (shadowcull/heightBais); did you mean <heightBias>?"
+        );
+        assert_eq!(misspelt.location(), format!("byte {}", misspelt.offset));
+        assert_eq!(
+            stranger.reason(),
+            format!(
+                "unknown element <colour> (shadowcull/lights/light/colour); expected one of {}",
+                LIGHT_TAGS.join(", ")
+            )
+        );
+        let text = b"<s>\n\t<heightBais>1</heightBais>\n</s>";
+        let mut positioned = misspelt.clone();
+        positioned.offset = 5;
+        positioned.position = crate::formats::text_position(text, 5);
+        assert_eq!(positioned.location(), "2:2");
+        assert!(positioned
+            .to_string()
+            .starts_with("2:2: unknown element <heightBais>"));
     }
 
     #[test]

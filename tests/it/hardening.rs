@@ -581,12 +581,26 @@ fn locked_chunks_are_named_before_tracing_and_refused_when_they_change() {
             && stderr.contains("0000ffffo.chunk: is read-only (mode 0444)"),
         "{stderr}"
     );
-    let warning = stderr
-        .find("warning: 1 chunk file(s) cannot be replaced")
+    // With --progress json the warning is an event among the progress.
+    let events: Vec<serde_json::Value> = stderr
+        .lines()
+        .map(|l| serde_json::from_str(l).expect(l))
+        .collect();
+    let warning = events
+        .iter()
+        .position(|e| {
+            e["event"] == "warning"
+                && e["message"].as_str().is_some_and(|m| {
+                    m.starts_with("1 chunk file(s) cannot be replaced")
+                        && m.contains("0000ffffo.chunk: is read-only (mode 0444)")
+                })
+        })
         .expect(&stderr);
-    let tracing = stderr.find(r#""phase":"tracing""#).expect(&stderr);
+    let tracing = events
+        .iter()
+        .position(|e| e["event"] == "progress" && e["phase"] == "tracing")
+        .expect(&stderr);
     assert!(warning < tracing, "named before tracing: {stderr}");
-    assert!(stderr[warning..tracing].contains("0000ffffo.chunk: is read-only (mode 0444)"));
     assert_eq!(snapshot(dir.path()), before, "nothing is written");
     // Baked once writable, locked again: nothing changes, so nothing is
     // refused (a locked chunk the bake leaves alone is no problem).

@@ -95,15 +95,52 @@ fn running_out_of_memory_names_the_phase_and_exits_1() {
     // allocation fails in some phase of loading or building, and the bake
     // must say which and exit 1, not abort (134) with Rust's bare
     // "memory allocation of N bytes failed".
-    use std::os::unix::process::CommandExt;
     let dir = tempfile::tempdir().unwrap();
     generate_each(GenSize::BenchChunks(4), 1, |path, bytes| {
         write_tree(dir.path(), &[(path.to_string(), bytes)])
     })
     .unwrap();
     let settings = dir.path().join(SETTINGS_FILE);
+    let named = shadowcull::progress::Phase::ALL.map(|p| p.name());
+    let names_a_phase = |text: &str| {
+        named
+            .iter()
+            .any(|p| text.contains(&format!("out of memory in phase `{p}`: could not allocate")))
+    };
+    let stderr = bake_in_48_mib(&settings, &[]);
+    // A phase the bake names (loading's `chunks` here: the limit leaves
+    // little beyond the program and its threads), not `starting`: before
+    // the first phase the bake holds only its arguments and settings.
+    assert!(
+        stderr
+            .lines()
+            .any(|l| l.starts_with("error: ") && names_a_phase(l)),
+        "{stderr}"
+    );
+    // With --progress json the last word is an `error` event too.
+    let stderr = bake_in_48_mib(&settings, &["--progress", "json"]);
+    let last: serde_json::Value =
+        serde_json::from_str(stderr.lines().last().unwrap_or_default()).expect(&stderr);
+    assert_eq!(last["event"], "error", "{stderr}");
+    assert!(names_a_phase(last["message"].as_str().unwrap()), "{stderr}");
+    // Nothing was written in place.
+    let changed = std::fs::read_dir(dir.path().join("spaces"))
+        .unwrap()
+        .flatten()
+        .flat_map(|space| std::fs::read_dir(space.path()).unwrap().flatten())
+        .filter(|f| f.file_name().to_string_lossy().contains("shadowcull"))
+        .count();
+    assert_eq!(changed, 0, "temporary files left behind");
+}
+
+/// Bakes `settings` in place with 48 MiB of address space; expects exit 1
+/// and no panic, and returns standard error.
+#[cfg(target_os = "linux")]
+fn bake_in_48_mib(settings: &std::path::Path, extra: &[&str]) -> String {
+    use std::os::unix::process::CommandExt;
     let mut command = Command::new(env!("CARGO_BIN_EXE_shadowcull"));
     command.args(["bake", settings.to_str().unwrap(), "--threads", "1"]);
+    command.args(extra);
     // SAFETY: setrlimit is async-signal-safe; it only limits the child.
     unsafe {
         command.pre_exec(|| {
@@ -118,25 +155,8 @@ fn running_out_of_memory_names_the_phase_and_exits_1() {
         });
     }
     let out = command.output().unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert_eq!(out.status.code(), Some(1), "{stderr}");
-    // A phase the bake names (loading's `chunks` here: the limit leaves
-    // little beyond the program and its threads), not `starting`: before
-    // the first phase the bake holds only its arguments and settings.
-    let named = shadowcull::progress::Phase::ALL.map(|p| p.name());
-    assert!(
-        named.iter().any(|p| stderr.contains(&format!(
-            "error: out of memory in phase `{p}`: could not allocate"
-        ))),
-        "{stderr}"
-    );
     assert!(!stderr.contains("panicked"), "{stderr}");
-    // Nothing was written in place.
-    let changed = std::fs::read_dir(dir.path().join("spaces"))
-        .unwrap()
-        .flatten()
-        .flat_map(|space| std::fs::read_dir(space.path()).unwrap().flatten())
-        .filter(|f| f.file_name().to_string_lossy().contains("shadowcull"))
-        .count();
-    assert_eq!(changed, 0, "temporary files left behind");
+    stderr
 }

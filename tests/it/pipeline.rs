@@ -214,37 +214,119 @@ fn inspect_exits_1_only_when_it_lists_problems() {
     );
 }
 
-#[test]
-fn unknown_settings_elements_are_warned_with_line_and_column() {
-    let dir = small();
+/// The small world's settings file with `element` inserted before
+/// `before`; returns where it starts as `file:line:column`.
+fn insert_into_settings(dir: &TempDir, before: &str, element: &str) -> String {
     let path = dir.path().join(SETTINGS_FILE);
     let original = std::fs::read_to_string(&path).unwrap();
-    let at = original.find("<lights>").unwrap();
-    let typo = "<heightBais> 0.5 </heightBais>\n\t";
+    let at = original.find(before).unwrap();
     std::fs::write(
         &path,
-        format!("{}{typo}{}", &original[..at], &original[at..]),
+        format!("{}{element}{}", &original[..at], &original[at..]),
     )
     .unwrap();
     let line = original[..at].matches('\n').count() + 1;
     let column = at - original[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
-    let warning = format!(
-        "warning: {}:{line}:{column}: unknown element <heightBais>",
-        path.display()
+    format!("{}:{line}:{column}", path.display())
+}
+
+#[test]
+fn an_unknown_settings_element_fails_a_strict_bake_naming_it_and_the_closest_name() {
+    let dir = small();
+    let at = insert_into_settings(&dir, "<lights>", "<heightBais> 0.5 </heightBais>\n\t");
+    let named = format!(
+        "{at}: unknown element <heightBais> (shadowcull/heightBais); did you mean <heightBias>?"
     );
-    let picture = dir.path().join("sun.png");
-    let picture = picture.to_str().unwrap();
-    // Every subcommand reads its settings alike (`xcheck` and `sweep` too).
+    let before = files(dir.path());
+    let partial = dir.path().join("shard.part");
+    let partial = partial.to_str().unwrap();
+    // Strict: bake, a shard, merge and plan fail before reading the world.
     for args in [
-        &["bake", &settings(&dir), "--dry-run", "--quiet"][..],
-        &["inspect", &settings(&dir)],
-        &["render", &settings(&dir), "--light", "sun", "-o", picture],
+        &["bake", &settings(&dir)][..],
+        &[
+            "bake",
+            &settings(&dir),
+            "--shard",
+            "0/2",
+            "--partial",
+            partial,
+        ],
+        &["merge", &settings(&dir), partial],
+        &["plan", &settings(&dir)],
     ] {
         let out = run(args);
         let stderr = text(&out.stderr);
-        assert!(out.status.success(), "{args:?}: {stderr}");
-        assert_eq!(stderr.matches(&warning).count(), 1, "{args:?}: {stderr}");
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {stderr}");
+        assert_eq!(stderr.matches(&named).count(), 1, "{args:?}: {stderr}");
+        assert!(
+            stderr.contains("1 unknown element in the settings file")
+                && stderr.contains("--keep-going"),
+            "{args:?}: {stderr}"
+        );
+        assert!(
+            !stderr.lines().any(|l| l.starts_with("loaded ")),
+            "{args:?}: {stderr}"
+        );
+        assert_eq!(files(dir.path()), before, "{args:?} wrote something");
     }
+    // --keep-going: a warning, and the bake goes on with the default.
+    let ignored = format!(
+        "warning: {at}: unknown element <heightBais> (shadowcull/heightBais) is ignored; \
+         did you mean <heightBias>?"
+    );
+    let kept = run(&[
+        "bake",
+        &settings(&dir),
+        "--keep-going",
+        "--dry-run",
+        "--quiet",
+    ]);
+    let stderr = text(&kept.stderr);
+    assert!(kept.status.success(), "{stderr}");
+    assert_eq!(stderr.matches(&ignored).count(), 1, "{stderr}");
+    assert!(text(&kept.stdout).contains("would change"));
+    // inspect lists it among the problems (exit 1); render warns.
+    let inspect = run(&["inspect", &settings(&dir), "--json"]);
+    assert_eq!(inspect.status.code(), Some(1), "{}", text(&inspect.stderr));
+    let json: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    let problem = &json["problems"][0];
+    assert_eq!(
+        format!(
+            "{}: {}",
+            problem["what"].as_str().unwrap(),
+            problem["why"].as_str().unwrap()
+        ),
+        named
+    );
+    let picture = dir.path().join("sun.png");
+    let render = run(&[
+        "render",
+        &settings(&dir),
+        "--light",
+        "sun",
+        "-o",
+        picture.to_str().unwrap(),
+    ]);
+    let stderr = text(&render.stderr);
+    assert!(render.status.success(), "{stderr}");
+    assert_eq!(stderr.matches(&ignored).count(), 1, "{stderr}");
+}
+
+#[test]
+fn an_unknown_element_nothing_is_close_to_lists_what_is_valid_there() {
+    let dir = small();
+    let at = insert_into_settings(&dir, "<texelSize>", "<colour> red </colour>");
+    let out = run(&["bake", &settings(&dir), "--dry-run"]);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "{at}: unknown element <colour> (shadowcull/lights/light/colour); \
+             expected one of name, type, bit,"
+        )),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("did you mean"), "{stderr}");
 }
 
 #[test]
@@ -619,11 +701,8 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
     let out = run(&["bake", &settings(&dir), "--dry-run", "--progress", "json"]);
     assert!(out.status.success());
     let stderr = text(&out.stderr);
-    let objects: Vec<Value> = stderr
-        .lines()
-        .filter(|l| l.starts_with('{'))
-        .map(|l| serde_json::from_str(l).expect(l))
-        .collect();
+    let events = json_events(&out.stderr);
+    let objects = events_named(&events, "progress");
     for object in &objects {
         for field in ["phase", "light", "done", "total", "eta_s"] {
             assert!(object.get(field).is_some(), "{object}");
@@ -673,13 +752,10 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
     ]);
     let stderr = text(&written.stderr);
     assert!(written.status.success(), "{stderr}");
-    let objects: Vec<Value> = stderr
-        .lines()
-        .filter(|l| l.starts_with('{'))
-        .map(|l| serde_json::from_str(l).expect(l))
-        .collect();
+    let events = json_events(&written.stderr);
+    let objects = events_named(&events, "progress");
     for phase in ["output", "writing"] {
-        let of: Vec<&Value> = objects.iter().filter(|o| o["phase"] == phase).collect();
+        let of: Vec<&&Value> = objects.iter().filter(|o| o["phase"] == phase).collect();
         assert!(
             of.iter().any(|o| o["total"] == 4 && o["done"] == 4),
             "{phase}: {stderr}"
@@ -695,6 +771,271 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
     let quiet = run(&["bake", &settings(&dir), "--dry-run", "--quiet"]);
     assert!(quiet.status.success());
     assert_eq!(text(&quiet.stderr), "", "--quiet prints nothing on stderr");
+}
+
+/// Every line of `stderr` as a JSON object with a string `event`: the
+/// promise of `--progress json`.
+fn json_events(stderr: &[u8]) -> Vec<Value> {
+    let stderr = text(stderr);
+    assert!(!stderr.is_empty());
+    stderr
+        .lines()
+        .map(|line| {
+            let object: Value = serde_json::from_str(line)
+                .unwrap_or_else(|e| panic!("not JSON ({e}): {line}\n{stderr}"));
+            assert!(object["event"].is_string(), "no event: {line}");
+            object
+        })
+        .collect()
+}
+
+fn events_named<'a>(events: &'a [Value], name: &str) -> Vec<&'a Value> {
+    events.iter().filter(|e| e["event"] == name).collect()
+}
+
+#[test]
+fn progress_json_makes_every_line_on_standard_error_a_json_object() {
+    let dir = small();
+    // A normal bake, its table on standard error beside the report.
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--dry-run",
+        "--report",
+        "-",
+        "--progress",
+        "json",
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let report: Value = serde_json::from_slice(&out.stdout).expect("stdout is the report alone");
+    assert!(report["casters"].is_array());
+    let events = json_events(&out.stderr);
+    let loaded = events_named(&events, "loaded");
+    assert_eq!(loaded.len(), 1, "{events:?}");
+    assert_eq!(loaded[0]["chunks"], 4);
+    assert_eq!(events_named(&events, "plan").len(), 3);
+    assert_eq!(events_named(&events, "plan_total").len(), 1);
+    assert!(events_named(&events, "progress")
+        .iter()
+        .any(|e| e["phase"] == "tracing"));
+    let summary = events_named(&events, "summary");
+    assert!(summary.iter().any(|e| e["message"]
+        .as_str()
+        .unwrap()
+        .starts_with("would change 4 of 4")));
+
+    // Warnings and problems left out by --keep-going: an unknown element,
+    // a locked chunk, a damaged chunk.
+    insert_into_settings(&dir, "<lights>", "<heightBais> 0.5 </heightBais>");
+    let chunk = dir.path().join(CHUNK);
+    std::fs::write(&chunk, b"<root><model>").unwrap();
+    let locked = dir.path().join("spaces/small/0000ffffo.chunk");
+    let mut permissions = std::fs::metadata(&locked).unwrap().permissions();
+    permissions.set_readonly(true);
+    std::fs::set_permissions(&locked, permissions).unwrap();
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--keep-going",
+        "--progress",
+        "json",
+    ]);
+    let events = json_events(&out.stderr);
+    let warnings = events_named(&events, "warning");
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w["message"].as_str().unwrap().contains("<heightBais>")),
+        "{events:?}"
+    );
+    assert!(
+        warnings.iter().any(|w| w["message"]
+            .as_str()
+            .unwrap()
+            .contains("cannot be replaced")),
+        "{events:?}"
+    );
+    let problems = events_named(&events, "problem");
+    assert_eq!(problems.len(), 1, "{events:?}");
+    assert_eq!(problems[0]["left_out"], true);
+    assert!(problems[0]["what"]
+        .as_str()
+        .unwrap()
+        .contains("00000000o.chunk"));
+    // It fails at the end: the locked chunk must change.
+    assert_eq!(out.status.code(), Some(1));
+    let errors = events_named(&events, "error");
+    assert_eq!(errors.len(), 1, "{events:?}");
+    assert_eq!(events.last(), Some(errors[0]), "the error is the last word");
+
+    // A failing bake: the problems, then the error; plan and inspect alike.
+    for args in [
+        &["bake", &settings(&dir), "--progress", "json"][..],
+        &["plan", &settings(&dir), "--progress", "json"],
+        &["inspect", &settings(&dir), "--progress", "json"],
+    ] {
+        let out = run(args);
+        assert_eq!(out.status.code(), Some(1), "{args:?}");
+        let events = json_events(&out.stderr);
+        assert_eq!(
+            events.last().unwrap()["event"],
+            "error",
+            "{args:?}: {events:?}"
+        );
+    }
+    let out = run(&["bake", &settings(&dir), "--progress", "json"]);
+    let events = json_events(&out.stderr);
+    let problems = events_named(&events, "problem");
+    assert_eq!(problems.len(), 1, "the settings file's element: {events:?}");
+    assert_eq!(problems[0]["left_out"], false);
+    assert!(problems[0]["why"]
+        .as_str()
+        .unwrap()
+        .contains("did you mean <heightBias>?"));
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--keep-going",
+        "--dry-run",
+        "--progress=json",
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    json_events(&out.stderr);
+    // A usage error, before the arguments parse.
+    let out = run(&[
+        "bake",
+        &settings(&dir),
+        "--progress",
+        "json",
+        "--no-such-flag",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let events = json_events(&out.stderr);
+    assert_eq!(events.len(), 1, "{events:?}");
+    assert!(events[0]["message"]
+        .as_str()
+        .unwrap()
+        .contains("--no-such-flag"));
+}
+
+#[test]
+fn a_merge_says_it_merges_and_that_it_traces_refinement() {
+    let dir = small();
+    let parts: Vec<String> = (0..2)
+        .map(|i| {
+            let partial = dir.path().join(format!("{i}.part")).display().to_string();
+            let out = run(&[
+                "bake",
+                &settings(&dir),
+                "--shard",
+                &format!("{i}/2"),
+                "--partial",
+                &partial,
+            ]);
+            assert!(out.status.success(), "{}", text(&out.stderr));
+            partial
+        })
+        .collect();
+    let merge = |extra: &[&str]| {
+        let settings = settings(&dir);
+        let mut args = vec!["merge", &settings];
+        args.extend(parts.iter().map(String::as_str));
+        args.extend([
+            "--dry-run",
+            "--progress",
+            "lines",
+            "--progress-interval",
+            "0",
+        ]);
+        args.extend(extra);
+        let out = run(&args);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        text(&out.stderr)
+    };
+    let plain = merge(&[]);
+    assert!(
+        !plain.contains("tracing"),
+        "a merge traces no grid: {plain}"
+    );
+    for light in ["sun", "spot", "point"] {
+        assert!(
+            plain.contains(&format!("merging light {light}:")),
+            "{plain}"
+        );
+    }
+    assert!(plain.contains("no grid ray is traced here"), "{plain}");
+    assert!(!plain.contains("refin"), "{plain}");
+    let refined = merge(&["--refine"]);
+    assert!(!refined.contains("tracing"), "{refined}");
+    assert!(
+        refined.contains("refinement rays are traced here") && refined.contains("refining light"),
+        "{refined}"
+    );
+}
+
+#[test]
+fn plan_counts_model_parts_and_says_so() {
+    // An instance with two <resource>s is two parts of a light's reach:
+    // the plan's counts are parts, the loaded line's instances.
+    let dir = small();
+    let scene = shadowcull::scene::load_scene(&shadowcull::scene::LoadConfig {
+        res_paths: shadowcull::files::ResPaths::new(vec![dir.path().to_path_buf()]),
+        space: "spaces/small".into(),
+    })
+    .unwrap();
+    let instances = scene.instances.len();
+    let parts: usize = scene.instances.iter().map(|i| i.parts.len()).sum();
+    assert!(parts > instances, "the small world has two-part instances");
+    let model_triangles: usize = scene
+        .instances
+        .iter()
+        .flat_map(|i| i.parts.iter().flatten())
+        .map(|&m| scene.models[m].triangles.len())
+        .sum();
+    let terrain_triangles: usize = scene
+        .terrain
+        .iter()
+        .map(|block| {
+            let (cx, cz) = block.cells();
+            let holes = (0..cz)
+                .flat_map(|z| (0..cx).map(move |x| (x, z)))
+                .filter(|&(x, z)| block.cell_is_hole(x, z))
+                .count();
+            2 * (cx * cz - holes)
+        })
+        .sum();
+    let blocks = scene.terrain.len();
+
+    let out = run(&["bake", &settings(&dir), "--dry-run", "--progress", "lines"]);
+    let stderr = text(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "loaded 4 chunks, {instances} instances ({parts} model parts), {model_triangles} model triangles, {blocks} terrain blocks"
+        )),
+        "{stderr}"
+    );
+    // The sun's grid covers the world: everything is in its reach.
+    assert!(
+        stderr.contains(&format!(
+            "in reach {parts} model parts, {blocks} terrain blocks, {} triangles (parts' and blocks')",
+            model_triangles + terrain_triangles
+        )),
+        "{stderr}"
+    );
+    let out = run(&["plan", &settings(&dir), "--json", "--quiet"]);
+    let plan: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let sun = &plan["lights"][0];
+    assert_eq!(
+        sun["instances"], parts,
+        "`instances` in the plan counts parts"
+    );
+    let out = run(&["bake", &settings(&dir), "--dry-run", "--progress", "json"]);
+    let events = json_events(&out.stderr);
+    let loaded = events_named(&events, "loaded")[0];
+    assert_eq!(loaded["instances"], instances);
+    assert_eq!(loaded["model_parts"], parts);
+    assert_eq!(loaded["model_triangles"], model_triangles);
 }
 
 // ---------------------------------------------------------------------------
