@@ -2,6 +2,7 @@
 //! GPU. See ARCHITECTURE.md for the code map.
 
 pub mod bake;
+pub mod cache;
 pub mod classify;
 pub mod digest;
 pub mod error;

@@ -4,6 +4,7 @@
 //! never leave a torn file (with the sweep of a killed run's temporary
 //! files), and what the system says about processes.
 
+mod cache_dir;
 mod process;
 mod read;
 mod replaceable;
@@ -13,6 +14,10 @@ mod typed;
 mod walk;
 mod write;
 
+pub use cache_dir::{
+    list_cache_files, read_cache_entry, remove_cache_file, remove_empty_cache_folders,
+    touch_cache_entry, write_cache_entry, CacheFile, CACHE_ENTRY_CAP,
+};
 pub use process::{host_name, resident_memory, ResidentMemory};
 pub use read::{read_file, size_cap, total_size, DEFAULT_SIZE_CAP, SIZE_CAPS};
 pub use replaceable::check_replaceable;

@@ -1,0 +1,521 @@
+//! The bake cache: results a later bake can reuse, each stored under a key
+//! that is the hash of exactly the inputs that produced it (content, not
+//! modification times). A bake with a cache computes only what is missing,
+//! and the cache is only ever an optimisation: an entry is used only when
+//! it passes every check (format, kind, key, length, checksum); any other
+//! entry (truncated, bit-flipped, swapped with another, from another
+//! format) is recomputed and replaced, with a one-line warning. Entries are
+//! written atomically (`files::write_cache_entry`), so a bake killed at any
+//! moment, or two bakes sharing one cache, leave entries that are whole or
+//! absent. The folder is kept under a size limit by removing the least
+//! recently used entries.
+
+pub mod codec;
+
+use crate::files::{self, CacheFile};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, SystemTime};
+
+/// Bumped whenever an entry's layout or a value's encoding changes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// The default size limit of a cache folder.
+pub const DEFAULT_MAX_BYTES: u64 = 2 << 30;
+
+/// A temporary older than this was left by a killed writer.
+const STALE_TEMPORARY: Duration = Duration::from_secs(3600);
+
+const MAGIC: &[u8; 8] = b"SCCACHE\0";
+/// Magic, format version, kind, key, payload length.
+const HEADER_BYTES: usize = 8 + 4 + 1 + 32 + 8;
+const CHECKSUM_BYTES: usize = 32;
+
+/// What an entry holds; each kind has its own folder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Kind {
+    /// A chunk file's parsed items.
+    Chunk,
+    /// A model's loaded geometry.
+    Model,
+    /// A terrain block's decoded heights and holes.
+    Terrain,
+    /// The casters one cell of a light's grid proves useful.
+    Tile,
+    /// The casters one caster's refinement rays prove useful.
+    Refine,
+}
+
+impl Kind {
+    pub const ALL: [Kind; 5] = [
+        Kind::Chunk,
+        Kind::Model,
+        Kind::Terrain,
+        Kind::Tile,
+        Kind::Refine,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Kind::Chunk => "chunk",
+            Kind::Model => "model",
+            Kind::Terrain => "terrain",
+            Kind::Tile => "tile",
+            Kind::Refine => "refine",
+        }
+    }
+
+    fn code(self) -> u8 {
+        self as u8
+    }
+}
+
+/// An entry's key: the BLAKE3 hash of everything that decides its value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Key(pub [u8; 32]);
+
+impl Key {
+    fn hex(&self) -> String {
+        self.0.iter().map(|b| format!("{b:02x}")).collect()
+    }
+}
+
+/// Builds a [`Key`] from typed values; every value is framed (lengths
+/// prefixed) so two different sequences cannot hash alike.
+#[derive(Debug, Clone)]
+pub struct KeyHasher(blake3::Hasher);
+
+impl KeyHasher {
+    /// A hasher for keys of `kind`, under the cache's build identity.
+    pub fn new(kind: Kind, build: &Key) -> KeyHasher {
+        let mut hasher = blake3::Hasher::new();
+        hasher.update(MAGIC);
+        hasher.update(&FORMAT_VERSION.to_le_bytes());
+        hasher.update(&[kind.code()]);
+        hasher.update(&build.0);
+        KeyHasher(hasher)
+    }
+
+    pub fn u64(&mut self, v: u64) -> &mut Self {
+        self.0.update(&v.to_le_bytes());
+        self
+    }
+
+    pub fn f64(&mut self, v: f64) -> &mut Self {
+        self.u64(v.to_bits())
+    }
+
+    pub fn bytes(&mut self, v: &[u8]) -> &mut Self {
+        self.u64(v.len() as u64);
+        self.0.update(v);
+        self
+    }
+
+    pub fn str(&mut self, v: &str) -> &mut Self {
+        self.bytes(v.as_bytes())
+    }
+
+    pub fn key(&mut self, v: &Key) -> &mut Self {
+        self.0.update(&v.0);
+        self
+    }
+
+    pub fn finish(&self) -> Key {
+        Key(*self.0.finalize().as_bytes())
+    }
+}
+
+/// The hash of `bytes` (a file's content), as a key to build others from.
+pub fn content_key(bytes: &[u8]) -> Key {
+    Key(*blake3::hash(bytes).as_bytes())
+}
+
+/// What one bake did with the cache, per kind.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct KindCounts {
+    /// Entries found and used.
+    pub reused: u64,
+    /// Entries absent, computed.
+    pub computed: u64,
+    /// Entries that failed their check, computed again.
+    pub damaged: u64,
+    /// Entries written.
+    pub written: u64,
+}
+
+/// The cache folder of a bake.
+#[derive(Debug)]
+pub struct Cache {
+    dir: PathBuf,
+    max_bytes: u64,
+    build: Key,
+    counts: Mutex<Vec<KindCounts>>,
+    warnings: Mutex<Vec<String>>,
+}
+
+impl Cache {
+    /// The cache in `dir` (made when first written), keeping at most
+    /// `max_bytes`. `build` identifies the program that computes the
+    /// values: a key includes it, so another build never reuses them.
+    pub fn open(dir: impl Into<PathBuf>, max_bytes: u64, build: Key) -> Cache {
+        Cache {
+            dir: dir.into(),
+            max_bytes,
+            build,
+            counts: Mutex::new(vec![KindCounts::default(); Kind::ALL.len()]),
+            warnings: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// A key hasher for `kind` under this cache's build.
+    pub fn hasher(&self, kind: Kind) -> KeyHasher {
+        KeyHasher::new(kind, &self.build)
+    }
+
+    fn path(&self, kind: Kind, key: &Key) -> PathBuf {
+        let hex = key.hex();
+        self.dir.join(kind.name()).join(&hex[..2]).join(hex)
+    }
+
+    fn count(&self, kind: Kind, change: impl FnOnce(&mut KindCounts)) {
+        if let Ok(mut counts) = self.counts.lock() {
+            change(&mut counts[kind as usize]);
+        }
+    }
+
+    fn warn(&self, message: String) {
+        if let Ok(mut warnings) = self.warnings.lock() {
+            warnings.push(message);
+        }
+    }
+
+    /// The value stored under `key`, if an entry holds it and passes every
+    /// check; `None` (counted as computed) otherwise. A damaged entry is
+    /// removed and warned about.
+    pub fn get(&self, kind: Kind, key: &Key) -> Option<Vec<u8>> {
+        let path = self.path(kind, key);
+        let bytes = match files::read_cache_entry(&path) {
+            Ok(Some(bytes)) => bytes,
+            Ok(None) => {
+                self.count(kind, |c| c.computed += 1);
+                return None;
+            }
+            Err(err) => {
+                self.damaged(kind, &path, &err.to_string());
+                return None;
+            }
+        };
+        match check_entry(&bytes, kind, key) {
+            Ok(payload) => {
+                self.count(kind, |c| c.reused += 1);
+                files::touch_cache_entry(&path);
+                Some(payload.to_vec())
+            }
+            Err(why) => {
+                self.damaged(kind, &path, why);
+                None
+            }
+        }
+    }
+
+    fn damaged(&self, kind: Kind, path: &Path, why: &str) {
+        self.count(kind, |c| c.damaged += 1);
+        let _ = files::remove_cache_file(path);
+        self.warn(format!("cache entry {} {why}; recomputed", path.display()));
+    }
+
+    /// Stores `value` under `key`. A failed write costs only the reuse: it
+    /// is warned about, never an error of the bake.
+    pub fn put(&self, kind: Kind, key: &Key, value: &[u8]) {
+        let path = self.path(kind, key);
+        match files::write_cache_entry(&path, &entry_bytes(kind, key, value)) {
+            Ok(()) => self.count(kind, |c| c.written += 1),
+            Err(err) => self.warn(format!("cannot store a cache entry: {err}")),
+        }
+    }
+
+    /// The value under `key`, or `compute`'s (then stored) when there is
+    /// none or it does not decode with `decode`.
+    pub fn get_or_compute<T>(
+        &self,
+        kind: Kind,
+        key: &Key,
+        decode: impl FnOnce(&[u8]) -> Option<T>,
+        compute: impl FnOnce() -> T,
+        encode: impl FnOnce(&T) -> Vec<u8>,
+    ) -> T {
+        if let Some(bytes) = self.get(kind, key) {
+            if let Some(value) = decode(&bytes) {
+                return value;
+            }
+            self.damaged(kind, &self.path(kind, key), "does not decode");
+        }
+        let value = compute();
+        self.put(kind, key, &encode(&value));
+        value
+    }
+
+    /// What this bake did with the cache, per kind in [`Kind::ALL`] order.
+    pub fn counts(&self) -> Vec<(Kind, KindCounts)> {
+        let counts = self.counts.lock().map(|c| c.clone()).unwrap_or_default();
+        Kind::ALL.into_iter().zip(counts).collect()
+    }
+
+    /// The warnings so far (damaged entries, failed writes), each once.
+    pub fn take_warnings(&self) -> Vec<String> {
+        self.warnings
+            .lock()
+            .map(|mut w| std::mem::take(&mut *w))
+            .unwrap_or_default()
+    }
+
+    /// Keeps the folder under its limit: removes stale temporaries, then
+    /// the least recently used entries until the rest fit. Returns how
+    /// many entries it removed.
+    pub fn evict(&self) -> crate::Result<usize> {
+        let files = files::list_cache_files(&self.dir)?;
+        let now = SystemTime::now();
+        let (temporaries, mut entries): (Vec<CacheFile>, Vec<CacheFile>) =
+            files.into_iter().partition(|f| f.temporary);
+        for temp in temporaries {
+            let age = now.duration_since(temp.modified).unwrap_or_default();
+            if age > STALE_TEMPORARY {
+                files::remove_cache_file(&temp.path)?;
+            }
+        }
+        let mut total: u64 = entries.iter().map(|f| f.bytes).sum();
+        entries.sort_by(|a, b| a.modified.cmp(&b.modified).then(a.path.cmp(&b.path)));
+        let mut removed = 0;
+        for entry in entries {
+            if total <= self.max_bytes {
+                break;
+            }
+            files::remove_cache_file(&entry.path)?;
+            total -= entry.bytes;
+            removed += 1;
+        }
+        if removed > 0 {
+            files::remove_empty_cache_folders(&self.dir);
+        }
+        Ok(removed)
+    }
+}
+
+/// An entry: header, payload, checksum of both.
+fn entry_bytes(kind: Kind, key: &Key, payload: &[u8]) -> Vec<u8> {
+    let mut bytes = Vec::with_capacity(HEADER_BYTES + payload.len() + CHECKSUM_BYTES);
+    bytes.extend_from_slice(MAGIC);
+    bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    bytes.push(kind.code());
+    bytes.extend_from_slice(&key.0);
+    bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(payload);
+    let checksum = blake3::hash(&bytes);
+    bytes.extend_from_slice(checksum.as_bytes());
+    bytes
+}
+
+/// The payload of an entry read for (`kind`, `key`), or why it cannot be
+/// trusted.
+fn check_entry<'b>(bytes: &'b [u8], kind: Kind, key: &Key) -> Result<&'b [u8], &'static str> {
+    if bytes.len() < HEADER_BYTES + CHECKSUM_BYTES {
+        return Err("is truncated");
+    }
+    if &bytes[..8] != MAGIC {
+        return Err("is not a shadowcull cache entry");
+    }
+    let (body, checksum) = bytes.split_at(bytes.len() - CHECKSUM_BYTES);
+    if blake3::hash(body).as_bytes() != checksum {
+        return Err("fails its checksum (truncated or damaged)");
+    }
+    if body[8..12] != FORMAT_VERSION.to_le_bytes() {
+        return Err("is of another cache format");
+    }
+    if body[12] != kind.code() || body[13..45] != key.0 {
+        return Err("holds another entry (swapped or renamed)");
+    }
+    let length = u64::from_le_bytes(body[45..53].try_into().unwrap_or_default());
+    if length != (body.len() - HEADER_BYTES) as u64 {
+        return Err("has a wrong length");
+    }
+    Ok(&body[HEADER_BYTES..])
+}
+
+/// What a cache folder holds, for `shadowcull cache DIR stats`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct FolderStats {
+    /// Per kind: entries and bytes.
+    pub kinds: Vec<(String, u64, u64)>,
+    pub entries: u64,
+    pub bytes: u64,
+    /// Temporaries left by killed writers (removed by the next eviction
+    /// once an hour old).
+    pub temporaries: u64,
+}
+
+/// What the cache folder `dir` holds.
+pub fn folder_stats(dir: &Path) -> crate::Result<FolderStats> {
+    let mut stats = FolderStats {
+        kinds: Kind::ALL
+            .iter()
+            .map(|k| (k.name().to_string(), 0, 0))
+            .collect(),
+        ..FolderStats::default()
+    };
+    for file in files::list_cache_files(dir)? {
+        if file.temporary {
+            stats.temporaries += 1;
+            continue;
+        }
+        stats.entries += 1;
+        stats.bytes += file.bytes;
+        let kind = file
+            .path
+            .strip_prefix(dir)
+            .ok()
+            .and_then(|p| p.components().next())
+            .map(|c| c.as_os_str().to_string_lossy().into_owned());
+        if let Some(slot) = stats.kinds.iter_mut().find(|k| Some(&k.0) == kind.as_ref()) {
+            slot.1 += 1;
+            slot.2 += file.bytes;
+        }
+    }
+    Ok(stats)
+}
+
+/// Removes every entry and temporary of the cache folder `dir` (the folder
+/// itself stays). Returns how many files it removed.
+pub fn clear_folder(dir: &Path) -> crate::Result<usize> {
+    let files = files::list_cache_files(dir)?;
+    for file in &files {
+        files::remove_cache_file(&file.path)?;
+    }
+    files::remove_empty_cache_folders(dir);
+    Ok(files.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cache(dir: &Path, max: u64) -> Cache {
+        Cache::open(dir, max, content_key(b"test build"))
+    }
+
+    fn key(cache: &Cache, n: u64) -> Key {
+        cache.hasher(Kind::Tile).u64(n).finish()
+    }
+
+    #[test]
+    fn a_value_put_is_got_back_and_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = cache(dir.path(), DEFAULT_MAX_BYTES);
+        let k = key(&cache, 1);
+        assert_eq!(cache.get(Kind::Tile, &k), None);
+        cache.put(Kind::Tile, &k, b"value");
+        assert_eq!(cache.get(Kind::Tile, &k).unwrap(), b"value");
+        assert_eq!(cache.get(Kind::Refine, &k), None, "kinds are apart");
+        let tile = cache.counts()[Kind::Tile as usize].1;
+        assert_eq!((tile.reused, tile.computed, tile.written), (1, 1, 1));
+        assert!(cache.take_warnings().is_empty());
+    }
+
+    #[test]
+    fn every_damage_is_detected_warned_about_and_recomputed() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = cache(dir.path(), DEFAULT_MAX_BYTES);
+        let (a, b) = (key(&cache, 1), key(&cache, 2));
+        cache.put(Kind::Tile, &a, b"the value of a");
+        cache.put(Kind::Tile, &b, b"the value of b");
+        let path_a = cache.path(Kind::Tile, &a);
+        let good = std::fs::read(&path_a).unwrap();
+        type Damage = Box<dyn Fn(&mut Vec<u8>)>;
+        let damage: Vec<(&str, Damage)> = vec![
+            (
+                "truncated",
+                Box::new(|b: &mut Vec<u8>| b.truncate(b.len() - 5)),
+            ),
+            ("empty", Box::new(|b: &mut Vec<u8>| b.clear())),
+            ("flipped", Box::new(|b: &mut Vec<u8>| b[60] ^= 1)),
+            (
+                "checksum flipped",
+                Box::new(|b: &mut Vec<u8>| *b.last_mut().unwrap() ^= 1),
+            ),
+        ];
+        for (what, change) in damage {
+            let mut bytes = good.clone();
+            change(&mut bytes);
+            std::fs::write(&path_a, &bytes).unwrap();
+            assert_eq!(cache.get(Kind::Tile, &a), None, "{what}");
+            assert!(!path_a.exists(), "{what}: the damaged entry is removed");
+            assert_eq!(cache.take_warnings().len(), 1, "{what}");
+        }
+        // Swapped: b's entry under a's name passes its checksum, not its key.
+        std::fs::copy(cache.path(Kind::Tile, &b), &path_a).unwrap();
+        assert_eq!(cache.get(Kind::Tile, &a), None);
+        assert!(cache.take_warnings()[0].contains("another entry"));
+        // Another format version.
+        let mut other = good.clone();
+        other[8] ^= 0xFF;
+        let checksum = blake3::hash(&other[..other.len() - 32]);
+        let n = other.len();
+        other[n - 32..].copy_from_slice(checksum.as_bytes());
+        std::fs::write(&path_a, &other).unwrap();
+        assert_eq!(cache.get(Kind::Tile, &a), None);
+        assert!(cache.take_warnings()[0].contains("format"));
+        let computed = cache.get_or_compute(
+            Kind::Tile,
+            &a,
+            |v| Some(v.to_vec()),
+            || b"recomputed".to_vec(),
+            |v| v.clone(),
+        );
+        assert_eq!(computed, b"recomputed");
+        assert_eq!(cache.get(Kind::Tile, &a).unwrap(), b"recomputed");
+    }
+
+    #[test]
+    fn another_build_never_sees_the_entries() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = Cache::open(dir.path(), DEFAULT_MAX_BYTES, content_key(b"one"));
+        let two = Cache::open(dir.path(), DEFAULT_MAX_BYTES, content_key(b"two"));
+        let k = one.hasher(Kind::Tile).u64(5).finish();
+        one.put(Kind::Tile, &k, b"v");
+        let k2 = two.hasher(Kind::Tile).u64(5).finish();
+        assert_ne!(k, k2);
+        assert_eq!(two.get(Kind::Tile, &k2), None);
+    }
+
+    #[test]
+    fn eviction_keeps_the_folder_under_its_limit_removing_the_oldest() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = cache(dir.path(), 1000);
+        let keys: Vec<Key> = (0..10).map(|n| key(&cache, n)).collect();
+        for (n, k) in keys.iter().enumerate() {
+            cache.put(Kind::Tile, k, &[n as u8; 200]);
+            let path = cache.path(Kind::Tile, k);
+            let when = SystemTime::UNIX_EPOCH + Duration::from_secs(1_000_000 + n as u64);
+            std::fs::File::options()
+                .append(true)
+                .open(&path)
+                .unwrap()
+                .set_modified(when)
+                .unwrap();
+        }
+        let removed = cache.evict().unwrap();
+        let stats = folder_stats(dir.path()).unwrap();
+        assert!(stats.bytes <= 1000, "{stats:?}");
+        assert_eq!(stats.entries as usize + removed, 10);
+        assert!(
+            cache.get(Kind::Tile, &keys[9]).is_some(),
+            "the newest stays"
+        );
+        assert!(cache.get(Kind::Tile, &keys[0]).is_none(), "the oldest goes");
+        assert_eq!(clear_folder(dir.path()).unwrap(), stats.entries as usize);
+        assert_eq!(folder_stats(dir.path()).unwrap().entries, 0);
+    }
+}
