@@ -13,7 +13,7 @@ mod typed;
 mod walk;
 mod write;
 
-pub use process::{host_name, resident_memory, ResidentMemory};
+pub use process::{host_name, resident_memory, Invocation, ResidentMemory};
 pub use read::{read_file, size_cap, total_size, DEFAULT_SIZE_CAP, SIZE_CAPS};
 pub use replaceable::check_replaceable;
 pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};
