@@ -389,33 +389,96 @@ impl SweepReport {
     /// Both errors against seconds (log scale), one labelled point per
     /// setting, as a self-contained SVG.
     pub fn to_svg(&self) -> String {
-        let frame = PlotFrame::of(&self.rows);
-        let mut svg = frame.header(&self.reference.label);
-        frame.write_axes(&mut svg);
+        let title = format!(
+            "classification error against bake time (reference: {})",
+            self.reference.label
+        );
+        let frame = PlotFrame::of(&self.rows, &title);
         let markers = Series::ALL.map(|series| frame.markers(&self.rows, series));
         let boxes: Vec<LabelBox> = markers
             .iter()
             .flatten()
             .map(|&(px, py)| LabelBox::around(px, py, 6.0))
             .collect();
-        let labels = place_labels(
-            &markers[0],
-            &self
-                .rows
-                .iter()
-                .map(|r| r.label.as_str())
-                .collect::<Vec<_>>(),
-            &boxes,
-            frame.label_area(),
-        );
+        let names: Vec<&str> = self.rows.iter().map(|r| r.label.as_str()).collect();
+        let (labels, keyed) = place_labels(&markers[0], &names, &boxes, frame.label_area());
+        let key_height = keyed.len() as f64 * LINE_HEIGHT;
+        let mut svg = frame.header(&title, key_height);
+        frame.write_axes(&mut svg);
         for series in Series::ALL {
             write_markers(&mut svg, &self.rows, series, &markers[series.index()]);
-            frame.write_legend_entry(&mut svg, series);
         }
-        write_labels(&mut svg, &self.rows, &labels);
-        frame.write_footnote(&mut svg);
+        write_labels(&mut svg, &labels);
+        frame.write_legend(&mut svg);
+        // Labels that found no free place are drawn as their row's number,
+        // listed here below the plot.
+        for (line, &row) in keyed.iter().enumerate() {
+            let _ = writeln!(
+                svg,
+                "<text x=\"{}\" y=\"{}\" fill=\"#555\">{}: {}</text>",
+                frame.margin,
+                frame.height - 4.0 + line as f64 * LINE_HEIGHT,
+                row + 1,
+                names[row]
+            );
+        }
+        svg.push_str("</svg>\n");
         svg
     }
+}
+
+/// Font size of the plot's text, and of its title.
+const FONT_SIZE: f64 = 11.0;
+const TITLE_FONT_SIZE: f64 = 14.0;
+
+/// The width of `text` at `font_size`, estimated generously: sans-serif
+/// letters average about 0.55 em, so 0.625 em leaves room for wide ones.
+fn text_width(text: &str, font_size: f64) -> f64 {
+    text.chars().count() as f64 * 0.625 * font_size
+}
+
+/// Height of a label's line: font size 11 with room between lines.
+const LINE_HEIGHT: f64 = 13.0;
+
+/// How far above the time axis the zero row lies. Settings without errors
+/// sit on it, often many close together: on the axis itself every label
+/// beside them would leave the plot, and they would all crowd the lines
+/// above; lifted, two lines of labels fit below them.
+const ZERO_LIFT: f64 = 3.0 * LINE_HEIGHT;
+
+/// The legend's entries, left to right in the band above the plot: a
+/// marker and what it means.
+const LEGEND: [(LegendMarker, &str); 3] = [
+    (
+        LegendMarker::Series(Series::FalseCulls),
+        "false culls (dots)",
+    ),
+    (
+        LegendMarker::Series(Series::FalseKeeps),
+        "false keeps (rings)",
+    ),
+    (LegendMarker::Square, "squares: with refinement"),
+];
+
+#[derive(Debug, Clone, Copy)]
+enum LegendMarker {
+    Series(Series),
+    /// A grey outlined square: the shape of rows with refinement.
+    Square,
+}
+
+/// Space before a legend entry's text, after its marker, and between
+/// entries.
+const LEGEND_MARKER_GAP: f64 = 16.0;
+const LEGEND_ENTRY_GAP: f64 = 24.0;
+
+/// The legend's width in SVG pixels.
+fn legend_width() -> f64 {
+    LEGEND
+        .iter()
+        .map(|(_, text)| LEGEND_MARKER_GAP + text_width(text, FONT_SIZE))
+        .sum::<f64>()
+        + LEGEND_ENTRY_GAP * (LEGEND.len() - 1) as f64
 }
 
 /// The plot's size in SVG pixels and its axes: seconds in whole decades
@@ -430,8 +493,9 @@ struct PlotFrame {
 }
 
 impl PlotFrame {
-    /// Axes that hold every row's seconds and errors.
-    fn of(rows: &[Row]) -> PlotFrame {
+    /// Axes that hold every row's seconds and errors, wide enough for the
+    /// title and the legend.
+    fn of(rows: &[Row], title: &str) -> PlotFrame {
         let seconds: Vec<f64> = rows.iter().map(|r| r.seconds.max(1e-4)).collect();
         let (lo, hi) = seconds.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), s| {
             (lo.min(*s), hi.max(*s))
@@ -448,10 +512,19 @@ impl PlotFrame {
             .max(1) as f64;
         // log(1 + e): zero stays on the axis, small counts stay apart.
         let top = (1.0 + max_error).log10().ceil().max(1.0);
+        let margin = 70.0;
+        let width = [
+            760.0,
+            text_width(title, TITLE_FONT_SIZE) + 2.0 * LINE_HEIGHT,
+            legend_width() + 2.0 * margin,
+        ]
+        .into_iter()
+        .fold(0.0, f64::max)
+        .ceil();
         PlotFrame {
-            width: 760.0,
+            width,
             height: 460.0,
-            margin: 70.0,
+            margin,
             lo,
             hi,
             top,
@@ -465,9 +538,10 @@ impl PlotFrame {
                 * (self.width - 2.0 * self.margin)
     }
 
-    /// The pixel row of an error count.
+    /// The pixel row of an error count: zero [`ZERO_LIFT`] above the axis.
     fn y(&self, e: f64) -> f64 {
-        self.height - self.margin - (1.0 + e).log10() / self.top * (self.height - 2.0 * self.margin)
+        let zero = self.height - self.margin - ZERO_LIFT;
+        zero - (1.0 + e).log10() / self.top * (zero - self.margin)
     }
 
     /// Where labels may go: the plot and a strip right of it.
@@ -480,15 +554,16 @@ impl PlotFrame {
         }
     }
 
-    /// The opening tag, a white background and the title.
-    fn header(&self, reference: &str) -> String {
-        let (width, height) = (self.width, self.height);
+    /// The opening tag, a white background and the title; `below` more
+    /// pixels under the plot (for the key of numbered labels).
+    fn header(&self, title: &str, below: f64) -> String {
+        let (width, height) = (self.width, self.height + below);
         let mut svg = format!(
-            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width}\" height=\"{height}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n"
+            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width}\" height=\"{height}\" viewBox=\"0 0 {width} {height}\" font-family=\"sans-serif\" font-size=\"{FONT_SIZE}\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n"
         );
         let _ = writeln!(
             svg,
-            "<text x=\"{}\" y=\"24\" font-size=\"14\" text-anchor=\"middle\">classification error against bake time (reference: {reference})</text>",
+            "<text x=\"{}\" y=\"24\" font-size=\"{TITLE_FONT_SIZE}\" text-anchor=\"middle\">{title}</text>",
             width / 2.0,
         );
         svg
@@ -552,29 +627,37 @@ impl PlotFrame {
         placed
     }
 
-    /// The series' line of the legend, top right.
-    fn write_legend_entry(&self, svg: &mut String, series: Series) {
-        let legend_y = self.margin + 14.0 * series.index() as f64;
-        let (fill, r) = series.fill_and_radius();
-        let (name, colour) = (series.name(), series.colour());
-        let _ = writeln!(
-            svg,
-            "<circle cx=\"{}\" cy=\"{}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{colour}\" stroke-width=\"1.5\"/><text x=\"{}\" y=\"{}\">{name}</text>",
-            self.width - self.margin - 120.0,
-            legend_y,
-            self.width - self.margin - 110.0,
-            legend_y + 4.0
-        );
-    }
-
-    /// What the marker shapes mean, and the closing tag.
-    fn write_footnote(&self, svg: &mut String) {
-        let _ = writeln!(
-            svg,
-            "<text x=\"{}\" y=\"{}\" fill=\"#555\">squares: with refinement; dots: false culls, rings: false keeps</text>\n</svg>",
-            self.width - self.margin - 124.0,
-            self.margin + 32.0
-        );
+    /// The legend, in one row centred in the band between the title and
+    /// the plot.
+    fn write_legend(&self, svg: &mut String) {
+        let y = self.margin - 22.0;
+        let mut x = (self.width - legend_width()) / 2.0;
+        for (marker, text) in LEGEND {
+            let centre = x + 6.0;
+            let _ = match marker {
+                LegendMarker::Series(series) => {
+                    let (fill, r) = series.fill_and_radius();
+                    write!(
+                        svg,
+                        "<circle cx=\"{centre}\" cy=\"{y}\" r=\"{r}\" fill=\"{fill}\" stroke=\"{}\" stroke-width=\"1.5\"/>",
+                        series.colour()
+                    )
+                }
+                LegendMarker::Square => write!(
+                    svg,
+                    "<rect x=\"{}\" y=\"{}\" width=\"10\" height=\"10\" fill=\"none\" stroke=\"#555\" stroke-width=\"1.5\"/>",
+                    centre - 5.0,
+                    y - 5.0
+                ),
+            };
+            let _ = writeln!(
+                svg,
+                "<text x=\"{}\" y=\"{}\">{text}</text>",
+                x + LEGEND_MARKER_GAP,
+                y + 4.0
+            );
+            x += LEGEND_MARKER_GAP + text_width(text, FONT_SIZE) + LEGEND_ENTRY_GAP;
+        }
     }
 }
 
@@ -591,13 +674,6 @@ impl Series {
 
     fn index(self) -> usize {
         self as usize
-    }
-
-    fn name(self) -> &'static str {
-        match self {
-            Series::FalseCulls => "false culls",
-            Series::FalseKeeps => "false keeps",
-        }
     }
 
     fn colour(self) -> &'static str {
@@ -644,18 +720,19 @@ fn write_markers(svg: &mut String, rows: &[Row], series: Series, markers: &[(f64
     }
 }
 
-/// Each row's label where `place_labels` put it, with a leader line from
-/// its marker.
-fn write_labels(svg: &mut String, rows: &[Row], labels: &[((f64, f64), LabelBox)]) {
-    for (row, ((px, py), at)) in rows.iter().zip(labels) {
+/// Each label where `place_labels` put it, with a leader line from its
+/// point to the nearest point of its box.
+fn write_labels(svg: &mut String, labels: &[PlacedLabel]) {
+    for label in labels {
+        let (px, py) = label.point;
+        let (lx, ly) = label.at.leader_end(label.point);
+        // The baseline leaves the descenders inside the box.
         let _ = writeln!(
             svg,
-            "<line x1=\"{px}\" y1=\"{py}\" x2=\"{}\" y2=\"{}\" stroke=\"#bbb\"/><text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
-            at.x0,
-            (at.y0 + at.y1) / 2.0,
-            at.x0,
-            at.y1 - 2.0,
-            row.label
+            "<line x1=\"{px}\" y1=\"{py}\" x2=\"{lx}\" y2=\"{ly}\" stroke=\"#bbb\"/><text x=\"{}\" y=\"{}\" fill=\"#555\">{}</text>",
+            label.at.x0,
+            label.at.y1 - 3.0,
+            label.text
         );
     }
 }
@@ -686,56 +763,211 @@ impl LabelBox {
     fn inside(&self, outer: &LabelBox) -> bool {
         self.x0 >= outer.x0 && self.x1 <= outer.x1 && self.y0 >= outer.y0 && self.y1 <= outer.y1
     }
+
+    fn holds(&self, (x, y): (f64, f64)) -> bool {
+        (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
+    }
+
+    /// Where a leader line from `point` meets the label: the box's point
+    /// nearest it, so the line never runs through the text.
+    fn leader_end(&self, (px, py): (f64, f64)) -> (f64, f64) {
+        (px.clamp(self.x0, self.x1), py.clamp(self.y0, self.y1))
+    }
+
+    /// Whether the segment `a`–`b` passes through the box's inside
+    /// (Liang–Barsky clipping; touching an edge does not count).
+    fn crossed_by(&self, (ax, ay): (f64, f64), (bx, by): (f64, f64)) -> bool {
+        let (dx, dy) = (bx - ax, by - ay);
+        let (mut enter, mut leave) = (0.0f64, 1.0f64);
+        for (p, q) in [
+            (-dx, ax - self.x0),
+            (dx, self.x1 - ax),
+            (-dy, ay - self.y0),
+            (dy, self.y1 - ay),
+        ] {
+            if p == 0.0 {
+                if q <= 0.0 {
+                    return false;
+                }
+            } else if p < 0.0 {
+                enter = enter.max(q / p);
+            } else {
+                leave = leave.min(q / p);
+            }
+        }
+        enter < leave
+    }
 }
 
-/// Width of a text of `chars` characters at font size 11 (sans-serif
-/// averages under 6.5 px a character).
-const CHAR_WIDTH: f64 = 6.5;
-const LINE_HEIGHT: f64 = 13.0;
+/// Gaps (SVG pixels, beyond 8) tried between a point and its label.
+const LABEL_SHIFTS: [f64; 6] = [0.0, 40.0, 80.0, 120.0, 160.0, 200.0];
 
-/// A box for each point's label that overlaps no other label and no
-/// marker: tried right, then left of the point, at growing distances up and
-/// down; the first free place wins (leader lines join label and point).
-/// Falls back to the least crowded place when none is free.
+/// Lines above and below its point a label may go.
+const LABEL_LINES: i32 = 20;
+
+/// Rounds of moving each label that still clashes to its best place
+/// among all the others.
+const REPAIR_ROUNDS: usize = 8;
+
+/// A point's label as drawn: the row's label, or its number when no free
+/// place was found for the label (the key below the plot names it).
+#[derive(Debug, Clone, PartialEq)]
+struct PlacedLabel {
+    point: (f64, f64),
+    text: String,
+    at: LabelBox,
+}
+
+/// A box for each point's label inside `area` that lies on no other label
+/// and no marker, whose leader line crosses no other label and is crossed
+/// by no other leader. Each label takes the nearest free place (beside its
+/// point, above or below it, or in line with other points' labels); the
+/// labels that still clash are then moved, each to its best place among
+/// all the others, and those that clash after that become their row's
+/// number (1-based), short enough to fit. Returns the labels in point
+/// order and the points whose label is a number.
 fn place_labels(
     points: &[(f64, f64)],
     labels: &[&str],
     markers: &[LabelBox],
-    plot: LabelBox,
-) -> Vec<((f64, f64), LabelBox)> {
-    let mut placed: Vec<((f64, f64), LabelBox)> = Vec::new();
-    for (&(px, py), label) in points.iter().zip(labels) {
-        let w = label.chars().count() as f64 * CHAR_WIDTH;
-        let mut best: Option<(usize, LabelBox)> = None;
-        'search: for step in 0..40 {
-            let dy = (step / 2) as f64 * LINE_HEIGHT * if step % 2 == 0 { -1.0 } else { 1.0 };
-            for right in [true, false] {
-                let x0 = if right { px + 8.0 } else { px - 8.0 - w };
-                let candidate = LabelBox {
-                    x0,
-                    y0: py + dy - LINE_HEIGHT / 2.0,
-                    x1: x0 + w,
-                    y1: py + dy + LINE_HEIGHT / 2.0,
-                };
-                let clashes = markers.iter().filter(|m| m.overlaps(&candidate)).count()
-                    + placed
-                        .iter()
-                        .filter(|(_, b)| b.overlaps(&candidate))
-                        .count()
-                    + usize::from(!candidate.inside(&plot));
-                if best.is_none_or(|(c, _)| clashes < c) {
-                    best = Some((clashes, candidate));
-                }
-                if clashes == 0 {
-                    break 'search;
-                }
+    area: LabelBox,
+) -> (Vec<PlacedLabel>, Vec<usize>) {
+    let layout = LabelLayout {
+        points,
+        markers,
+        area,
+    };
+    let mut texts: Vec<String> = labels.iter().map(|l| l.to_string()).collect();
+    let mut boxes: Vec<Option<LabelBox>> = vec![None; points.len()];
+    for i in 0..points.len() {
+        boxes[i] = Some(layout.best(i, &texts[i], &boxes).1);
+    }
+    let clashes_now = |boxes: &[Option<LabelBox>], i: usize| {
+        boxes[i].map_or(0, |at| layout.clashes(i, &at, boxes))
+    };
+    for _ in 0..REPAIR_ROUNDS {
+        let mut moved = false;
+        for i in 0..points.len() {
+            let now = clashes_now(&boxes, i);
+            if now == 0 {
+                continue;
+            }
+            let (fewer, at) = layout.best(i, &texts[i], &boxes);
+            if fewer < now {
+                boxes[i] = Some(at);
+                moved = true;
             }
         }
-        if let Some((_, b)) = best {
-            placed.push(((px, py), b));
+        if !moved {
+            break;
         }
     }
-    placed
+    let mut keyed = Vec::new();
+    for i in 0..points.len() {
+        if clashes_now(&boxes, i) > 0 {
+            texts[i] = (i + 1).to_string();
+            boxes[i] = Some(layout.best(i, &texts[i], &boxes).1);
+            keyed.push(i);
+        }
+    }
+    let placed = points
+        .iter()
+        .zip(texts)
+        .zip(boxes)
+        .filter_map(|((&point, text), at)| {
+            Some(PlacedLabel {
+                point,
+                text,
+                at: at?,
+            })
+        })
+        .collect();
+    (placed, keyed)
+}
+
+/// What a label must keep clear of: the points (each label's leader starts
+/// at its point), every marker, and the area labels may use.
+struct LabelLayout<'a> {
+    points: &'a [(f64, f64)],
+    markers: &'a [LabelBox],
+    area: LabelBox,
+}
+
+impl LabelLayout<'_> {
+    /// The place for point `i`'s `text` with the fewest clashes against
+    /// the other `boxes`, the nearest among equals.
+    fn best(&self, i: usize, text: &str, boxes: &[Option<LabelBox>]) -> (usize, LabelBox) {
+        let mut best: Option<((usize, f64), LabelBox)> = None;
+        for (distance, candidate) in self.candidates(i, text_width(text, FONT_SIZE)) {
+            let key = (self.clashes(i, &candidate, boxes), distance);
+            if best.is_none_or(|(b, _)| key.0 < b.0 || (key.0 == b.0 && key.1 < b.1)) {
+                best = Some((key, candidate));
+            }
+        }
+        best.map(|((clashes, _), at)| (clashes, at))
+            .expect("every point has candidates")
+    }
+
+    /// Boxes of width `w` for point `i`'s label, each with its distance:
+    /// on the point's line and up to [`LABEL_LINES`] lines above and below
+    /// it, right or left of the point (by [`LABEL_SHIFTS`], or level with
+    /// another point on that side, so that labels of a crowd line up in a
+    /// column their leaders do not cross), and centred on it off its line.
+    fn candidates(&self, i: usize, w: f64) -> Vec<(f64, LabelBox)> {
+        let (px, py) = self.points[i];
+        let beyond = |right: bool| -> Vec<f64> {
+            let level = self.points.iter().filter_map(|&(qx, _)| {
+                let gap = if right { qx - px } else { px - qx };
+                (gap > 0.0).then_some(gap)
+            });
+            LABEL_SHIFTS.iter().copied().chain(level).collect()
+        };
+        let (right, left) = (beyond(true), beyond(false));
+        let mut found = Vec::new();
+        for lines in 0..=2 * LABEL_LINES {
+            // 0, −1, +1, −2, +2, … lines from the point.
+            let line = f64::from((lines + 1) / 2) * if lines % 2 == 1 { -1.0 } else { 1.0 };
+            let dy = line * LINE_HEIGHT;
+            let at = |x0: f64| LabelBox {
+                x0,
+                y0: py + dy - LINE_HEIGHT / 2.0,
+                x1: x0 + w,
+                y1: py + dy + LINE_HEIGHT / 2.0,
+            };
+            found.extend(right.iter().map(|&s| (dy.abs() + s, at(px + 8.0 + s))));
+            found.extend(left.iter().map(|&s| (dy.abs() + s, at(px - 8.0 - w - s))));
+            if line != 0.0 {
+                found.push((dy.abs(), at(px - w / 2.0)));
+            }
+        }
+        found
+    }
+
+    /// How many markers point `i`'s label at `candidate` would lie on or
+    /// its leader cross, and how many other labels it would lie on or cross
+    /// leaders with, plus one when it leaves the area.
+    fn clashes(&self, i: usize, candidate: &LabelBox, boxes: &[Option<LabelBox>]) -> usize {
+        let point = self.points[i];
+        let leader = candidate.leader_end(point);
+        // A marker the leader starts in is its own (or one on it).
+        let on_markers = self
+            .markers
+            .iter()
+            .filter(|m| m.overlaps(candidate) || (!m.holds(point) && m.crossed_by(point, leader)))
+            .count();
+        let with_labels = boxes
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i)
+            .filter_map(|(j, b)| b.map(|b| (self.points[j], b)))
+            .filter(|(other, b)| {
+                b.overlaps(candidate)
+                    || b.crossed_by(point, leader)
+                    || candidate.crossed_by(*other, b.leader_end(*other))
+            })
+            .count();
+        on_markers + with_labels + usize::from(!candidate.inside(&self.area))
+    }
 }
 
 #[cfg(test)]
@@ -763,18 +995,48 @@ mod label_tests {
             x1: 750.0,
             y1: 390.0,
         };
-        let placed = place_labels(&points, &labels, &markers, plot);
+        let (placed, keyed) = place_labels(&points, &labels, &markers, plot);
         assert_eq!(placed.len(), 11);
-        for (i, (_, a)) in placed.iter().enumerate() {
-            assert!(a.inside(&plot), "{a:?}");
+        for (i, a) in placed.iter().enumerate() {
+            assert!(a.at.inside(&plot), "{a:?}");
             assert!(
-                markers.iter().all(|m| !m.overlaps(a)),
+                markers.iter().all(|m| !m.overlaps(&a.at)),
                 "label {i} on a marker"
             );
-            for (_, b) in &placed[i + 1..] {
-                assert!(!a.overlaps(b), "{a:?} and {b:?}");
+            for (j, b) in placed.iter().enumerate().filter(|&(j, _)| j != i) {
+                assert!(!a.at.overlaps(&b.at), "{a:?} and {b:?}");
+                assert!(
+                    !b.at.crossed_by(a.point, a.at.leader_end(a.point)),
+                    "the leader of {i} crosses label {j}"
+                );
             }
         }
+        // A label is its row's number only where it found no place.
+        assert!(keyed.len() < 11, "{keyed:?}");
+        for (i, label) in placed.iter().enumerate() {
+            let expected = if keyed.contains(&i) {
+                (i + 1).to_string()
+            } else {
+                names[i].clone()
+            };
+            assert_eq!(label.text, expected);
+        }
+    }
+
+    #[test]
+    fn a_leader_line_ends_on_the_near_side_of_its_label() {
+        let label = LabelBox {
+            x0: 10.0,
+            y0: 0.0,
+            x1: 50.0,
+            y1: 13.0,
+        };
+        assert_eq!(label.leader_end((0.0, 6.5)), (10.0, 6.5));
+        assert_eq!(label.leader_end((60.0, 20.0)), (50.0, 13.0));
+        assert_eq!(label.leader_end((30.0, -9.0)), (30.0, 0.0));
+        assert!(label.crossed_by((0.0, 6.5), (60.0, 6.5)));
+        assert!(!label.crossed_by((0.0, 6.5), (10.0, 6.5)));
+        assert!(!label.crossed_by((0.0, -1.0), (60.0, -1.0)));
     }
 }
 

@@ -62,17 +62,18 @@ fn chunk_shadows_of(
 
 /// The masks the chunk files hold now, per caster id: per group where an
 /// instance's `<shadow>` has its model's shape, else the instance mask for
-/// every group; 0 where there is none, and for receiver-only instances. A
-/// chunk that cannot be read back is an error naming it.
-pub fn masks_from_chunks(scene: &Scene, casters: &CasterTable) -> Result<Vec<u32>> {
+/// every group; `None` where the chunk holds no `<shadow>` for the caster
+/// (never baked), and for receiver-only instances. A chunk that cannot be
+/// read back is an error naming it.
+pub fn masks_from_chunks(scene: &Scene, casters: &CasterTable) -> Result<Vec<Option<u32>>> {
     let per_chunk: Vec<Vec<(u32, u32)>> = scene
         .chunks
         .par_iter()
         .map(|chunk| chunk_masks(scene, casters, chunk))
         .collect::<Result<_>>()?;
-    let mut masks = vec![0u32; casters.casters.len()];
+    let mut masks = vec![None; casters.casters.len()];
     for (id, mask) in per_chunk.into_iter().flatten() {
-        masks[id as usize] = mask;
+        masks[id as usize] = Some(mask);
     }
     Ok(masks)
 }
@@ -139,7 +140,8 @@ fn instance_casters(scene: &Scene, instance: &crate::scene::Instance) -> usize {
         .sum()
 }
 
-/// One chunk file's new content and where it goes.
+/// One chunk file's new content and where it goes (or, under `--out`,
+/// the space's `space.settings`: [`space_settings_output`]).
 #[derive(Debug, Clone)]
 pub struct ChunkOutput {
     pub source: PathBuf,
@@ -251,6 +253,33 @@ fn chunk_output(
     Ok((output, kept))
 }
 
+/// The space's `space.settings` copied under `out_dir` beside the chunks
+/// (the same bytes, at its path relative to its res root), so the copy is
+/// a res root of the space: with the original root after it in the res
+/// paths, it is found first and its chunks are the ones read.
+pub fn space_settings_output(
+    scene: &Scene,
+    res_paths: &ResPaths,
+    out_dir: &Path,
+) -> Result<ChunkOutput> {
+    let source = scene.space_dir.join("space.settings");
+    let bytes = files::read_file(&source)?;
+    let (_, relative) = res_paths.relative(&source).ok_or_else(|| {
+        Error::invalid(
+            &source,
+            "is not under any res path, so it has no place under --out",
+        )
+    })?;
+    let target = out_dir.join(relative);
+    let changed = files::read_file(&target).map_or(true, |old| old != bytes);
+    Ok(ChunkOutput {
+        source,
+        target,
+        bytes,
+        changed,
+    })
+}
+
 /// Writes the outputs that change something, as one batch
 /// ([`files::write_files_beside`]): every target is checked before
 /// anything is written (a read-only chunk fails the batch, naming every such
@@ -258,17 +287,17 @@ fn chunk_output(
 /// rename, each counted in [`Phase::Writing`] of `progress`, and stale
 /// temporary files of killed runs are removed beside every output,
 /// unchanged ones too. Returns how many files were written.
-pub fn write_outputs(outputs: &[ChunkOutput], progress: &dyn Progress) -> Result<usize> {
-    let batch: Vec<(&Path, &[u8])> = outputs
+pub fn write_outputs<'a>(
+    outputs: impl IntoIterator<Item = &'a ChunkOutput>,
+    progress: &dyn Progress,
+) -> Result<usize> {
+    let (changed, unchanged): (Vec<&ChunkOutput>, Vec<&ChunkOutput>) =
+        outputs.into_iter().partition(|o| o.changed);
+    let batch: Vec<(&Path, &[u8])> = changed
         .iter()
-        .filter(|o| o.changed)
         .map(|o| (o.target.as_path(), o.bytes.as_slice()))
         .collect();
-    let unchanged: Vec<&Path> = outputs
-        .iter()
-        .filter(|o| !o.changed)
-        .map(|o| o.target.as_path())
-        .collect();
+    let unchanged: Vec<&Path> = unchanged.iter().map(|o| o.target.as_path()).collect();
     let counter = Counter::begin(progress, Phase::Writing, None, batch.len() as u64);
     files::write_files_beside(&batch, &unchanged, &mut || counter.add(1))?;
     counter.finish();

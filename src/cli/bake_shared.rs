@@ -244,15 +244,24 @@ pub fn write_results(
         reporter,
     )?;
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
+    // A copy under --out holds the space's settings too, so that it is a
+    // res root of the space (`--res-path DIR` then reads the baked chunks).
+    let space_settings = match &output_args.out {
+        Some(dir) if !options.pipeline.writes_nothing() => {
+            Some(output::space_settings_output(scene, &res_paths, dir)?)
+        }
+        _ => None,
+    };
     let written = if options.pipeline.writes_nothing() {
         Vec::new()
     } else {
-        output::write_outputs(&outputs, reporter)?;
+        output::write_outputs(outputs.iter().chain(&space_settings), reporter)?;
         changed
             .iter()
             .map(|o| o.target.display().to_string())
             .collect()
     };
+    let wrote_space_settings = space_settings.is_some_and(|o| o.changed);
     let to_stdout = output_args.report.as_deref() == Some(Path::new("-"));
     if let Some(path) = &output_args.report {
         let mut report = output::report(scene, &result);
@@ -277,7 +286,10 @@ pub fn write_results(
         &result,
         &outputs,
         &changed,
-        written.len(),
+        Written {
+            chunks: written.len(),
+            space_settings: wrote_space_settings,
+        },
     );
     if to_stdout {
         for line in summary.lines() {
@@ -295,6 +307,13 @@ pub fn write_results(
     Ok(())
 }
 
+/// What a bake wrote, for its closing line.
+struct Written {
+    chunks: usize,
+    /// `space.settings` was copied under `--out`.
+    space_settings: bool,
+}
+
 /// The per-light table, the files that would change (`--dry-run`,
 /// `--check`) and the closing line.
 fn summary(
@@ -304,7 +323,7 @@ fn summary(
     result: &BakeResult,
     outputs: &[output::ChunkOutput],
     changed: &[&output::ChunkOutput],
-    written: usize,
+    written: Written,
 ) -> String {
     let (config, started) = (results.config, results.started);
     use std::fmt::Write as _;
@@ -355,10 +374,15 @@ fn summary(
     }
     let _ = writeln!(
         out,
-        "{} {} of {} chunk files{}; {:.2} s in all",
+        "{} {} of {} chunk files{}{}; {:.2} s in all",
         if dry { "would change" } else { "wrote" },
-        if dry { changed.len() } else { written },
+        if dry { changed.len() } else { written.chunks },
         outputs.len(),
+        if written.space_settings {
+            " and space.settings"
+        } else {
+            ""
+        },
         match &output_args.out {
             Some(dir) => format!(" under {}", dir.display()),
             None => " in place".to_string(),

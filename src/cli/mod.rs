@@ -175,9 +175,12 @@ fn run(cli: Cli) -> Result<()> {
                 }
                 Ok::<(), shadowcull::error::Error>(())
             })?;
+            // A command that works as this program was run: not every
+            // user has it on PATH.
             println!(
-                "wrote {written} files to {}; bake it with: shadowcull bake {}",
+                "wrote {written} files to {}; bake it with: {} bake {}",
                 dir.display(),
+                files::Invocation::of_this_program("shadowcull").command(),
                 dir.join("bake.xml").display()
             );
             Ok(())

@@ -142,11 +142,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let legend_path = args.output.with_extension("txt");
     let legend = picture.legend(&command_line());
     files::write_atomic(&legend_path, legend.as_bytes())?;
-    let [useful, culled, terrain_useful, terrain_culled, receiver, nothing] = picture.counts();
+    let [useful, culled, terrain_useful, terrain_culled, no_mask, receiver, nothing] =
+        picture.counts();
     println!(
-        "wrote {} ({} × {}) and {}: light `{}`: {} useful / {} culled casters; pixels: {useful} useful, \
-         {culled} culled, {terrain_useful} useful terrain, {terrain_culled} culled terrain, \
-         {receiver} receiver-only, {nothing} nothing",
+        "wrote {} ({} × {}) and {}: light `{}`: {} useful / {} culled / {} no-mask casters; pixels: \
+         {useful} useful, {culled} culled, {terrain_useful} useful terrain, {terrain_culled} culled \
+         terrain, {no_mask} no mask, {receiver} receiver-only, {nothing} nothing",
         args.output.display(),
         picture.width,
         picture.height,
@@ -154,6 +155,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         picture.light.name,
         picture.light.useful_casters,
         picture.light.culled_casters,
+        picture.light.no_mask_casters,
     );
     Ok(())
 }

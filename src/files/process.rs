@@ -1,7 +1,9 @@
 //! What the system says about processes: this host's name, whether a
-//! process still runs, and this process's resident memory.
+//! process still runs, this process's resident memory, and how a shell
+//! runs this program again.
 
-use std::path::Path;
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// This machine's name as it appears in temporary file names: the host
@@ -79,9 +81,104 @@ pub fn resident_memory() -> ResidentMemory {
     }
 }
 
+/// How a shell runs this program again, for the commands it suggests.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Invocation {
+    /// `PATH` finds this very program under its name.
+    OnPath(String),
+    /// A cargo build (it lies in a profile folder of a `target` folder):
+    /// `cargo run --release --` from the checkout.
+    Cargo,
+    /// Neither: its full path.
+    Path(PathBuf),
+}
+
+impl Invocation {
+    /// How to run this program, known to users as `name`.
+    pub fn of_this_program(name: &str) -> Invocation {
+        match std::env::current_exe() {
+            Ok(exe) => Invocation::find(name, &exe, std::env::var_os("PATH").as_deref()),
+            Err(_) => Invocation::OnPath(name.to_string()),
+        }
+    }
+
+    /// How to run the program `exe` given the search path `path_var`: its
+    /// `name` when a folder of the path holds `name` leading to `exe`
+    /// itself (another program of that name does not count).
+    fn find(name: &str, exe: &Path, path_var: Option<&OsStr>) -> Invocation {
+        let exe = std::fs::canonicalize(exe).unwrap_or_else(|_| exe.to_path_buf());
+        let on_path = path_var
+            .into_iter()
+            .flat_map(std::env::split_paths)
+            .any(|dir| std::fs::canonicalize(dir.join(name)).is_ok_and(|found| found == exe));
+        if on_path {
+            return Invocation::OnPath(name.to_string());
+        }
+        // `target/PROFILE/NAME` or `target/TRIPLE/PROFILE/NAME`.
+        let in_target = [2, 3]
+            .into_iter()
+            .any(|up| exe.ancestors().nth(up).and_then(Path::file_name) == Some("target".as_ref()));
+        if in_target {
+            Invocation::Cargo
+        } else {
+            Invocation::Path(exe)
+        }
+    }
+
+    /// The words a shell runs the program with, before its arguments.
+    pub fn command(&self) -> String {
+        match self {
+            Invocation::OnPath(name) => name.clone(),
+            Invocation::Cargo => "cargo run --release --".to_string(),
+            Invocation::Path(path) => {
+                let path = path.display().to_string();
+                let plain = |c: char| c.is_ascii_alphanumeric() || "/._-+,:@%".contains(c);
+                if path.chars().all(plain) {
+                    path
+                } else {
+                    format!("'{}'", path.replace('\'', "'\\''"))
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(unix)]
+    #[test]
+    fn a_program_is_run_by_name_from_path_through_cargo_or_by_its_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::fs::canonicalize(dir.path()).unwrap();
+        let exe = root.join("target/release/tool");
+        let other = root.join("elsewhere/tool");
+        for file in [&exe, &other] {
+            crate::files::write_atomic(file, b"").unwrap();
+        }
+        std::fs::create_dir(root.join("bin")).unwrap();
+        std::os::unix::fs::symlink(&exe, root.join("bin/tool")).unwrap();
+        let search =
+            |dirs: &[&str]| std::env::join_paths(dirs.iter().map(|d| root.join(d))).unwrap();
+        let find = |exe: &Path, dirs: &[&str]| Invocation::find("tool", exe, Some(&search(dirs)));
+        assert_eq!(
+            find(&exe, &["none", "bin"]),
+            Invocation::OnPath("tool".into())
+        );
+        assert_eq!(find(&exe, &["elsewhere"]), Invocation::Cargo);
+        assert_eq!(Invocation::find("tool", &exe, None), Invocation::Cargo);
+        assert_eq!(find(&other, &["bin"]), Invocation::Path(other.clone()));
+        let triple = root.join("target/x86_64-unknown-linux-gnu/debug/tool");
+        crate::files::write_atomic(&triple, b"").unwrap();
+        assert_eq!(find(&triple, &[]), Invocation::Cargo);
+        assert_eq!(Invocation::OnPath("tool".into()).command(), "tool");
+        assert_eq!(Invocation::Cargo.command(), "cargo run --release --");
+        assert_eq!(
+            Invocation::Path("/opt/my tools/it's".into()).command(),
+            "'/opt/my tools/it'\\''s'"
+        );
+    }
 
     #[test]
     fn host_names_are_file_name_safe() {

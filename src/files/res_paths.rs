@@ -104,6 +104,30 @@ impl ResPaths {
         })
     }
 
+    /// The file `name` that a file in `dir` names relative to its own
+    /// folder (a chunk's terrain `.cdata`): in `dir` itself (or its bare name
+    /// there, [`in_folder_or_bare`]); when neither is there, resource
+    /// `folder/name` (then `folder/BARE`) through the roots in order, as the
+    /// engine's resource manager finds it, `folder` being `dir`'s resource
+    /// name. So the chunks of a copy that holds only chunks (`bake --out`)
+    /// find their terrain in a root after it. Found nowhere: the path in
+    /// `dir`, whose read says what is missing. A file whose links lead
+    /// outside every root is refused.
+    pub fn beside(&self, dir: &Path, folder: &str, name: &str) -> Result<PathBuf> {
+        let local = in_folder_or_bare(dir, name);
+        // `metadata` opens nothing: a FIFO here is refused by the read.
+        if fs::metadata(&local).is_err() {
+            let bare = Path::new(name).file_name().and_then(|n| n.to_str());
+            for candidate in [Some(name), bare].into_iter().flatten() {
+                if let Some(found) = self.locate(&format!("{folder}/{candidate}"))? {
+                    return Ok(found);
+                }
+            }
+        }
+        self.check_inside(&local)?;
+        Ok(local)
+    }
+
     /// Reads resource `name`; `referenced_by` is the file that named it, for
     /// the error.
     pub fn read(&self, name: &str, referenced_by: &Path) -> Result<(PathBuf, Vec<u8>)> {
@@ -188,6 +212,37 @@ mod tests {
         );
     }
 
+    #[test]
+    fn a_file_beside_is_looked_up_in_its_folder_then_through_the_roots() {
+        let copy = tempfile::tempdir().unwrap();
+        let first = tempfile::tempdir().unwrap();
+        let second = tempfile::tempdir().unwrap();
+        let paths = ResPaths::new(vec![
+            copy.path().into(),
+            first.path().into(),
+            second.path().into(),
+        ]);
+        let dir = copy.path().join("spaces/a");
+        write_atomic(&second.path().join("spaces/a/t.cdata"), b"2").unwrap();
+        write_atomic(&second.path().join("spaces/a/u.cdata"), b"2").unwrap();
+        write_atomic(&first.path().join("spaces/a/u.cdata"), b"1").unwrap();
+        let found = |name: &str| paths.beside(&dir, "spaces/a", name).unwrap();
+        // Not in the chunk's folder: the roots in order.
+        assert_eq!(found("t.cdata"), second.path().join("spaces/a/t.cdata"));
+        assert_eq!(found("u.cdata"), first.path().join("spaces/a/u.cdata"));
+        // A name with the space folder before it: its bare name.
+        assert_eq!(
+            found("spaces/a/u.cdata"),
+            first.path().join("spaces/a/u.cdata")
+        );
+        // In the chunk's folder: that one.
+        write_atomic(&dir.join("u.cdata"), b"0").unwrap();
+        assert_eq!(found("u.cdata"), dir.join("u.cdata"));
+        // Nowhere: the path in the chunk's folder, whose read fails.
+        assert_eq!(found("v.cdata"), dir.join("v.cdata"));
+        assert!(read_file(&found("v.cdata")).is_err());
+    }
+
     #[cfg(unix)]
     #[test]
     fn links_out_of_the_res_paths_are_refused() {
@@ -218,5 +273,14 @@ mod tests {
             paths.read("sets/c.model", Path::new("c.chunk")).unwrap().1,
             b"inside"
         );
+        // A file beside a chunk is held to the roots alike, wherever the
+        // lookup finds it.
+        let copy = tempfile::tempdir().unwrap();
+        let paths = ResPaths::new(vec![copy.path().into(), root.path().into()]);
+        let message = paths
+            .beside(&copy.path().join("sets"), "sets", "b.model")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("outside every res path"), "{message}");
     }
 }

@@ -32,7 +32,8 @@ use crate::light::GridError;
 /// The colours' origin, named in every legend.
 pub const PALETTE: &str =
     "Okabe-Ito (Okabe & Ito 2008): blue / orange and bluish green / reddish purple stay \
-distinct with red-green colour blindness (protanopia, deuteranopia)";
+distinct with red-green colour blindness (protanopia, deuteranopia); yellow, the \
+palette's lightest, marks casters without a mask";
 
 /// Largest picture side either view draws: a 16384² RGB buffer is 800 MB.
 pub const MAX_SIDE: u32 = 16384;
@@ -47,6 +48,10 @@ pub enum Class {
     Culled,
     TerrainUseful,
     TerrainCulled,
+    /// A model group or terrain block whose chunk holds no `<shadow>` for
+    /// it (never baked): neither useful nor culled, since the game casts
+    /// its shadow for every light.
+    NoMask,
     /// A group of a `castsShadow` false instance: hit, never a caster.
     ReceiverOnly,
     /// No surface (light view: no hit that counts; camera view: sky).
@@ -54,24 +59,27 @@ pub enum Class {
 }
 
 impl Class {
-    pub const ALL: [Class; 6] = [
+    pub const ALL: [Class; 7] = [
         Class::Useful,
         Class::Culled,
         Class::TerrainUseful,
         Class::TerrainCulled,
+        Class::NoMask,
         Class::ReceiverOnly,
         Class::Nothing,
     ];
 
     /// Full-brightness colour; pixels are this times a shade in (0, 1], so
     /// the hue identifies the class. Terrain gets warm tints of its own so a
-    /// green or red model stands out against the ground.
+    /// green or red model stands out against the ground. No mask is the
+    /// palette's yellow: the lightest colour, apart from every verdict's.
     pub fn colour(self) -> [u8; 3] {
         match self {
             Class::Useful => [0, 114, 178],
             Class::Culled => [230, 159, 0],
             Class::TerrainUseful => [0, 158, 115],
             Class::TerrainCulled => [204, 121, 167],
+            Class::NoMask => [240, 228, 66],
             Class::ReceiverOnly => [165, 165, 165],
             Class::Nothing => [0, 0, 0],
         }
@@ -83,20 +91,31 @@ impl Class {
             Class::Culled => "culled caster (orange)",
             Class::TerrainUseful => "useful terrain (bluish green)",
             Class::TerrainCulled => "culled terrain (reddish purple)",
+            Class::NoMask => "no mask, not baked (yellow)",
             Class::ReceiverOnly => "receiver-only (grey)",
             Class::Nothing => "nothing (black; camera: dark blue sky)",
         }
     }
 
-    fn of(caster: &Caster, useful: bool) -> Class {
-        match (caster.receiver_only, caster.is_terrain(), useful) {
+    fn of(caster: &Caster, verdict: Verdict) -> Class {
+        match (caster.receiver_only, caster.is_terrain(), verdict) {
             (true, _, _) => Class::ReceiverOnly,
-            (false, true, true) => Class::TerrainUseful,
-            (false, true, false) => Class::TerrainCulled,
-            (false, false, true) => Class::Useful,
-            (false, false, false) => Class::Culled,
+            (false, _, Verdict::NoMask) => Class::NoMask,
+            (false, true, Verdict::Useful) => Class::TerrainUseful,
+            (false, true, Verdict::Culled) => Class::TerrainCulled,
+            (false, false, Verdict::Useful) => Class::Useful,
+            (false, false, Verdict::Culled) => Class::Culled,
         }
     }
+}
+
+/// What a caster's mask says for the light.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Verdict {
+    Useful,
+    Culled,
+    /// The chunk file holds no mask for the caster.
+    NoMask,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -122,6 +141,9 @@ pub struct LightSummary {
     pub kind: &'static str,
     pub useful_casters: usize,
     pub culled_casters: usize,
+    /// Casters whose chunk holds no mask for them (only when the verdicts
+    /// come from the chunk files).
+    pub no_mask_casters: usize,
     pub receiver_only_groups: usize,
     /// Every culled caster: `chunk model INDEX RESOURCE group G` or
     /// `chunk terrain`, in caster id order.
@@ -136,8 +158,9 @@ pub enum Source<'a> {
     /// A bake of the light alone (nothing written).
     Bake,
     /// Masks already in the chunk files (`output::masks_from_chunks`),
-    /// per caster id, read at the light's bit.
-    ChunkMasks { masks: &'a [u32], bit: u32 },
+    /// per caster id (`None`: the chunk holds none for it), read at the
+    /// light's bit.
+    ChunkMasks { masks: &'a [Option<u32>], bit: u32 },
 }
 
 /// A rendered picture: `rgb` is `width × height × 3` bytes, rows top to
@@ -155,8 +178,8 @@ pub struct Picture {
 
 impl Picture {
     /// Pixels per class, in [`Class::ALL`] order.
-    pub fn counts(&self) -> [u64; 6] {
-        let mut counts = [0u64; 6];
+    pub fn counts(&self) -> [u64; Class::ALL.len()] {
+        let mut counts = [0u64; Class::ALL.len()];
         for class in &self.classes {
             if let Some(i) = Class::ALL.iter().position(|c| c == class) {
                 counts[i] += 1;
@@ -169,12 +192,14 @@ impl Picture {
     /// colour, how it was drawn, and `command` (how to make it again).
     pub fn legend(&self, command: &str) -> String {
         let mut out = format!(
-            "light `{}` ({})\nbake verdicts: {} useful casters, {} culled casters, {} receiver-only groups\n\
+            "light `{}` ({})\nbake verdicts: {} useful casters, {} culled casters, {} casters without a mask, \
+             {} receiver-only groups\n\
              picture: {} × {} pixels\n\npixels per colour (RGB at full brightness):\n",
             self.light.name,
             self.light.kind,
             self.light.useful_casters,
             self.light.culled_casters,
+            self.light.no_mask_casters,
             self.light.receiver_only_groups,
             self.width,
             self.height
@@ -191,6 +216,10 @@ impl Picture {
             );
         }
         out += &format!("palette: {PALETTE}\n\n");
+        if self.light.no_mask_casters > 0 {
+            out += "no mask: the chunk file holds no <shadow> for the caster (never baked, or \
+                    placed since the last bake); the game casts its shadow for every light\n";
+        }
         for note in &self.notes {
             out += note;
             out += "\n";
@@ -253,24 +282,26 @@ fn verdicts(
         Err(NoSetup::Grid(err)) => return Err(err.into()),
         Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
-    let useful = match source {
-        Source::Bake => useful,
-        Source::ChunkMasks { masks, bit } => {
-            let mut set = CasterSet::new(casters.len());
-            for (id, caster) in casters.casters.iter().enumerate() {
-                let mask = masks.get(id).copied().unwrap_or(0);
-                if !caster.receiver_only && mask & 1u32.wrapping_shl(bit) != 0 {
-                    set.insert(id as u32);
-                }
-            }
-            set
+    let verdict_of = |id: usize| -> Verdict {
+        let useful_here = match source {
+            Source::Bake => Some(useful.contains(id as u32)),
+            Source::ChunkMasks { masks, bit } => masks
+                .get(id)
+                .copied()
+                .flatten()
+                .map(|mask| mask & 1u32.wrapping_shl(bit) != 0),
+        };
+        match useful_here {
+            Some(true) => Verdict::Useful,
+            Some(false) => Verdict::Culled,
+            None => Verdict::NoMask,
         }
     };
     let classes: Vec<Class> = casters
         .casters
         .iter()
         .enumerate()
-        .map(|(id, caster)| Class::of(caster, useful.contains(id as u32)))
+        .map(|(id, caster)| Class::of(caster, verdict_of(id)))
         .collect();
     let culled = casters
         .casters
@@ -279,15 +310,15 @@ fn verdicts(
         .filter(|(_, class)| matches!(class, Class::Culled | Class::TerrainCulled))
         .map(|(caster, _)| describe(world, caster))
         .collect();
-    let useful_casters = useful.len();
-    let receiver_only_groups = casters.casters.iter().filter(|c| c.receiver_only).count();
+    let count = |wanted: &[Class]| classes.iter().filter(|c| wanted.contains(c)).count();
     let verdicts = Verdicts {
         light: LightSummary {
             name: settings.name.clone(),
             kind: settings.kind.type_name(),
-            useful_casters,
-            culled_casters: casters.real_casters() - useful_casters,
-            receiver_only_groups,
+            useful_casters: count(&[Class::Useful, Class::TerrainUseful]),
+            culled_casters: count(&[Class::Culled, Class::TerrainCulled]),
+            no_mask_casters: count(&[Class::NoMask]),
+            receiver_only_groups: count(&[Class::ReceiverOnly]),
             culled,
             source: match source {
                 Source::Bake => "a bake of this light alone (nothing written)".into(),
@@ -398,11 +429,16 @@ mod tests {
             receiver_only: true,
             ..group
         };
-        assert_eq!(Class::of(&group, true), Class::Useful);
-        assert_eq!(Class::of(&group, false), Class::Culled);
-        assert_eq!(Class::of(&terrain, true), Class::TerrainUseful);
-        assert_eq!(Class::of(&terrain, false), Class::TerrainCulled);
-        assert_eq!(Class::of(&receiver, true), Class::ReceiverOnly);
+        assert_eq!(Class::of(&group, Verdict::Useful), Class::Useful);
+        assert_eq!(Class::of(&group, Verdict::Culled), Class::Culled);
+        assert_eq!(Class::of(&terrain, Verdict::Useful), Class::TerrainUseful);
+        assert_eq!(Class::of(&terrain, Verdict::Culled), Class::TerrainCulled);
+        assert_eq!(Class::of(&receiver, Verdict::Useful), Class::ReceiverOnly);
+        // Without a mask a caster is neither useful nor culled; a
+        // receiver-only instance stays what it is.
+        assert_eq!(Class::of(&group, Verdict::NoMask), Class::NoMask);
+        assert_eq!(Class::of(&terrain, Verdict::NoMask), Class::NoMask);
+        assert_eq!(Class::of(&receiver, Verdict::NoMask), Class::ReceiverOnly);
     }
 
     #[test]

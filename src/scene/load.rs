@@ -80,7 +80,8 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         terrain_jobs,
     } = loader.place_chunks(&by_name, &settings, &model_names);
     let region = SpaceRegion::of(&settings);
-    let terrain = loader.load_terrain_blocks(terrain_jobs, &settings, &region, &mut chunks);
+    let terrain =
+        loader.load_terrain_blocks(terrain_jobs, &space_dir, &settings, &region, &mut chunks);
     // Instances are held to the terrain's heights, known only now.
     let region = region.around_terrain(&terrain);
     let Loader {
@@ -442,6 +443,7 @@ impl Loader<'_> {
     fn load_terrain_blocks(
         &mut self,
         jobs: Vec<TerrainJob>,
+        space_dir: &Path,
         settings: &space_settings::SpaceSettings,
         region: &SpaceRegion,
         chunks: &mut [Chunk],
@@ -451,14 +453,8 @@ impl Loader<'_> {
         let blocks: Vec<(usize, Result<TerrainBlock>)> = jobs
             .into_par_iter()
             .map(|job| {
-                let block = load_terrain(
-                    res_paths,
-                    log,
-                    &job.chunk_path,
-                    &job.resource,
-                    job.transform.w_axis.truncate(),
-                    settings.chunk_size,
-                );
+                let folder = chunk_folder(&self.config.space, space_dir, &job.chunk_path);
+                let block = load_terrain(res_paths, log, &job, &folder, settings.chunk_size);
                 counter.add(1);
                 (job.chunk, block)
             })
@@ -618,17 +614,34 @@ fn world_box(m: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
         )
 }
 
+/// The resource name of the folder a chunk lies in: the space's, or a
+/// folder below it.
+fn chunk_folder(space: &str, space_dir: &Path, chunk_path: &Path) -> String {
+    let space = files::normalise(space);
+    let below = chunk_path
+        .parent()
+        .and_then(|dir| dir.strip_prefix(space_dir).ok())
+        .filter(|below| !below.as_os_str().is_empty());
+    match below {
+        Some(below) => format!("{space}/{}", files::normalise(&below.to_string_lossy())),
+        None => space,
+    }
+}
+
 /// A chunk's terrain resource (`xxx.cdata/terrain2`) is relative to the
-/// chunk's folder; like every resource it must stay inside the res paths.
+/// chunk's folder, whose resource name is `folder`: the file in the chunk's
+/// own folder, else `folder/xxx.cdata` in the first res path holding it
+/// (`ResPaths::beside`); like every resource it must stay inside the res
+/// paths.
 fn load_terrain(
     res_paths: &ResPaths,
     log: &ReadLog,
-    chunk_path: &Path,
-    resource: &str,
-    origin: DVec3,
+    job: &TerrainJob,
+    folder: &str,
     chunk_size: f64,
 ) -> Result<TerrainBlock> {
-    let resource = files::normalise(resource);
+    let (chunk_path, origin) = (&job.chunk_path, job.transform.w_axis.truncate());
+    let resource = files::normalise(&job.resource);
     let Some((file, entry)) = resource
         .split_once(".cdata/")
         .map(|(stem, entry)| (format!("{stem}.cdata"), entry.to_string()))
@@ -645,8 +658,7 @@ fn load_terrain(
         ));
     }
     let dir = chunk_path.parent().unwrap_or(Path::new("."));
-    let cdata_path = files::in_folder_or_bare(dir, &file);
-    res_paths.check_inside(&cdata_path)?;
+    let cdata_path = res_paths.beside(dir, folder, &file)?;
     let bytes = files::read_file(&cdata_path)?;
     log.record(&cdata_path, &bytes);
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;

@@ -166,3 +166,87 @@ fn xcheck_without_the_raster_feature_says_how_to_build_it() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("--features raster"), "{stderr}");
 }
+
+/// `gen` ends with a bake command that runs this very program: its name
+/// when `PATH` finds it under that name, `cargo run` from a cargo target
+/// folder, else its full path.
+#[cfg(unix)]
+#[test]
+fn gen_suggests_a_bake_command_that_runs_this_program() {
+    use std::os::unix::fs::PermissionsExt;
+    use std::path::Path;
+    let dir = tempfile::tempdir().unwrap();
+    let world = dir.path().join("world");
+    let bake_xml = world.join("bake.xml").display().to_string();
+    let suggestion = |program: &Path, path_var: &Path| -> String {
+        let run = || {
+            Command::new(program)
+                .args(["gen", world.to_str().unwrap(), "--preset", "small"])
+                .env("PATH", path_var)
+                .output()
+        };
+        // A copy just written may still be open in a child another test
+        // forked before that child's exec closed it.
+        let mut output = run();
+        for _ in 0..50 {
+            match &output {
+                Err(e) if e.raw_os_error() == Some(26) => {
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                    output = run();
+                }
+                _ => break,
+            }
+        }
+        let output = output.unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let said = String::from_utf8(output.stdout).unwrap();
+        let line = said.lines().last().unwrap_or_default();
+        line.split("bake it with: ")
+            .nth(1)
+            .unwrap_or_else(|| panic!("{said}"))
+            .to_string()
+    };
+    let built = Path::new(env!("CARGO_BIN_EXE_shadowcull"));
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    // Built by cargo, not on PATH.
+    assert_eq!(
+        suggestion(built, &empty),
+        format!("cargo run --release -- bake {bake_xml}")
+    );
+    // On PATH under its name (a link to this program).
+    let bin = dir.path().join("bin");
+    std::fs::create_dir(&bin).unwrap();
+    std::os::unix::fs::symlink(built, bin.join("shadowcull")).unwrap();
+    assert_eq!(
+        suggestion(built, &bin),
+        format!("shadowcull bake {bake_xml}")
+    );
+    // Another program of that name on PATH is not this one.
+    let other = dir.path().join("other");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("shadowcull"), "#!/bin/sh\nexit 0\n").unwrap();
+    std::fs::set_permissions(
+        other.join("shadowcull"),
+        std::fs::Permissions::from_mode(0o755),
+    )
+    .unwrap();
+    assert_eq!(
+        suggestion(built, &other),
+        format!("cargo run --release -- bake {bake_xml}")
+    );
+    // A copy outside any cargo target folder, not on PATH: its own path.
+    let tools = dir.path().join("tools");
+    std::fs::create_dir(&tools).unwrap();
+    let copy = tools.join("shadowcull");
+    std::fs::copy(built, &copy).unwrap();
+    let copy = copy.canonicalize().unwrap();
+    assert_eq!(
+        suggestion(&copy, &other),
+        format!("{} bake {bake_xml}", copy.display())
+    );
+}

@@ -754,10 +754,11 @@ fn progress_json_lines_parse_and_lines_carry_time_light_and_eta() {
     assert!(written.status.success(), "{stderr}");
     let events = json_events(&written.stderr);
     let objects = events_named(&events, "progress");
-    for phase in ["output", "writing"] {
+    // Writing under --out counts space.settings too.
+    for (phase, files) in [("output", 4), ("writing", 5)] {
         let of: Vec<&&Value> = objects.iter().filter(|o| o["phase"] == phase).collect();
         assert!(
-            of.iter().any(|o| o["total"] == 4 && o["done"] == 4),
+            of.iter().any(|o| o["total"] == files && o["done"] == files),
             "{phase}: {stderr}"
         );
         assert!(
@@ -1280,15 +1281,18 @@ fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
         args.extend_from_slice(extra);
         let out = run(&args);
         assert!(out.status.success(), "{}", text(&out.stderr));
-        std::fs::read_to_string(&legend_path).unwrap()
+        (
+            text(&out.stdout),
+            std::fs::read_to_string(&legend_path).unwrap(),
+        )
     };
-    // Nothing baked yet: the chunks hold no masks, so every caster is culled.
-    let unbaked = render(&["--from-chunks"]);
+    // Nothing baked yet: the chunks hold no masks, so no caster is useful
+    // or culled; each is "no mask", counted and coloured as such.
+    let (said, unbaked) = render(&["--from-chunks"]);
     assert!(
         unbaked.contains("from the masks in the chunk files (bit 2"),
         "{unbaked}"
     );
-    assert!(unbaked.contains("0 useful casters"), "{unbaked}");
     let report = dir.path().join("r.json");
     let bake = run(&[
         "bake",
@@ -1302,11 +1306,43 @@ fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
     let point = &report["lights"][2];
     let culled = point["culled_casters"].as_u64().unwrap();
     let useful = point["useful_casters"].as_u64().unwrap();
-    let baked = render(&["--from-chunks"]);
+    let casters = useful + culled;
     assert!(
-        baked.contains(&format!("{useful} useful casters, {culled} culled casters")),
+        unbaked.contains(&format!(
+            "0 useful casters, 0 culled casters, {casters} casters without a mask"
+        )),
+        "{unbaked}"
+    );
+    assert!(
+        said.contains(&format!("0 useful / 0 culled / {casters} no-mask casters")),
+        "{said}"
+    );
+    assert!(
+        unbaked.contains("culled casters (chunk, index, resource): 0\n"),
+        "{unbaked}"
+    );
+    let no_mask_pixels = |legend: &str| -> u64 {
+        let line = legend
+            .lines()
+            .find(|l| l.trim_start().starts_with("no mask"))
+            .unwrap_or_else(|| panic!("no `no mask` colour in the legend:\n{legend}"));
+        line.split_whitespace().last().unwrap().parse().unwrap()
+    };
+    assert!(no_mask_pixels(&unbaked) > 0, "{unbaked}");
+    let (said, baked) = render(&["--from-chunks"]);
+    assert!(
+        baked.contains(&format!(
+            "{useful} useful casters, {culled} culled casters, 0 casters without a mask"
+        )),
         "{baked}"
     );
+    assert!(
+        said.contains(&format!(
+            "{useful} useful / {culled} culled / 0 no-mask casters"
+        )),
+        "{said}"
+    );
+    assert_eq!(no_mask_pixels(&baked), 0, "{baked}");
     let listed = baked
         .split("culled casters (chunk, index, resource): ")
         .nth(1)
@@ -1324,6 +1360,121 @@ fn render_from_chunks_draws_the_written_masks_and_lists_culled_casters() {
     assert!(baked.contains("Okabe-Ito") && baked.contains("colour blindness"));
     assert!(baked.contains("each face is labelled"), "{baked}");
     // The bake's own verdicts agree with the masks it wrote.
-    let fresh = render(&[]);
+    let (_, fresh) = render(&[]);
     assert!(fresh.contains(&format!("{useful} useful casters, {culled} culled casters")));
+    // One chunk put back unbaked: its casters have no mask, every other
+    // caster keeps its verdict.
+    let unbaked_chunk = generate(Preset::Small, 1)
+        .files
+        .into_iter()
+        .find(|(path, _)| path.as_str() == CHUNK)
+        .unwrap()
+        .1;
+    std::fs::write(dir.path().join(CHUNK), unbaked_chunk).unwrap();
+    let (mut here, mut kept) = (0, [0, 0]);
+    for caster in report["casters"].as_array().unwrap() {
+        if caster["receiver_only"] == true {
+            continue;
+        }
+        let masks: Vec<u64> = match caster["groups"].as_array() {
+            Some(groups) => groups.iter().map(|g| g.as_u64().unwrap()).collect(),
+            None => vec![caster["mask"].as_u64().unwrap()],
+        };
+        if caster["chunk"] == "00000000o" {
+            here += masks.len();
+        } else {
+            for mask in masks {
+                kept[usize::from(mask & 4 == 0)] += 1;
+            }
+        }
+    }
+    assert!(here > 0 && kept[0] > 0 && kept[1] > 0, "{here} {kept:?}");
+    let (said, partly) = render(&["--from-chunks"]);
+    assert!(
+        said.contains(&format!(
+            "{} useful / {} culled / {here} no-mask casters",
+            kept[0], kept[1]
+        )),
+        "{said}"
+    );
+    assert!(!partly.contains("00000000o model"), "{partly}");
+}
+
+#[test]
+fn a_bake_out_copy_is_a_res_root_that_reads_before_the_original() {
+    let dir = small();
+    let settings_path = settings(&dir);
+    let original = dir.path().display().to_string();
+    let out = tempfile::tempdir().unwrap();
+    let copy = out.path().join("baked");
+    let copy_root = copy.display().to_string();
+    let report = out.path().join("r.json");
+    let bake = run(&[
+        "bake",
+        &settings_path,
+        "--quiet",
+        "--out",
+        &copy_root,
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(bake.status.success(), "{}", text(&bake.stderr));
+    let said = text(&bake.stdout);
+    assert!(
+        said.contains("chunk files and space.settings under"),
+        "{said}"
+    );
+    // The space's settings beside the chunks, byte for byte.
+    let space_settings = "spaces/small/space.settings";
+    assert_eq!(
+        std::fs::read(copy.join(space_settings)).unwrap(),
+        std::fs::read(dir.path().join(space_settings)).unwrap()
+    );
+    let point = &report_of(&report)["lights"][2];
+    let (useful, culled) = (
+        point["useful_casters"].as_u64().unwrap(),
+        point["culled_casters"].as_u64().unwrap(),
+    );
+    assert!(useful > 0);
+    // The copy first, the original root (models, terrain) after it.
+    let from_copy = ["--res-path", &copy_root, "--res-path", &original];
+    let picture = out.path().join("point.png");
+    let mut args = vec!["render", &settings_path, "--light", "point"];
+    args.extend(from_copy);
+    args.extend(["--from-chunks", "-o", picture.to_str().unwrap()]);
+    let render = run(&args);
+    assert!(render.status.success(), "{}", text(&render.stderr));
+    assert!(
+        text(&render.stdout).contains(&format!(
+            "{useful} useful / {culled} culled / 0 no-mask casters"
+        )),
+        "{}",
+        text(&render.stdout)
+    );
+    // The copy with the original loads without problems: each chunk's
+    // terrain is found as SPACE/NAME.cdata in the original root.
+    let mut args = vec!["inspect", &settings_path, "--json"];
+    args.extend(from_copy);
+    let inspect = run(&args);
+    assert!(inspect.status.success(), "{}", text(&inspect.stdout));
+    let inspected: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    assert_eq!(inspected["terrain_blocks"], 4, "{inspected}");
+    assert_eq!(inspected["problems"].as_array().map(Vec::len), Some(0));
+    assert!(
+        inspected["space"].as_str().unwrap().starts_with(&copy_root),
+        "{inspected}"
+    );
+    // A later bake of the copy finds its masks current.
+    let mut args = vec!["bake", &settings_path, "--check", "--quiet"];
+    args.extend(from_copy);
+    let check = run(&args);
+    assert!(check.status.success(), "{}", text(&check.stdout));
+    // Baking into the copy again changes nothing, space.settings included.
+    let again = run(&["bake", &settings_path, "--quiet", "--out", &copy_root]);
+    assert!(again.status.success(), "{}", text(&again.stderr));
+    assert!(
+        text(&again.stdout).contains("wrote 0 of 4 chunk files under"),
+        "{}",
+        text(&again.stdout)
+    );
 }

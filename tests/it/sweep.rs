@@ -5,7 +5,7 @@ use crate::generated::fixture_dir;
 use crate::micro::*;
 use glam::{DMat4, DVec3, Vec3};
 use shadowcull::gen::Preset;
-use shadowcull::sweep::{sweep, SweepConfig};
+use shadowcull::sweep::{ladder, sweep, Row, SweepConfig, SweepReport};
 use std::process::Command;
 
 #[test]
@@ -127,4 +127,234 @@ fn sweep_command_writes_csv_json_and_svg() {
     assert!(csv.starts_with("label,density,supersample"));
     let svg = std::fs::read_to_string(out.path().join("sweep.svg")).unwrap();
     assert!(svg.contains("false culls") && svg.contains("</svg>"));
+    assert_eq!(layout_problems(&svg), Vec::<String>::new(), "{svg}");
+}
+
+/// A report of the ladder with `seconds` and false culls per row (no
+/// false keeps), against a reference of density x8.
+fn report_of(rows: &[(f64, u64)]) -> SweepReport {
+    let row = |setting: shadowcull::sweep::Setting, (seconds, false_culls): (f64, u64)| Row {
+        label: setting.label(),
+        setting,
+        rays: 1000,
+        seconds,
+        false_culls,
+        false_keeps: 0,
+        false_culls_any_offset: false_culls,
+        false_keeps_any_offset: 0,
+        pairs: 549,
+    };
+    let ladder = ladder(&SweepConfig::default());
+    assert_eq!(ladder.len(), rows.len());
+    let reference = shadowcull::sweep::Setting {
+        density: 8.0,
+        refine_samples: 64,
+        ..ladder[0]
+    };
+    SweepReport {
+        reference: row(reference, (2.4, 0)),
+        offsets: Vec::new(),
+        rows: ladder
+            .into_iter()
+            .zip(rows.iter().copied())
+            .map(|(s, r)| row(s, r))
+            .collect(),
+    }
+}
+
+#[test]
+fn sweep_plot_keeps_its_legend_inside_and_its_labels_apart_near_zero() {
+    // Most rows at zero errors and a few hundredths of a second apart, as
+    // on the village: their labels crowd along the axis.
+    let village = [
+        (0.017, 102),
+        (0.048, 41),
+        (0.158, 9),
+        (0.214, 3),
+        (0.644, 0),
+        (0.241, 3),
+        (0.693, 0),
+        (0.055, 0),
+        (0.095, 0),
+        (0.166, 0),
+        (0.584, 0),
+        (0.474, 2),
+    ];
+    // Every row at zero, within a factor of two in time.
+    let all_zero: Vec<(f64, u64)> = (0..12).map(|i| (0.1 + 0.01 * i as f64, 0)).collect();
+    for rows in [&village[..], &all_zero] {
+        let svg = report_of(rows).to_svg();
+        assert_eq!(layout_problems(&svg), Vec::<String>::new(), "{svg}");
+    }
+}
+
+/// A box in SVG pixels.
+#[derive(Debug, Clone, Copy)]
+struct Extent {
+    x0: f64,
+    y0: f64,
+    x1: f64,
+    y1: f64,
+}
+
+impl Extent {
+    fn overlaps(&self, o: &Extent) -> bool {
+        self.x0 < o.x1 && o.x0 < self.x1 && self.y0 < o.y1 && o.y0 < self.y1
+    }
+
+    fn shrunk(&self, by: f64) -> Extent {
+        Extent {
+            x0: self.x0 + by,
+            y0: self.y0 + by,
+            x1: self.x1 - by,
+            y1: self.y1 - by,
+        }
+    }
+
+    /// Whether the segment a–b passes through the box (Liang–Barsky).
+    fn crossed_by(&self, (ax, ay): (f64, f64), (bx, by): (f64, f64)) -> bool {
+        let (dx, dy) = (bx - ax, by - ay);
+        let (mut t0, mut t1) = (0.0f64, 1.0f64);
+        for (p, q) in [
+            (-dx, ax - self.x0),
+            (dx, self.x1 - ax),
+            (-dy, ay - self.y0),
+            (dy, self.y1 - ay),
+        ] {
+            if p == 0.0 {
+                if q < 0.0 {
+                    return false;
+                }
+            } else if p < 0.0 {
+                t0 = t0.max(q / p);
+            } else {
+                t1 = t1.min(q / p);
+            }
+        }
+        t0 < t1
+    }
+}
+
+/// The value of attribute `name` in the tag `tag`.
+fn attribute<'a>(tag: &'a str, name: &str) -> Option<&'a str> {
+    let start = tag.find(&format!(" {name}=\""))? + name.len() + 3;
+    tag[start..].split('"').next()
+}
+
+fn number(tag: &str, name: &str) -> f64 {
+    attribute(tag, name).map_or(0.0, |v| v.parse().unwrap())
+}
+
+/// Where each `<text>` of `svg` lies, estimated generously (0.6 em a
+/// character, ascent 0.8 em, descent 0.25 em), with its content.
+fn texts(svg: &str) -> Vec<(String, Extent)> {
+    let root_size = number(svg.split('>').next().unwrap(), "font-size");
+    let mut found = Vec::new();
+    for piece in svg.split("<text").skip(1) {
+        let (tag, rest) = piece.split_once('>').unwrap();
+        let content = rest.split("</text>").next().unwrap().to_string();
+        let size = attribute(tag, "font-size").map_or(root_size, |v| v.parse().unwrap());
+        let width = content.chars().count() as f64 * 0.6 * size;
+        let (x, y) = (number(tag, "x"), number(tag, "y"));
+        let start = match attribute(tag, "text-anchor") {
+            Some("middle") => -width / 2.0,
+            Some("end") => -width,
+            _ => 0.0,
+        };
+        let extent = if attribute(tag, "transform").is_some_and(|t| t.starts_with("rotate(-90")) {
+            // Turned to run upwards about its anchor.
+            Extent {
+                x0: x - 0.8 * size,
+                y0: y - start - width,
+                x1: x + 0.25 * size,
+                y1: y - start,
+            }
+        } else {
+            Extent {
+                x0: x + start,
+                y0: y - 0.8 * size,
+                x1: x + start + width,
+                y1: y + 0.25 * size,
+            }
+        };
+        found.push((content, extent));
+    }
+    found
+}
+
+/// Markers (circles and squares) of the plot and its legend.
+fn markers(svg: &str) -> Vec<Extent> {
+    let mut found = Vec::new();
+    for piece in svg.split("<circle").skip(1) {
+        let tag = piece.split('>').next().unwrap();
+        let (x, y, r) = (number(tag, "cx"), number(tag, "cy"), number(tag, "r"));
+        found.push(Extent {
+            x0: x - r,
+            y0: y - r,
+            x1: x + r,
+            y1: y + r,
+        });
+    }
+    for piece in svg.split("<rect").skip(1) {
+        let tag = piece.split('>').next().unwrap();
+        if attribute(tag, "width") == Some("100%") {
+            continue;
+        }
+        let (x, y) = (number(tag, "x"), number(tag, "y"));
+        found.push(Extent {
+            x0: x,
+            y0: y,
+            x1: x + number(tag, "width"),
+            y1: y + number(tag, "height"),
+        });
+    }
+    found
+}
+
+/// What is wrong with the plot's layout: a text outside the viewBox, two
+/// texts on each other, a text on a marker, a leader line through a text.
+fn layout_problems(svg: &str) -> Vec<String> {
+    let root = svg.split('>').next().unwrap();
+    let Some(view) = attribute(root, "viewBox") else {
+        return vec!["no viewBox".into()];
+    };
+    let view: Vec<f64> = view.split(' ').map(|v| v.parse().unwrap()).collect();
+    let frame = Extent {
+        x0: view[0],
+        y0: view[1],
+        x1: view[0] + view[2],
+        y1: view[1] + view[3],
+    };
+    let texts = texts(svg);
+    let markers = markers(svg);
+    let mut problems = Vec::new();
+    for (i, (content, at)) in texts.iter().enumerate() {
+        if at.x0 < frame.x0 || at.y0 < frame.y0 || at.x1 > frame.x1 || at.y1 > frame.y1 {
+            problems.push(format!("`{content}` {at:?} leaves the viewBox {frame:?}"));
+        }
+        for (other, at_other) in &texts[i + 1..] {
+            if at.overlaps(at_other) {
+                problems.push(format!("`{content}` lies on `{other}`"));
+            }
+        }
+        if markers.iter().any(|m| m.overlaps(at)) {
+            problems.push(format!("`{content}` lies on a marker"));
+        }
+    }
+    for piece in svg.split("<line").skip(1) {
+        let tag = piece.split('>').next().unwrap();
+        if attribute(tag, "stroke") != Some("#bbb") {
+            continue;
+        }
+        let (a, b) = (
+            (number(tag, "x1"), number(tag, "y1")),
+            (number(tag, "x2"), number(tag, "y2")),
+        );
+        for (content, at) in &texts {
+            if at.shrunk(1.0).crossed_by(a, b) {
+                problems.push(format!("a leader line {a:?}–{b:?} crosses `{content}`"));
+            }
+        }
+    }
+    problems
 }
