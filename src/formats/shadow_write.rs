@@ -468,36 +468,51 @@ fn shadow_text(masks: Masks, depth: usize, eol: &str) -> String {
 }
 
 fn write_packed(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
-    let mut root = packed_xml::parse(original)?;
-    // Validate (and collect nothing) on the unedited tree first, so errors
-    // point at the original elements.
-    targets(&root, shadows)?;
-    let mut wanted = shadows.instances.iter();
-    for element in root.children.iter_mut() {
-        if InstanceKind::from_tag(&element.name).is_none() {
-            continue;
-        }
-        if let Some(Some(shadow)) = wanted.next() {
-            let section = shadow_section(Masks::Instance(shadow), &element.path);
-            set_shadow(element, section);
-        }
+    let mut document = packed_xml::Document::parse(original)?;
+    let root = document.to_section()?;
+    let targets = targets(&root, shadows)?;
+    let mut paths = child_paths(&root, targets.iter().map(|(element, _)| *element));
+    for ((element, masks), path) in targets.iter().zip(paths.iter_mut()) {
+        let path = path
+            .take()
+            .ok_or_else(|| element.error("internal error: element not found in its own file"))?;
+        let shadow = shadow_section(*masks, &element.path);
+        document.set_child(&path, &shadow, element)?;
     }
-    if let Some(mask) = shadows.terrain {
-        if let Some(terrain) = root.children.iter_mut().find(|c| c.name == "terrain") {
-            let section = shadow_section(Masks::Terrain(mask), &terrain.path);
-            set_shadow(terrain, section);
-        }
-    }
-    let out = packed_xml::write(&root)?;
+    let out = document.to_bytes()?;
     verify(&out, shadows)?;
     Ok(out)
 }
 
-fn set_shadow(element: &mut Section, shadow: Section) {
-    let at = element.children.iter().position(|c| c.name == SHADOW_TAG);
-    element.children.retain(|c| c.name != SHADOW_TAG);
-    let at = at.unwrap_or(element.children.len());
-    element.children.insert(at, shadow);
+/// For each of `targets` (elements of `root`'s tree), the child indices
+/// from `root` down to it, found in one walk.
+fn child_paths<'a>(
+    root: &Section,
+    targets: impl Iterator<Item = &'a Section>,
+) -> Vec<Option<Vec<usize>>> {
+    let mut wanted: std::collections::HashMap<*const Section, Vec<usize>> = Default::default();
+    let mut count = 0;
+    for (i, target) in targets.enumerate() {
+        wanted.entry(target as *const Section).or_default().push(i);
+        count += 1;
+    }
+    let mut paths = vec![None; count];
+    let mut stack = vec![(root, Vec::new())];
+    while let Some((section, path)) = stack.pop() {
+        for &i in wanted
+            .get(&(section as *const Section))
+            .into_iter()
+            .flatten()
+        {
+            paths[i] = Some(path.clone());
+        }
+        for (i, child) in section.children.iter().enumerate() {
+            let mut child_path = path.clone();
+            child_path.push(i);
+            stack.push((child, child_path));
+        }
+    }
+    paths
 }
 
 fn shadow_section(masks: Masks, parent_path: &str) -> Section {

@@ -10,13 +10,14 @@
 
 mod mesh;
 mod models;
-
+mod packed;
 mod world;
 mod xml;
 
 #[cfg(test)]
 mod tests;
 
+pub use packed::{generate_packed, pack_file, typed_values, ENCRYPTED_TAG};
 use std::collections::BTreeMap;
 
 /// Size and content level of a generated world.
