@@ -6,7 +6,8 @@
 //! counts they must produce (`Expected`), decided by the generator itself.
 //!
 //! The generator does no file I/O: it returns every file as bytes, and is
-//! deterministic (same preset and seed, same bytes).
+//! deterministic (same preset and seed, same bytes). `packed.rs` turns a
+//! world into its packed variant, as a shipped game holds it.
 
 mod mesh;
 mod models;
