@@ -88,6 +88,11 @@ enum Command {
         chunks: Option<u32>,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Write chunks, models, visuals and space.settings as packed binary
+        /// XML, as a shipped game holds them, each chunk with audio,
+        /// particle, user data and water items of every binary value type.
+        #[arg(long)]
+        packed: bool,
     },
 }
 
@@ -154,8 +159,9 @@ fn run(cli: Cli) -> Result<()> {
             preset,
             chunks,
             seed,
+            packed,
         } => {
-            use shadowcull::gen::{generate_each, Preset, WorldSize};
+            use shadowcull::gen::{generate_each, pack_file, Preset, WorldSize};
             let size = match chunks {
                 Some(n) => WorldSize::BenchChunks(n),
                 None => WorldSize::Preset(Preset::from_name(&preset).with_context(|| {
@@ -165,6 +171,11 @@ fn run(cli: Cli) -> Result<()> {
             let mut written = 0usize;
             let started = std::time::Instant::now();
             generate_each(size, seed, |path, bytes| {
+                let bytes = if packed {
+                    pack_file(path, bytes).map_err(|e| e.in_file(dir.join(path)))?
+                } else {
+                    bytes
+                };
                 files::write_atomic(&dir.join(path), &bytes)?;
                 written += 1;
                 if written.is_multiple_of(2000) {

@@ -7,8 +7,9 @@
 //! edited surgically: only the `<shadow>` elements change, every other byte
 //! stays where it was, and re-running the bake on its own output changes
 //! nothing (so "a file whose content would not change is not rewritten" works
-//! on the bytes). Packed binary XML has no byte layout worth keeping: it is
-//! decoded, the tree edited and re-encoded (see [`write_shadows`]).
+//! on the bytes). Packed binary XML is edited the same way in its own
+//! layout: only the `<shadow>` elements are encoded anew, every other value
+//! keeps its binary type and bytes (see [`write_shadows`]).
 //!
 //! What is written (`→` stands for a tab; values are tab-padded and lines
 //! indented one tab per level of depth, as BigWorld's own writer does):
@@ -108,14 +109,19 @@ pub struct ChunkShadows {
 /// and on `shadows`, so writing the same masks into the output again gives
 /// identical bytes.
 ///
-/// **Packed binary XML** (magic `45 4E A1 62`): the file is decoded into its
-/// tree, each instance's direct `<shadow>` children are replaced by the new
-/// one (at the position of the first, else appended last), and the tree is
-/// re-encoded with [`packed_xml::write`]. Preserved: every tag, the order of
-/// children, every value as text. Not preserved: the byte encoding — values
-/// are re-typed by `res_packer`'s best guess (a number stored as a string
-/// becomes an int, an encrypted blob a plain blob), and the string table is
-/// rebuilt in sorted order. Re-running is idempotent here too.
+/// **Packed binary XML** (magic `45 4E A1 62`): the file is read as a
+/// [`packed_xml::Document`], which holds every value's type code and bytes
+/// as stored. Each target element's direct `<shadow>` children are replaced
+/// by the new one (at the position of the first, else appended last),
+/// encoded as the engine's `res_packer` packs that text (masks as ints of
+/// the fewest bytes); an element stored as a bare value becomes an element
+/// keeping that value. Every other value keeps its type and bytes (a float
+/// holding 250.0 stays a 4-byte float, an int its width, a blob or
+/// encrypted blob its bytes, a matrix its 12 floats), children keep their
+/// order, and the string table keeps its entries and order, tags it lacks
+/// (`shadow`, `RenderSet`, `Geometry`, `PrimitiveGroup`) appended at its
+/// end; only the headers of the edited elements and of the root change
+/// with their lengths. Re-running with the same masks gives the same bytes.
 ///
 /// Errors (with the element and byte offset): the file does not parse;
 /// `shadows.instances` does not have one entry per instance element (the
@@ -468,36 +474,51 @@ fn shadow_text(masks: Masks, depth: usize, eol: &str) -> String {
 }
 
 fn write_packed(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
-    let mut root = packed_xml::parse(original)?;
-    // Validate (and collect nothing) on the unedited tree first, so errors
-    // point at the original elements.
-    targets(&root, shadows)?;
-    let mut wanted = shadows.instances.iter();
-    for element in root.children.iter_mut() {
-        if InstanceKind::from_tag(&element.name).is_none() {
-            continue;
-        }
-        if let Some(Some(shadow)) = wanted.next() {
-            let section = shadow_section(Masks::Instance(shadow), &element.path);
-            set_shadow(element, section);
-        }
+    let mut document = packed_xml::Document::parse(original)?;
+    let root = document.to_section()?;
+    let targets = targets(&root, shadows)?;
+    let mut paths = child_paths(&root, targets.iter().map(|(element, _)| *element));
+    for ((element, masks), path) in targets.iter().zip(paths.iter_mut()) {
+        let path = path
+            .take()
+            .ok_or_else(|| element.error("internal error: element not found in its own file"))?;
+        let shadow = shadow_section(*masks, &element.path);
+        document.set_child(&path, &shadow, element)?;
     }
-    if let Some(mask) = shadows.terrain {
-        if let Some(terrain) = root.children.iter_mut().find(|c| c.name == "terrain") {
-            let section = shadow_section(Masks::Terrain(mask), &terrain.path);
-            set_shadow(terrain, section);
-        }
-    }
-    let out = packed_xml::write(&root)?;
+    let out = document.to_bytes()?;
     verify(&out, shadows)?;
     Ok(out)
 }
 
-fn set_shadow(element: &mut Section, shadow: Section) {
-    let at = element.children.iter().position(|c| c.name == SHADOW_TAG);
-    element.children.retain(|c| c.name != SHADOW_TAG);
-    let at = at.unwrap_or(element.children.len());
-    element.children.insert(at, shadow);
+/// For each of `targets` (elements of `root`'s tree), the child indices
+/// from `root` down to it, found in one walk.
+fn child_paths<'a>(
+    root: &Section,
+    targets: impl Iterator<Item = &'a Section>,
+) -> Vec<Option<Vec<usize>>> {
+    let mut wanted: std::collections::HashMap<*const Section, Vec<usize>> = Default::default();
+    let mut count = 0;
+    for (i, target) in targets.enumerate() {
+        wanted.entry(target as *const Section).or_default().push(i);
+        count += 1;
+    }
+    let mut paths = vec![None; count];
+    let mut stack = vec![(root, Vec::new())];
+    while let Some((section, path)) = stack.pop() {
+        for &i in wanted
+            .get(&(section as *const Section))
+            .into_iter()
+            .flatten()
+        {
+            paths[i] = Some(path.clone());
+        }
+        for (i, child) in section.children.iter().enumerate() {
+            let mut child_path = path.clone();
+            child_path.push(i);
+            stack.push((child, child_path));
+        }
+    }
+    paths
 }
 
 fn shadow_section(masks: Masks, parent_path: &str) -> Section {
@@ -709,6 +730,36 @@ mod tests {
         assert!(out.ends_with("\t\t</shadow>\n  </model>  \n</root>\n"));
         assert_eq!(strip_shadows(out.as_bytes()), text.as_bytes());
         assert_eq!(write_str(&out, &shadows), out);
+    }
+
+    #[test]
+    fn cdata_comments_and_odd_white_space_inside_a_model_survive() {
+        let text = "<root>\n<!-- header -->\n   <model>  <!-- a <shadow> in a comment -->\n\t  <resource>\t<![CDATA[sets/a<b>.model]]>  </resource>\n  \t\t<shadow>\t7\t</shadow>   <!-- after -->\n<metaData><![CDATA[ <shadow>1</shadow> ]]></metaData>\n\n\t\t<transform>\n  <row0> 1 0 0 </row0>\n\t\t</transform>\n   </model>\t\n  <terrain>\r\n<resource>t</resource>\t</terrain>\n</root>  \n<!-- trailer -->\n";
+        let shadows = ChunkShadows {
+            instances: vec![Some(InstanceShadow::from_groups(vec![vec![vec![6, 1]]]))],
+            terrain: Some(3),
+        };
+        let out = write_str(text, &shadows);
+        // Only the <shadow> element changed in the model; the terrain's
+        // closing tag shares its line, so the new element comes on its own.
+        let model_end = text.find("<metaData>").unwrap();
+        let old_shadow = text.find("<shadow>\t7").unwrap();
+        assert_eq!(&out[..old_shadow], &text[..old_shadow]);
+        let after_shadow = &text[text.find("   <!-- after -->").unwrap()..model_end];
+        assert!(out.contains(after_shadow));
+        assert!(out.contains("<metaData><![CDATA[ <shadow>1</shadow> ]]></metaData>\n\n\t\t<transform>\n  <row0> 1 0 0 </row0>\n\t\t</transform>\n   </model>\t\n"));
+        assert!(out.ends_with("</root>  \n<!-- trailer -->\n"));
+        let root = xml::parse(out.as_bytes()).unwrap();
+        assert_eq!(
+            root.children[0].child_text("resource"),
+            Some("sets/a<b>.model")
+        );
+        let back = read_chunk_shadows(&root).unwrap();
+        assert_eq!(back.instances, shadows.instances);
+        assert_eq!(back.terrain, Some(3));
+        assert_eq!(write_str(&out, &shadows), out, "idempotent");
+        // The same masks once more from the original: the same bytes.
+        assert_eq!(write_str(text, &shadows), out);
     }
 
     #[test]

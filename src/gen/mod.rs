@@ -6,17 +6,19 @@
 //! counts they must produce (`Expected`), decided by the generator itself.
 //!
 //! The generator does no file I/O: it returns every file as bytes, and is
-//! deterministic (same preset and seed, same bytes).
+//! deterministic (same preset and seed, same bytes). `packed.rs` turns a
+//! world into its packed variant, as a shipped game holds it.
 
 mod mesh;
 mod models;
-
+mod packed;
 mod world;
 mod xml;
 
 #[cfg(test)]
 mod tests;
 
+pub use packed::{generate_packed, pack_file, typed_values, ENCRYPTED_TAG};
 use std::collections::BTreeMap;
 
 /// Size and content level of a generated world.

@@ -13,6 +13,7 @@ mod micro;
 mod nomiss;
 mod occlusion;
 mod packed_real;
+mod packed_world;
 mod pipeline;
 mod primitives_real;
 #[cfg(feature = "raster")]

@@ -2,6 +2,7 @@
 //! chunks: the bytes outside `<shadow>` are kept, a second write changes
 //! nothing, and the masks read back as written — in text and packed XML.
 
+use crate::packed_world::differences_outside_shadows;
 use crate::support::realdata;
 use crate::xml_real::files_with_extensions;
 use shadowcull::formats::chunk::{self, instance_elements, terrain_element};
@@ -148,6 +149,8 @@ fn check_chunk(name: &str, original: &[u8], seed: u64) -> usize {
     let packed = packed_xml::write(&root).unwrap();
     let packed_out = write_shadows(&packed, &shadows).unwrap_or_else(|e| panic!("{name}: {e}"));
     assert_eq!(write_shadows(&packed_out, &shadows).unwrap(), packed_out);
+    let differences = differences_outside_shadows(&packed, &packed_out);
+    assert!(differences.is_empty(), "{name}: {differences:#?}");
     let packed_root = packed_xml::parse(&packed_out).unwrap();
     assert_eq!(
         read_chunk_shadows(&packed_root).unwrap(),
