@@ -1,17 +1,23 @@
 //! `.chunk` files (chunk/chunk.cpp, chunk_model.cpp): the instances a chunk
-//! places, its terrain, and (indoor chunks) its own transform. Everything else
-//! in a chunk is left alone; element spans let the bake rewrite `<shadow>`
+//! places (`<model>`, `<shell>`, `<speedtree>`), its terrain, (indoor
+//! chunks) its own transform, and how many items of every kind it holds,
+//! so nothing the bake leaves out goes unmentioned. Everything else in a
+//! chunk is left alone; element spans let the bake rewrite `<shadow>`
 //! without touching the rest.
 
 use super::Section;
 use crate::error::FormatError;
 use glam::DMat4;
+use std::collections::BTreeMap;
 use std::ops::Range;
 
+/// What a placed instance element is: a model, an indoor shell, or a
+/// SpeedTree placement (docs/contract.md §2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum InstanceKind {
     Model,
     Shell,
+    SpeedTree,
 }
 
 impl InstanceKind {
@@ -19,6 +25,7 @@ impl InstanceKind {
         match self {
             InstanceKind::Model => "model",
             InstanceKind::Shell => "shell",
+            InstanceKind::SpeedTree => SPEEDTREE_TAG,
         }
     }
 
@@ -27,19 +34,38 @@ impl InstanceKind {
         match tag {
             "model" => Some(InstanceKind::Model),
             "shell" => Some(InstanceKind::Shell),
+            SPEEDTREE_TAG => Some(InstanceKind::SpeedTree),
             _ => None,
         }
     }
+
+    /// A `<model>` or `<shell>`: the elements that name `.model`
+    /// resources and are counted by [`instance_elements`].
+    pub fn names_models(self) -> bool {
+        matches!(self, InstanceKind::Model | InstanceKind::Shell)
+    }
 }
 
-/// The chunk's instance elements in document order: the direct children of
-/// the root tagged `<model>` or `<shell>`. Their position in this sequence is
-/// the instance `index` everywhere (report, write-back), so both the reader
-/// and the shadow writer use this one definition.
+/// Tag of a SpeedTree placement.
+pub const SPEEDTREE_TAG: &str = "speedtree";
+
+/// The chunk's model instance elements in document order: the direct
+/// children of the root tagged `<model>` or `<shell>`. Their position in
+/// this sequence is the instance `index` everywhere (report, write-back),
+/// so both the reader and the shadow writer use this one definition.
 pub fn instance_elements(root: &Section) -> impl Iterator<Item = (InstanceKind, &Section)> + '_ {
-    root.children
-        .iter()
-        .filter_map(|e| InstanceKind::from_tag(&e.name).map(|kind| (kind, e)))
+    root.children.iter().filter_map(|e| {
+        InstanceKind::from_tag(&e.name)
+            .filter(|kind| kind.names_models())
+            .map(|kind| (kind, e))
+    })
+}
+
+/// The chunk's `<speedtree>` elements in document order: the direct
+/// children of the root with that tag. A tree's position here is its
+/// `index` (report, write-back), as [`instance_elements`] is a model's.
+pub fn speedtree_elements(root: &Section) -> impl Iterator<Item = &Section> + '_ {
+    root.children.iter().filter(|e| e.name == SPEEDTREE_TAG)
 }
 
 /// The chunk's terrain element: the first direct `<terrain>` child of the
@@ -68,6 +94,29 @@ pub struct InstanceElement {
     pub span: Range<usize>,
 }
 
+/// One `<speedtree>` element: a SpeedTree placement. The `.spt` itself is
+/// never read (a proprietary format, often not shipped): its geometry
+/// comes from a proxy in the settings file (docs/contract.md §3).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SpeedTreeElement {
+    /// 0-based position among the chunk's `<speedtree>` elements in
+    /// document order (the report's `index`).
+    pub index: usize,
+    /// `<spt>`: the tree's `.spt` resource name; empty when the element
+    /// has none.
+    pub spt: String,
+    /// `<seed>` and `<visibilityMask>`: read and checked, not used by the
+    /// bake (a proxy is the same for every seed).
+    pub seed: Option<i64>,
+    pub visibility_mask: Option<i64>,
+    /// Local-to-chunk transform: twelve numbers in `<transform>` or
+    /// `<row0>`..`<row3>`, as a model's; identity when absent.
+    pub transform: DMat4,
+    /// Tag path and byte span, for messages and the write-back.
+    pub path: String,
+    pub span: Range<usize>,
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct TerrainElement {
     /// e.g. `0000fffdo.cdata/terrain2`, relative to the space folder.
@@ -82,7 +131,11 @@ pub struct ChunkFile {
     /// An indoor chunk's own `<transform>` (outdoor chunks have none).
     pub transform: Option<DMat4>,
     pub instances: Vec<InstanceElement>,
+    pub speedtrees: Vec<SpeedTreeElement>,
     pub terrain: Option<TerrainElement>,
+    /// How many direct children of the root carry each tag: every item
+    /// kind the chunk holds, whether the bake models it or not.
+    pub items: BTreeMap<String, usize>,
 }
 
 pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
@@ -120,6 +173,10 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             span: element.span.clone(),
         });
     }
+    let speedtrees = speedtree_elements(root)
+        .enumerate()
+        .map(|(index, element)| parse_speedtree(index, element))
+        .collect::<Result<_, _>>()?;
     let terrain = match terrain_element(root) {
         Some(element) => Some(TerrainElement {
             resource: element.required("resource")?.value.clone(),
@@ -128,11 +185,36 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
         }),
         None => None,
     };
+    let mut items = BTreeMap::new();
+    for child in &root.children {
+        *items.entry(child.name.clone()).or_insert(0) += 1;
+    }
     Ok(ChunkFile {
         root_name: root.name.clone(),
         transform,
         instances,
+        speedtrees,
         terrain,
+        items,
+    })
+}
+
+/// One `<speedtree>` element; a value that does not read (a transform
+/// that is not 12 numbers, a seed that is no integer) is an error naming
+/// it, as for a model.
+fn parse_speedtree(index: usize, element: &Section) -> Result<SpeedTreeElement, FormatError> {
+    let integer = |tag: &str| element.child(tag).map(Section::as_i64).transpose();
+    Ok(SpeedTreeElement {
+        index,
+        spt: element.child_text("spt").unwrap_or_default().to_string(),
+        seed: integer("seed")?,
+        visibility_mask: integer("visibilityMask")?,
+        transform: match element.child("transform") {
+            Some(t) => t.as_matrix()?,
+            None => DMat4::IDENTITY,
+        },
+        path: element.path.clone(),
+        span: element.span.clone(),
     })
 }
 

@@ -418,6 +418,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
         let scene = load_scene(&LoadConfig {
             res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
             space: plan(preset, 2).params.space(),
+            speedtrees: Default::default(),
         })
         .unwrap();
         let catalog = models::catalog(plan(preset, 2).params.detail);
@@ -501,6 +502,7 @@ fn streamed_generation_equals_the_in_memory_one_and_any_size_loads() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
         space: "spaces/bench".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     assert!(scene.problems.is_empty(), "{:?}", scene.problems);

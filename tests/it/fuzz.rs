@@ -253,10 +253,11 @@ fn run_case(corpus: &Corpus, config: &BakeConfig, limit: Duration) -> Result<Sta
             let Ok(scene) = load_scene(&LoadConfig {
                 res_paths: res_paths.clone(),
                 space,
+                speedtrees: Default::default(),
             }) else {
                 return 0;
             };
-            let _ = shadowcull::inspect::inspect(&scene).to_text();
+            let _ = shadowcull::inspect::inspect(&scene, Default::default()).to_text();
             let Ok(mut result) = bake::bake(&scene, &config, &Silent) else {
                 return 1;
             };

@@ -22,6 +22,7 @@ pub fn load_world(settings_file: &Path) -> Scene {
     load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths),
         space: settings.space,
+        speedtrees: settings.speedtrees,
     })
     .unwrap()
 }

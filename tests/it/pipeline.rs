@@ -981,6 +981,7 @@ fn plan_counts_model_parts_and_says_so() {
     let scene = shadowcull::scene::load_scene(&shadowcull::scene::LoadConfig {
         res_paths: shadowcull::files::ResPaths::new(vec![dir.path().to_path_buf()]),
         space: "spaces/small".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     let instances = scene.instances.len();
