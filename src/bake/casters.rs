@@ -227,6 +227,7 @@ impl CasterTable {
 mod tests {
     use super::*;
     use crate::files::ResPaths;
+    use crate::formats::chunk::InstanceKind;
     use crate::scene::{load_scene, LoadConfig};
 
     #[test]
@@ -260,5 +261,97 @@ mod tests {
             table.of_block.first().copied().unwrap_or(expected)
         );
         assert!(expected > 100);
+    }
+
+    #[test]
+    fn speedtrees_take_ids_after_their_chunks_models_whatever_the_file_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let world = crate::gen::generate(crate::gen::Preset::Forest, 3);
+        crate::files::write_tree(dir.path(), &world.files).unwrap();
+        let settings =
+            crate::files::read_bake_settings(&dir.path().join(crate::gen::SETTINGS_FILE)).unwrap();
+        let scene = load_scene(&LoadConfig::from_settings(&settings)).unwrap();
+        assert!(scene.problems.is_empty(), "{:?}", scene.problems);
+        let table = CasterTable::new(&scene);
+        let first_terrain = table.of_block[0];
+        let mut next = 0;
+        let mut trees_before_models_in_a_file = false;
+        for chunk in &scene.chunks {
+            let ids = |kind: InstanceKind| -> Vec<std::ops::Range<u32>> {
+                chunk
+                    .instances
+                    .clone()
+                    .filter(|&i| scene.instances[i].kind.names_models() == kind.names_models())
+                    .map(|i| table.of_instance(&scene, i))
+                    .collect()
+            };
+            let (models, trees) = (ids(InstanceKind::Model), ids(InstanceKind::SpeedTree));
+            // Models, then trees, each in document order, without gaps.
+            for range in models.iter().chain(&trees) {
+                assert_eq!(range.start, next, "{}", chunk.name);
+                next = range.end;
+            }
+            let tree_indices: Vec<usize> = chunk
+                .instances
+                .clone()
+                .filter(|&i| scene.instances[i].kind == InstanceKind::SpeedTree)
+                .map(|i| scene.instances[i].index)
+                .collect();
+            assert_eq!(
+                tree_indices,
+                (0..chunk.speedtree_elements).collect::<Vec<_>>()
+            );
+            let text = std::fs::read(&chunk.file).unwrap();
+            if !models.is_empty() && !trees.is_empty() && text.starts_with(b"<") {
+                let text = String::from_utf8(text).unwrap();
+                trees_before_models_in_a_file |=
+                    text.find("<speedtree>").unwrap() < text.find("<model>").unwrap();
+            }
+        }
+        assert_eq!(next, first_terrain, "terrain blocks last");
+        assert!(
+            trees_before_models_in_a_file,
+            "the order is the ids', not the file's"
+        );
+        assert!(scene.stats().speedtrees > 22);
+        let mut expected = 0u32;
+        for part in table.parts(&scene) {
+            assert_eq!(part.first_caster, expected);
+            expected += scene.models[part.model].groups.len() as u32;
+        }
+        assert_eq!(expected, first_terrain);
+    }
+
+    #[test]
+    fn a_speedtree_without_a_proxy_has_one_id_no_ray_can_hit() {
+        let dir = tempfile::tempdir().unwrap();
+        let world = crate::gen::generate(crate::gen::Preset::Forest, 3);
+        crate::files::write_tree(dir.path(), &world.files).unwrap();
+        let settings =
+            crate::files::read_bake_settings(&dir.path().join(crate::gen::SETTINGS_FILE)).unwrap();
+        let config = LoadConfig {
+            speedtrees: Default::default(),
+            ..LoadConfig::from_settings(&settings)
+        };
+        let scene = load_scene(&config).unwrap();
+        let table = CasterTable::new(&scene);
+        let trees = scene.instances.iter().filter(|i| i.is_unmodelled()).count();
+        assert_eq!(trees, scene.stats().speedtrees);
+        assert_eq!(table.unmodelled().count(), trees);
+        for (index, instance) in scene.instances.iter().enumerate() {
+            let ids = table.of_instance(&scene, index);
+            if instance.is_unmodelled() {
+                assert_eq!(ids.len(), 1);
+                assert_eq!(
+                    table.casters[ids.start as usize].owner,
+                    Owner::Unmodelled {
+                        instance: index as u32
+                    }
+                );
+            }
+        }
+        assert!(table
+            .parts(&scene)
+            .all(|p| !scene.instances[p.instance].is_unmodelled()));
     }
 }

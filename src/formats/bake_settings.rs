@@ -1173,4 +1173,52 @@ mod speedtree_tests {
         assert_eq!(tree.name(), ParametricTree { ..tree }.name());
         assert!(tree.name().contains(':'));
     }
+
+    #[test]
+    fn the_unmodelled_casters_policy_defaults_to_fail() {
+        let read = |extra: &str| {
+            let text = format!(
+                "<shadowcull><resPaths><path>r</path></resPaths><space>s</space>{extra}</shadowcull>"
+            );
+            from_bytes(text.as_bytes(), Path::new("bake.xml"))
+        };
+        assert_eq!(
+            read("").unwrap().unmodelled_casters,
+            UnmodelledCasters::Fail
+        );
+        assert!(read("").unwrap().speedtrees.is_empty());
+        let keep = read("<unmodelledCasters> KEEP </unmodelledCasters>").unwrap();
+        assert_eq!(keep.unmodelled_casters, UnmodelledCasters::Keep);
+        assert_eq!(UnmodelledCasters::Keep.name(), "keep");
+        let err = read("<unmodelledCasters>maybe</unmodelledCasters>").unwrap_err();
+        assert!(err.to_string().contains("expected fail or keep"), "{err}");
+    }
+
+    #[test]
+    fn speedtree_mistakes_give_the_file_line_and_column() {
+        let text = "<shadowcull>\n\t<resPaths><path>r</path></resPaths>\n\t<space>s</space>\n\t<speedtrees>\n\t\t<tree>\n\t\t\t<spt>a/*.spt</spt>\n\t\t\t<trunk><radius>-1</radius><height>2</height></trunk>\n\t\t\t<crown><radius>1</radius><height>1</height></crown>\n\t\t</tree>\n\t</speedtrees>\n</shadowcull>";
+        let err = from_bytes(text.as_bytes(), Path::new("bake.xml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("bake.xml:7:"), "{err}");
+        assert!(
+            err.contains("<radius> must be a finite number of metres > 0, found -1"),
+            "{err}"
+        );
+        let typo = text.replace(
+            "<trunk><radius>-1",
+            "<trunk><radius>1</radius><raduis>1</raduis><radius>1",
+        );
+        let settings = from_bytes(typo.as_bytes(), Path::new("bake.xml")).unwrap();
+        let [unknown] = &settings.unknown[..] else {
+            panic!("{:?}", settings.unknown);
+        };
+        // Three tabs, `<trunk>` and `<radius>1</radius>` (28 characters) before it.
+        assert_eq!(unknown.location(), "7:29");
+        assert!(
+            unknown.reason().contains("did you mean <radius>?"),
+            "{}",
+            unknown.reason()
+        );
+    }
 }

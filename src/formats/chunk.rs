@@ -258,4 +258,72 @@ mod tests {
         let err = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap_err();
         assert!(err.to_string().contains("root/model/castsShadow"), "{err}");
     }
+
+    const TREES: &str = "<root>\n\t<speedtree>\n\t\t<visibilityMask>\t255\t</visibilityMask>\n\t\t<spt>\tspeedtree/m/Bush2_1.spt\t</spt>\n\t\t<seed>\t4711\t</seed>\n\t\t<transform>\t1.3 0 0 0 1.69 0 0 0 -0.8 5 6 7\t</transform>\n\t\t<reflectionVisible>\ttrue\t</reflectionVisible>\n\t</speedtree>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<speedtree>\n\t\t<spt>\tspeedtree/m/Oak.spt\t</spt>\n\t\t<transform>\n\t\t\t<row0>\t1.3 0 0\t</row0>\n\t\t\t<row1>\t0 1.69 0\t</row1>\n\t\t\t<row2>\t0 0 -0.8\t</row2>\n\t\t\t<row3>\t5 6 7\t</row3>\n\t\t</transform>\n\t</speedtree>\n\t<vlo>\n\t\t<uid>\tA.B.C.D\t</uid>\n\t</vlo>\n\t<vlo />\n</root>\n";
+
+    #[test]
+    fn speedtrees_are_read_in_their_own_order_with_both_transform_forms() {
+        let root = xml::parse(TREES.as_bytes()).unwrap();
+        let packed = crate::formats::packed_xml::write(&root).unwrap();
+        for (encoding, root) in [
+            ("text", root),
+            (
+                "packed",
+                crate::formats::packed_xml::parse(&packed).unwrap(),
+            ),
+        ] {
+            let chunk = parse(&root).unwrap();
+            assert_eq!(chunk.instances.len(), 1, "{encoding}: trees are no models");
+            let [first, second] = &chunk.speedtrees[..] else {
+                panic!("{encoding}: {:?}", chunk.speedtrees);
+            };
+            assert_eq!((first.index, second.index), (0, 1));
+            assert_eq!(first.spt, "speedtree/m/Bush2_1.spt");
+            assert_eq!((first.seed, first.visibility_mask), (Some(4711), Some(255)));
+            assert_eq!((second.seed, second.visibility_mask), (None, None));
+            assert_eq!(
+                first.transform, second.transform,
+                "{encoding}: twelve numbers and rows are one placement"
+            );
+            // Row-vector: local x scales by 1.3, y by 1.69, z mirrors.
+            let p = first.transform.transform_point3(DVec3::new(1.0, 1.0, 1.0));
+            assert!((p - DVec3::new(6.3, 7.69, 6.2)).length() < 1e-12, "{p}");
+            assert!(first.transform.determinant() < 0.0);
+            assert_eq!(first.path, "root/speedtree");
+            assert_eq!(chunk.items["speedtree"], 2);
+            assert_eq!(chunk.items["vlo"], 2);
+            assert_eq!(chunk.items["model"], 1);
+            assert_eq!(speedtree_elements(&root).count(), 2);
+            assert_eq!(instance_elements(&root).count(), 1);
+        }
+        assert!(TREES[parse(&xml::parse(TREES.as_bytes()).unwrap())
+            .unwrap()
+            .speedtrees[1]
+            .span
+            .clone()]
+        .starts_with("<speedtree>"));
+    }
+
+    #[test]
+    fn a_speedtree_value_that_does_not_read_names_the_element() {
+        for (bad, element) in [
+            ("<seed>x</seed>", "root/speedtree/seed"),
+            (
+                "<visibilityMask>1.5</visibilityMask>",
+                "root/speedtree/visibilityMask",
+            ),
+            ("<transform>1 2 3</transform>", "root/speedtree/transform"),
+        ] {
+            let text = format!("<root><speedtree><spt>a.spt</spt>{bad}</speedtree></root>");
+            let err = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap_err();
+            assert!(err.to_string().contains(element), "{bad}: {err}");
+        }
+        let text = "<root><speedtree><seed>1</seed></speedtree></root>";
+        let chunk = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+        assert_eq!(
+            chunk.speedtrees[0].spt, "",
+            "no <spt>: the scene makes it a problem"
+        );
+        assert_eq!(chunk.speedtrees[0].transform, DMat4::IDENTITY);
+    }
 }

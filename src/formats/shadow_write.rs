@@ -590,6 +590,7 @@ mod tests {
         let root = xml::parse(text).unwrap();
         let mut cuts: Vec<Range<usize>> = instance_elements(&root)
             .map(|(_, e)| e)
+            .chain(speedtree_elements(&root))
             .chain(terrain_element(&root))
             .flat_map(|e| e.children_named(SHADOW_TAG))
             .map(|s| whole_line(text, s.span.clone()))
@@ -1227,5 +1228,81 @@ mod tests {
             after.unwrap(),
             "writing masks leaves the fingerprinted bytes alone"
         );
+    }
+
+    const TREES: &str = "<root>\n\t<speedtree>\n\t\t<spt>\ta.spt\t</spt>\n\t\t<transform>\t1 0 0 0 1 0 0 0 1 5 0 5\t</transform>\n\t</speedtree>\n\t<model>\n\t\t<resource>\tm.model\t</resource>\n\t</model>\n\t<speedtree>\n\t\t<spt>\tb.spt\t</spt>\n\t\t<shadow>\t9\t</shadow>\n\t</speedtree>\n\t<speedtree>\n\t\t<spt>\tc.spt\t</spt>\n\t</speedtree>\n</root>\n";
+
+    fn tree_shadows() -> ChunkShadows {
+        ChunkShadows {
+            instances: vec![Some(one(&[&[1]]))],
+            speedtrees: vec![
+                // A parametric proxy: trunk and crown.
+                Some(one(&[&[3, 2]])),
+                // No proxy: the mask alone.
+                Some(InstanceShadow {
+                    mask: 7,
+                    render_sets: Vec::new(),
+                }),
+                None,
+            ],
+            terrain: None,
+        }
+    }
+
+    #[test]
+    fn speedtrees_get_their_masks_inside_the_item_like_models() {
+        let shadows = tree_shadows();
+        let out = write_str(TREES, &shadows);
+        assert!(out.contains("\t\t<shadow>\t3\n\t\t\t<RenderSet>\n\t\t\t\t<Geometry>\n\t\t\t\t\t<PrimitiveGroup>\t3\t</PrimitiveGroup>\n\t\t\t\t\t<PrimitiveGroup>\t2\t</PrimitiveGroup>"), "{out}");
+        assert!(
+            out.contains("<spt>\tb.spt\t</spt>\n\t\t<shadow>\t7\t</shadow>\n\t</speedtree>"),
+            "the old mask replaced in place: {out}"
+        );
+        assert!(
+            out.contains("<spt>\tc.spt\t</spt>\n\t</speedtree>"),
+            "None leaves it: {out}"
+        );
+        assert_eq!(write_str(&out, &shadows), out, "idempotent");
+        assert_eq!(
+            String::from_utf8(strip_shadows(out.as_bytes())).unwrap(),
+            String::from_utf8(strip_shadows(TREES.as_bytes())).unwrap(),
+        );
+        let back = read_chunk_shadows(&xml::parse(out.as_bytes()).unwrap()).unwrap();
+        assert_eq!(back.instances, shadows.instances);
+        assert_eq!(&back.speedtrees[..2], &shadows.speedtrees[..2]);
+        assert_eq!(back.speedtrees[2], None);
+
+        let packed = packed_xml::write(&xml::parse(TREES.as_bytes()).unwrap()).unwrap();
+        let packed_out = write_shadows(&packed, &shadows).unwrap();
+        assert_eq!(write_shadows(&packed_out, &shadows).unwrap(), packed_out);
+        let packed_back = read_chunk_shadows(&packed_xml::parse(&packed_out).unwrap()).unwrap();
+        assert_eq!(packed_back, back, "packed and text agree");
+
+        let root = xml::parse(TREES.as_bytes()).unwrap();
+        let chunk = super::super::chunk::parse(&root).unwrap();
+        let zeroed = without_masks(TREES.as_bytes(), &root, &chunk).unwrap();
+        let zeroed_back = read_chunk_shadows(&xml::parse(&zeroed).unwrap()).unwrap();
+        assert!(zeroed_back
+            .speedtrees
+            .iter()
+            .all(|s| s == &Some(InstanceShadow::default())));
+    }
+
+    #[test]
+    fn speedtree_masks_that_do_not_fit_are_errors() {
+        let mut too_few = tree_shadows();
+        too_few.speedtrees.pop();
+        let err = write_shadows(TREES.as_bytes(), &too_few).unwrap_err();
+        assert!(
+            err.to_string().contains("has 3 <speedtree> elements"),
+            "{err}"
+        );
+        let mut wrong_or = tree_shadows();
+        wrong_or.speedtrees[0] = Some(InstanceShadow {
+            mask: 1,
+            render_sets: vec![vec![vec![2]]],
+        });
+        let err = write_shadows(TREES.as_bytes(), &wrong_or).unwrap_err();
+        assert!(err.to_string().contains("root/speedtree"), "{err}");
     }
 }

@@ -142,7 +142,12 @@ pub(crate) fn trees(plan: &WorldPlan, ch: &ChunkPlan) -> Vec<Tree> {
             Tree {
                 spt,
                 proxy,
-                transform: make_transform(scale, 0.0, rng.range(0.0, 6.28), [lx, y, lz]),
+                transform: make_transform(
+                    scale,
+                    0.0,
+                    rng.range(0.0, std::f64::consts::TAU),
+                    [lx, y, lz],
+                ),
                 seed: rng.next_u64() as u32 % 100_000,
                 visibility_mask: 0xFF,
                 rows: text && i % 2 == 1,
@@ -160,7 +165,7 @@ fn other_items(x: &mut XmlOut, n: usize) {
         [0.0, 0.0, 1.0],
         [10.0, 1.0, 10.0],
     ];
-    if n % 3 == 0 {
+    if n.is_multiple_of(3) {
         x.open("vlo");
         x.leaf("uid", &format!("{:08X}.0000A1B2.00000000.0000C3D4", n + 1));
         x.leaf("type", "water");

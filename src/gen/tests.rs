@@ -136,18 +136,27 @@ fn every_reference_resolves_to_a_generated_file() {
 fn recount(w: &GeneratedWorld) -> Expected {
     let mut e = Expected::default();
     let mut distinct = BTreeSet::new();
+    let mut proxies = BTreeSet::new();
     let mut per_model: BTreeMap<String, (u64, u64, u64)> = BTreeMap::new();
+    let settings = crate::formats::bake_settings::from_bytes(
+        w.file(SETTINGS_FILE).unwrap(),
+        std::path::Path::new(SETTINGS_FILE),
+    )
+    .unwrap();
     for c in chunk_paths(w) {
-        let s = text(w, &c);
+        // Text or packed, read as the bake reads it.
+        let root = crate::formats::parse_data_section(w.file(&c).unwrap()).unwrap();
         e.chunks += 1;
-        e.terrain_blocks += s.matches("<terrain>").count() as u64;
-        for m in s.split("<model>").skip(1) {
-            let m = &m[..m.find("</model>").unwrap()];
+        e.terrain_blocks += root.children_named("terrain").count() as u64;
+        for m in root.children_named("model") {
             e.instances += 1;
-            if m.contains("<castsShadow>\tfalse\t</castsShadow>") {
+            let flag = m
+                .child("castsShadow")
+                .or_else(|| m.child("editorOnly").and_then(|e| e.child("castsShadow")));
+            if flag.is_some_and(|f| f.value == "false") {
                 e.receiver_only_instances += 1;
             }
-            for r in leaves(m, "resource") {
+            for r in m.children_named("resource").map(|r| r.value.as_str()) {
                 distinct.insert(r.to_string());
                 let counts = per_model.entry(r.to_string()).or_insert_with(|| {
                     let model = text(w, r);
@@ -169,8 +178,21 @@ fn recount(w: &GeneratedWorld) -> Expected {
                 e.double_sided_groups += counts.2;
             }
         }
+        for tree in root.children_named("speedtree") {
+            e.speedtrees += 1;
+            match settings
+                .speedtrees
+                .proxy_for(tree.child_text("spt").unwrap())
+            {
+                Some(proxy) => {
+                    proxies.insert(format!("{proxy:?}"));
+                }
+                None => e.speedtrees_without_proxy += 1,
+            }
+        }
     }
     e.models = distinct.len() as u64;
+    e.speedtree_proxies = proxies.len() as u64;
     e
 }
 

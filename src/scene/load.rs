@@ -818,8 +818,8 @@ fn load_terrain(
             Error::invalid(
                 chunk_path,
                 format!(
-                    "terrain `{file}` not found beside the chunk ({}) in any res path ({}); check <resPaths> and that the space's .cdata files are there: 1 chunk loses its terrain block (left out of the bake)",
-                    dir.display(),
+                    "terrain `{file}` not found beside the chunk (looked for {}); check <resPaths> ({}) and that the space's .cdata files were copied with its chunks: 1 chunk loses its terrain block (left out of the bake)",
+                    cdata_path.display(),
                     res_paths
                         .roots
                         .iter()
