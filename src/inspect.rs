@@ -4,6 +4,7 @@
 //! cannot model (docs/contract.md §8).
 
 use crate::formats::bake_settings::UnmodelledCasters;
+use crate::scene::items::plural;
 use crate::scene::{ItemEntry, Problem, Scene, Stats, Treatment, UnproxiedTrees};
 use serde::Serialize;
 use std::fmt::Write as _;
@@ -49,8 +50,13 @@ pub fn inspect(scene: &Scene, unmodelled: UnmodelledCasters) -> Inspection {
         problems.extend(unproxied.iter().map(|trees| ProblemEntry {
             what: trees.spt.clone(),
             why: format!(
-                "{} <speedtree> placements in {} chunks: {UNPROXIED_FAILS}",
-                trees.placements, trees.chunks
+                "{} in {}: {UNPROXIED_FAILS}",
+                plural(
+                    trees.placements,
+                    "<speedtree> placement",
+                    "<speedtree> placements"
+                ),
+                plural(trees.chunks, "chunk", "chunks")
             ),
         }));
     }
@@ -108,10 +114,10 @@ impl Inspection {
         for item in &self.items {
             let _ = writeln!(
                 out,
-                "  {:<24} {:>8} in {:>5} chunks  {}: {}",
+                "  {:<24} {:>8} in {:>12}  {}: {}",
                 format!("<{}>", item.kind),
                 item.count,
-                item.chunks,
+                plural(item.chunks, "chunk", "chunks"),
                 item.treatment.label(),
                 item.why
             );
@@ -124,8 +130,10 @@ impl Inspection {
             for trees in &self.unproxied_speedtrees {
                 let _ = writeln!(
                     out,
-                    "  {}: {} placements in {} chunks",
-                    trees.spt, trees.placements, trees.chunks
+                    "  {}: {} in {}",
+                    trees.spt,
+                    plural(trees.placements, "placement", "placements"),
+                    plural(trees.chunks, "chunk", "chunks")
                 );
             }
         }
@@ -157,14 +165,14 @@ impl Inspection {
         } else if self.stats.speedtrees_without_proxy > 0 {
             let _ = writeln!(
                 out,
-                "no problems that fail a bake, but {} speedtree placements are not modelled (kept for every light as <unmodelledCasters> keep says)",
-                self.stats.speedtrees_without_proxy
+                "no problems that fail a bake, but {} not modelled (kept for every light as <unmodelledCasters> keep says)",
+                plural(self.stats.speedtrees_without_proxy, "speedtree placement is", "speedtree placements are")
             );
         } else if !unknown.is_empty() {
             let _ = writeln!(
                 out,
-                "no problems that fail a bake, but {} item kinds are unknown to shadowcull (<{}>): if one draws into shadow maps, its shadows are missing",
-                unknown.len(),
+                "no problems that fail a bake, but {} unknown to shadowcull (<{}>): if one draws into shadow maps, its shadows are missing",
+                plural(unknown.len(), "item kind is", "item kinds are"),
                 unknown.join(">, <")
             );
         } else {

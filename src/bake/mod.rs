@@ -23,6 +23,7 @@ pub mod trace_light;
 use crate::classify::Passes;
 use crate::formats::chunk::InstanceKind;
 use crate::progress::{Counter, Phase};
+use crate::scene::items::plural;
 use crate::scene::{Scene, Treatment};
 use casters::CasterTable;
 pub use config::{BakeConfig, GridMode};
@@ -367,7 +368,8 @@ fn world_skipped(world: &BakeWorld) -> Vec<Skipped> {
 fn items_skipped(scene: &Scene) -> Vec<Skipped> {
     let mut skipped = Vec::new();
     for item in scene.item_entries() {
-        let what = format!("{} <{}> in {} chunks", item.count, item.kind, item.chunks);
+        let chunks = plural(item.chunks, "chunk", "chunks");
+        let what = format!("{} <{}> in {chunks}", item.count, item.kind);
         let why = format!("{}: {}", item.treatment.label(), item.why);
         match item.treatment {
             Treatment::Modelled | Treatment::ChunkData => {}
@@ -380,8 +382,10 @@ fn items_skipped(scene: &Scene) -> Vec<Skipped> {
     for trees in scene.unproxied_trees() {
         skipped.push(Skipped::warning(
             format!(
-                "{}: {} <speedtree> placements in {} chunks",
-                trees.spt, trees.placements, trees.chunks
+                "{}: {} in {}",
+                trees.spt,
+                plural(trees.placements, "<speedtree> placement", "<speedtree> placements"),
+                plural(trees.chunks, "chunk", "chunks")
             ),
             "no proxy in <speedtrees> matches the .spt (docs/contract.md §3): kept for every light, they occlude nothing",
         ));

@@ -87,9 +87,13 @@ pub fn refuse_problems(
     }
     for trees in &unproxied {
         let why = format!(
-            "{} <speedtree> placements in {} chunks: {}",
-            trees.placements,
-            trees.chunks,
+            "{} in {}: {}",
+            count(
+                trees.placements,
+                "<speedtree> placement",
+                "<speedtree> placements"
+            ),
+            count(trees.chunks, "chunk", "chunks"),
             shadowcull::inspect::UNPROXIED_FAILS
         );
         messages::problem(&trees.spt, &why, ProblemOutcome::Fails);
@@ -108,14 +112,14 @@ pub fn refuse_problems(
             )
         ));
     }
+    let how = match (scene.problems.is_empty(), unproxied.is_empty()) {
+        (false, true) => "Fix them, or bake what loaded with --keep-going",
+        (true, false) => "Declare the trees' proxies in <speedtrees> of the settings file (docs/contract.md §3), or keep them for every light with <unmodelledCasters> keep </unmodelledCasters> or --keep-going",
+        _ => "Fix the problems and declare the trees' proxies in <speedtrees> (docs/contract.md §3), or bake what loaded, the trees kept for every light, with --keep-going",
+    };
     bail!(
-        "{} (listed above); nothing was written. Fix them, or bake what loaded with --keep-going{}",
-        what.join(" and "),
-        if unproxied.is_empty() {
-            ""
-        } else {
-            " (or declare the trees' proxies in <speedtrees>, or keep them for every light with <unmodelledCasters> keep </unmodelledCasters>)"
-        }
+        "{} (listed above); nothing was written. {how}",
+        what.join(" and ")
     )
 }
 

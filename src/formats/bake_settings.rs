@@ -1221,4 +1221,33 @@ mod speedtree_tests {
             unknown.reason()
         );
     }
+
+    #[test]
+    fn the_contract_sketch_reads_as_it_says() {
+        let contract = include_str!("../../docs/contract.md");
+        let section = &contract[contract.find("## 3. Bake settings").unwrap()..];
+        let start = section.find("```xml\n").unwrap() + "```xml\n".len();
+        let sketch = &section[start..start + section[start..].find("```").unwrap()];
+        let settings = from_bytes(sketch.as_bytes(), Path::new("sketch.xml")).unwrap();
+        assert!(settings.unknown.is_empty(), "{:?}", settings.unknown);
+        assert_eq!(settings.lights.len(), 3);
+        assert_eq!(settings.unmodelled_casters, UnmodelledCasters::Fail);
+        let proxies = &settings.speedtrees;
+        assert_eq!(
+            proxies.proxy_for("speedtree/arctic/Bush2_1.spt"),
+            Some(&Proxy::Model("sets/proxies/bush.model".into()))
+        );
+        assert_eq!(
+            proxies.proxy_for("speedtree/arctic/Oak.spt"),
+            Some(&Proxy::Parametric(ParametricTree {
+                trunk_radius: 0.3,
+                trunk_height: 6.0,
+                crown_radius: 3.0,
+                crown_height: 5.0,
+                crown_base: 2.0,
+                crown_shape: CrownShape::Ellipsoid,
+            }))
+        );
+        assert_eq!(proxies.proxy_for("trees/Oak.spt"), None);
+    }
 }

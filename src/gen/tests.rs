@@ -60,7 +60,7 @@ fn preset_names_round_trip() {
 
 #[test]
 fn same_seed_same_bytes_other_seed_other_bytes() {
-    for p in [Preset::Small, Preset::Village] {
+    for p in [Preset::Small, Preset::Village, Preset::Forest] {
         let a = generate(p, 7);
         let b = generate(p, 7);
         assert_eq!(a, b);
@@ -551,4 +551,54 @@ fn stacked_copies_repeat_the_first_model_and_nothing_else() {
         .iter()
         .all(|m| m.resources == first.resources && m.transform == first.transform));
     assert_eq!(stack_first_model(b"<root></root>", 3), None);
+}
+
+#[test]
+fn the_forest_holds_speedtrees_every_item_kind_and_packed_chunks() {
+    let w = generate(Preset::Forest, 2);
+    let e = w.expected;
+    assert_eq!((e.chunks, e.terrain_blocks), (9, 9));
+    assert_eq!(e.speedtree_proxies, 3, "a .model and two parametric shapes");
+    assert_eq!(e.speedtrees_without_proxy, 0, "bake.xml covers every tree");
+    let mut packed = 0;
+    let mut kinds = BTreeSet::new();
+    let mut forms = BTreeSet::new();
+    for c in chunk_paths(&w) {
+        let bytes = w.file(&c).unwrap();
+        packed += usize::from(bytes.starts_with(&crate::formats::packed_xml::MAGIC));
+        let root = crate::formats::parse_data_section(bytes).unwrap();
+        kinds.extend(root.children.iter().map(|c| c.name.clone()));
+        for tree in root.children_named("speedtree") {
+            let transform = tree.child("transform").unwrap();
+            forms.insert(transform.children.is_empty());
+        }
+        if c.ends_with(&format!("{}.chunk", world::chunk_name(1, 1))) {
+            assert_eq!(root.children_named("speedtree").count(), 22);
+            assert_eq!(root.children_named("model").count(), 0);
+        }
+    }
+    assert_eq!(packed, 4, "the corner chunks");
+    assert_eq!(forms.len(), 2, "twelve numbers and rows");
+    for kind in [
+        "speedtree",
+        "model",
+        "terrain",
+        "vlo",
+        "particles",
+        "audio",
+        "UserDataObject",
+        "entity",
+        "omniLight",
+        "worldNavmesh",
+        "flora",
+        "ControlPoint",
+    ] {
+        assert!(kinds.contains(kind), "{kind}: {kinds:?}");
+    }
+    let settings = String::from_utf8(w.file(SETTINGS_FILE).unwrap().to_vec()).unwrap();
+    assert!(settings.contains("<speedtrees>") && settings.contains("sets/gen/proxies/bush.model"));
+    assert!(
+        w.file("sets/gen/proxies/bush.model").is_some(),
+        "the proxy model is written"
+    );
 }

@@ -292,7 +292,7 @@ pub fn spt_of(tree: &Instance) -> &str {
 }
 
 /// "1 chunk", "2 chunks".
-fn plural(n: usize, one: &str, many: &str) -> String {
+pub fn plural(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
 }
 

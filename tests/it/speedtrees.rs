@@ -352,6 +352,28 @@ fn masks_inside_speedtrees_round_trip_in_text_and_packed_chunks() {
         );
     }
     assert_eq!(seen, (true, true), "trees in packed and text chunks");
+    // The contract's example entry has the fields a parametric tree's has.
+    let contract = include_str!("../../docs/contract.md");
+    let example = &contract[contract.find("```json\n").unwrap() + "```json\n".len()..];
+    let example: Value = serde_json::from_str(&example[..example.find("```").unwrap()]).unwrap();
+    let keys = |entry: &Value| -> Vec<String> {
+        let mut keys: Vec<String> = entry.as_object().unwrap().keys().cloned().collect();
+        keys.sort();
+        keys
+    };
+    let documented = example["casters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["kind"] == "speedtree")
+        .unwrap();
+    let parametric = report["casters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["proxy"] == "parametric")
+        .unwrap();
+    assert_eq!(keys(documented), keys(parametric));
     // The same masks again: nothing to change.
     let check = run_cli(&["bake", path_str(&settings), "--check", "--quiet"]);
     assert_eq!(check.status.code(), Some(0), "{}", text(&check.stderr));
@@ -597,4 +619,34 @@ fn keep_going_with_nothing_loaded_exits_1() {
         "--quiet",
     ]);
     assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+}
+
+#[test]
+fn the_render_legend_counts_the_trees_it_cannot_draw() {
+    let dir = forest();
+    let kept = settings_without_proxies(
+        dir.path(),
+        "kept.xml",
+        "\t<unmodelledCasters>\tkeep\t</unmodelledCasters>\n",
+    );
+    let out = dir.path().join("sun.png");
+    let rendered = run_cli(&[
+        "render",
+        path_str(&kept),
+        "--light",
+        "sun",
+        "--size",
+        "64x64",
+        "-o",
+        path_str(&out),
+    ]);
+    assert!(rendered.status.success(), "{}", text(&rendered.stderr));
+    let legend = std::fs::read_to_string(dir.path().join("sun.txt")).unwrap();
+    let trees = generate(Preset::Forest, 1).expected.speedtrees;
+    assert!(
+        legend.contains(&format!(
+            "{trees} of the useful casters are speedtrees without a proxy"
+        )),
+        "{legend}"
+    );
 }
