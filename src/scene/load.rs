@@ -168,17 +168,13 @@ impl Usage {
     }
 }
 
-/// The model name of a speedtree's proxy: the `.model` resource, or the
-/// parametric shape's name; `None` when no rule matches its `.spt`.
-fn proxy_name(proxies: &SpeedTreeProxies, spt: &str) -> Option<(String, ModelSource)> {
+/// The model name of a speedtree's proxy (the `.model` resource, or the
+/// parametric shape's name) and, for a parametric proxy, its shape;
+/// `None` when no rule matches its `.spt`.
+fn proxy_model(proxies: &SpeedTreeProxies, spt: &str) -> Option<(String, Option<ParametricTree>)> {
     match proxies.proxy_for(spt)? {
-        Proxy::Model(resource) => Some((
-            files::normalise(resource),
-            ModelSource::Resource {
-                referenced_by: PathBuf::new(),
-            },
-        )),
-        Proxy::Parametric(tree) => Some((tree.name(), ModelSource::Parametric(*tree))),
+        Proxy::Model(resource) => Some((files::normalise(resource), None)),
+        Proxy::Parametric(tree) => Some((tree.name(), Some(*tree))),
     }
 }
 
@@ -370,7 +366,8 @@ impl Loader<'_> {
     ) -> (BTreeMap<String, ModelSource>, BTreeMap<String, Usage>) {
         let mut sources: BTreeMap<String, ModelSource> = BTreeMap::new();
         let mut usage: BTreeMap<String, Usage> = BTreeMap::new();
-        let mut proxies: BTreeMap<String, Option<(String, ModelSource)>> = BTreeMap::new();
+        let mut proxies: BTreeMap<String, Option<(String, Option<ParametricTree>)>> =
+            BTreeMap::new();
         let mut need = |name: String, source: ModelSource, chunk: &str| {
             let used = usage.entry(name.clone()).or_default();
             used.placements += 1;
@@ -390,12 +387,9 @@ impl Loader<'_> {
                 let spt = files::normalise(&tree.spt);
                 let proxy = proxies
                     .entry(spt)
-                    .or_insert_with_key(|spt| proxy_name(&self.config.speedtrees, spt));
-                if let Some((name, source)) = proxy {
-                    let source = match source {
-                        ModelSource::Resource { .. } => first(),
-                        ModelSource::Parametric(tree) => ModelSource::Parametric(*tree),
-                    };
+                    .or_insert_with_key(|spt| proxy_model(&self.config.speedtrees, spt));
+                if let Some((name, shape)) = proxy {
+                    let source = shape.map_or_else(first, ModelSource::Parametric);
                     need(name.clone(), source, chunk);
                 }
             }
@@ -563,7 +557,7 @@ impl Loader<'_> {
             });
             return None;
         }
-        let parts = match proxy_name(&self.config.speedtrees, &spt) {
+        let parts = match proxy_model(&self.config.speedtrees, &spt) {
             Some((name, _)) => vec![model_names.get(&name).copied()],
             None => Vec::new(),
         };
