@@ -43,6 +43,7 @@ fn coincident_bench(c: &mut Criterion) {
         let scene = load_scene(&LoadConfig {
             res_paths: ResPaths::new(settings.res_paths.clone()),
             space: settings.space.clone(),
+            speedtrees: settings.speedtrees.clone(),
         })
         .expect("load");
         let config = BakeConfig::from_settings(&settings);

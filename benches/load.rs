@@ -16,6 +16,7 @@ fn load_bench_world(c: &mut Criterion) {
     let config = LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     };
     let stats = load_scene(&config).expect("load").stats();
     eprintln!(

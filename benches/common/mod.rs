@@ -23,6 +23,7 @@ pub fn bench_world() -> (tempfile::TempDir, BakeSettings, Scene) {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     })
     .expect("load");
     (dir, settings, scene)

@@ -2,9 +2,13 @@
 //! every terrain block gets a dense id, the unit the bake classifies and the
 //! traced hits point back to.
 //!
-//! This is the one place that defines the id order: complete instances in
-//! scene order, their parts in `<resource>` order, each part's groups in
-//! model order; then terrain blocks in scene order. Everything that needs a
+//! This is the one place that defines the id order (docs/contract.md §2):
+//! complete instances in scene order, their parts in `<resource>` order,
+//! each part's groups in model order; then terrain blocks in scene order.
+//! Scene order is chunk by chunk, a chunk's `<model>`/`<shell>` instances
+//! in document order, then its `<speedtree>`s in document order: a tree's
+//! one part is its proxy, and a tree without a proxy has one id of its own
+//! ([`Owner::Unmodelled`]) that no ray can hit. Everything that needs a
 //! part's ids walks [`CasterTable::parts`].
 
 use crate::scene::Scene;
@@ -24,6 +28,11 @@ pub enum Owner {
     Terrain {
         block: u32,
     },
+    /// `Scene::instances[instance]`, a speedtree without a proxy: no
+    /// geometry, kept for every light (docs/contract.md §4).
+    Unmodelled {
+        instance: u32,
+    },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -38,6 +47,11 @@ pub struct Caster {
 impl Caster {
     pub fn is_terrain(&self) -> bool {
         matches!(self.owner, Owner::Terrain { .. })
+    }
+
+    /// A caster the bake cannot model: kept for every light, never hit.
+    pub fn is_unmodelled(&self) -> bool {
+        matches!(self.owner, Owner::Unmodelled { .. })
     }
 }
 
@@ -57,8 +71,9 @@ pub struct PartCasters {
 pub struct CasterTable {
     pub casters: Vec<Caster>,
     /// Per instance: the id of its first group (its groups are contiguous,
-    /// part by part in `<resource>` order), or `None` for an instance left
-    /// out of the bake (a part failed to load).
+    /// part by part in `<resource>` order; an unmodelled speedtree's one
+    /// id), or `None` for an instance left out of the bake (a part failed
+    /// to load).
     pub first_of_instance: Vec<Option<u32>>,
     /// Per terrain block: its id.
     pub of_block: Vec<u32>,
@@ -77,9 +92,10 @@ impl CasterTable {
             models.map(|&m| scene.models[m].groups.len()).sum()
         };
         let complete = scene.instances.iter().filter(|i| i.is_complete());
+        let unmodelled = scene.unmodelled_casters();
         table
             .casters
-            .reserve_exact(complete.map(groups).sum::<usize>() + scene.terrain.len());
+            .reserve_exact(complete.map(groups).sum::<usize>() + unmodelled + scene.terrain.len());
         table.first_of_instance.reserve_exact(scene.instances.len());
         table.of_block.reserve_exact(scene.terrain.len());
         for (index, instance) in scene.instances.iter().enumerate() {
@@ -90,6 +106,16 @@ impl CasterTable {
             table
                 .first_of_instance
                 .push(Some(table.casters.len() as u32));
+            if instance.is_unmodelled() {
+                table.casters.push(Caster {
+                    owner: Owner::Unmodelled {
+                        instance: index as u32,
+                    },
+                    alpha_tested: false,
+                    double_sided: false,
+                    receiver_only: false,
+                });
+            }
             for (part, model) in instance.parts.iter().flatten().enumerate() {
                 for (group, flags) in scene.models[*model].groups.iter().enumerate() {
                     table.casters.push(Caster {
@@ -127,6 +153,36 @@ impl CasterTable {
 
     pub fn len(&self) -> usize {
         self.casters.len()
+    }
+
+    /// The ids of instance `index` (`Scene::instances`): its groups part by
+    /// part, or an unmodelled speedtree's one id; empty for an instance
+    /// left out of the bake.
+    pub fn of_instance(&self, scene: &Scene, index: usize) -> std::ops::Range<u32> {
+        let Some(first) = self.first_of_instance[index] else {
+            return 0..0;
+        };
+        let instance = &scene.instances[index];
+        let count = if instance.is_unmodelled() {
+            1
+        } else {
+            instance
+                .parts
+                .iter()
+                .flatten()
+                .map(|&m| scene.models[m].groups.len() as u32)
+                .sum()
+        };
+        first..first + count
+    }
+
+    /// The ids of the casters the bake cannot model, kept for every light.
+    pub fn unmodelled(&self) -> impl Iterator<Item = u32> + '_ {
+        self.casters
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.is_unmodelled())
+            .map(|(id, _)| id as u32)
     }
 
     /// Every model part of every instance in the bake, in id order, with the
@@ -171,6 +227,7 @@ impl CasterTable {
 mod tests {
     use super::*;
     use crate::files::ResPaths;
+    use crate::formats::chunk::InstanceKind;
     use crate::scene::{load_scene, LoadConfig};
 
     #[test]
@@ -179,6 +236,7 @@ mod tests {
         let scene = load_scene(&LoadConfig {
             res_paths: ResPaths::new(vec![root]),
             space: "spaces/village".into(),
+            speedtrees: Default::default(),
         })
         .expect("the village fixture loads");
         let table = CasterTable::new(&scene);
@@ -203,5 +261,97 @@ mod tests {
             table.of_block.first().copied().unwrap_or(expected)
         );
         assert!(expected > 100);
+    }
+
+    #[test]
+    fn speedtrees_take_ids_after_their_chunks_models_whatever_the_file_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let world = crate::gen::generate(crate::gen::Preset::Forest, 3);
+        crate::files::write_tree(dir.path(), &world.files).unwrap();
+        let settings =
+            crate::files::read_bake_settings(&dir.path().join(crate::gen::SETTINGS_FILE)).unwrap();
+        let scene = load_scene(&LoadConfig::from_settings(&settings)).unwrap();
+        assert!(scene.problems.is_empty(), "{:?}", scene.problems);
+        let table = CasterTable::new(&scene);
+        let first_terrain = table.of_block[0];
+        let mut next = 0;
+        let mut trees_before_models_in_a_file = false;
+        for chunk in &scene.chunks {
+            let ids = |kind: InstanceKind| -> Vec<std::ops::Range<u32>> {
+                chunk
+                    .instances
+                    .clone()
+                    .filter(|&i| scene.instances[i].kind.names_models() == kind.names_models())
+                    .map(|i| table.of_instance(&scene, i))
+                    .collect()
+            };
+            let (models, trees) = (ids(InstanceKind::Model), ids(InstanceKind::SpeedTree));
+            // Models, then trees, each in document order, without gaps.
+            for range in models.iter().chain(&trees) {
+                assert_eq!(range.start, next, "{}", chunk.name);
+                next = range.end;
+            }
+            let tree_indices: Vec<usize> = chunk
+                .instances
+                .clone()
+                .filter(|&i| scene.instances[i].kind == InstanceKind::SpeedTree)
+                .map(|i| scene.instances[i].index)
+                .collect();
+            assert_eq!(
+                tree_indices,
+                (0..chunk.speedtree_elements).collect::<Vec<_>>()
+            );
+            let text = std::fs::read(&chunk.file).unwrap();
+            if !models.is_empty() && !trees.is_empty() && text.starts_with(b"<") {
+                let text = String::from_utf8(text).unwrap();
+                trees_before_models_in_a_file |=
+                    text.find("<speedtree>").unwrap() < text.find("<model>").unwrap();
+            }
+        }
+        assert_eq!(next, first_terrain, "terrain blocks last");
+        assert!(
+            trees_before_models_in_a_file,
+            "the order is the ids', not the file's"
+        );
+        assert!(scene.stats().speedtrees > 22);
+        let mut expected = 0u32;
+        for part in table.parts(&scene) {
+            assert_eq!(part.first_caster, expected);
+            expected += scene.models[part.model].groups.len() as u32;
+        }
+        assert_eq!(expected, first_terrain);
+    }
+
+    #[test]
+    fn a_speedtree_without_a_proxy_has_one_id_no_ray_can_hit() {
+        let dir = tempfile::tempdir().unwrap();
+        let world = crate::gen::generate(crate::gen::Preset::Forest, 3);
+        crate::files::write_tree(dir.path(), &world.files).unwrap();
+        let settings =
+            crate::files::read_bake_settings(&dir.path().join(crate::gen::SETTINGS_FILE)).unwrap();
+        let config = LoadConfig {
+            speedtrees: Default::default(),
+            ..LoadConfig::from_settings(&settings)
+        };
+        let scene = load_scene(&config).unwrap();
+        let table = CasterTable::new(&scene);
+        let trees = scene.instances.iter().filter(|i| i.is_unmodelled()).count();
+        assert_eq!(trees, scene.stats().speedtrees);
+        assert_eq!(table.unmodelled().count(), trees);
+        for (index, instance) in scene.instances.iter().enumerate() {
+            let ids = table.of_instance(&scene, index);
+            if instance.is_unmodelled() {
+                assert_eq!(ids.len(), 1);
+                assert_eq!(
+                    table.casters[ids.start as usize].owner,
+                    Owner::Unmodelled {
+                        instance: index as u32
+                    }
+                );
+            }
+        }
+        assert!(table
+            .parts(&scene)
+            .all(|p| !scene.instances[p.instance].is_unmodelled()));
     }
 }

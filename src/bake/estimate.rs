@@ -20,6 +20,7 @@ use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
 use super::{grid_pass, BakeError, GridSource, TraceGrid};
 use crate::progress::{Counter, Phase, Progress};
+use crate::scene::{ItemEntry, UnproxiedTrees};
 use rayon::prelude::*;
 use std::sync::Mutex;
 use std::time::Instant;
@@ -176,6 +177,11 @@ pub struct Plan {
     pub calibration_seconds: f64,
     pub estimated_seconds: f64,
     pub estimated_peak_bytes: u64,
+    /// Every chunk item kind of the world with what the bake does with it
+    /// (docs/contract.md §2).
+    pub items: Vec<ItemEntry>,
+    /// The speedtrees the bake cannot model (no proxy), per `.spt`.
+    pub unproxied_speedtrees: Vec<UnproxiedTrees>,
     /// The setup of the first light the bake traces (built last, so no
     /// other light's top level is built while it is held), handed to the
     /// bake by [`GridSource::take_setup`] instead of being built again.
@@ -237,6 +243,8 @@ pub fn plan(
         calibration_seconds,
         estimated_seconds,
         estimated_peak_bytes,
+        items: world.scene.item_entries(),
+        unproxied_speedtrees: world.scene.unproxied_trees(),
         kept: KeptSetup(Mutex::new(kept)),
     })
 }
@@ -462,6 +470,7 @@ mod tests {
             let scene = load_scene(&LoadConfig {
                 res_paths: ResPaths::new(settings.res_paths.clone()),
                 space: settings.space.clone(),
+                speedtrees: settings.speedtrees.clone(),
             })
             .unwrap();
             let world = BakeWorld::build(&scene, &Silent);

@@ -169,7 +169,8 @@ pub fn caster_triangles(
         Some(Owner::Terrain { block }) => {
             push_block(scene, block as usize, id, reference, &mut out)
         }
-        None => {}
+        // No geometry: nothing to sample.
+        Some(Owner::Unmodelled { .. }) | None => {}
     }
     out.triangles
 }

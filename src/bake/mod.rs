@@ -21,8 +21,10 @@ pub mod texel_beam;
 pub mod trace_light;
 
 use crate::classify::Passes;
+use crate::formats::chunk::InstanceKind;
 use crate::progress::{Counter, Phase};
-use crate::scene::Scene;
+use crate::scene::items::plural;
+use crate::scene::{Scene, Treatment};
 use casters::CasterTable;
 pub use config::{BakeConfig, GridMode};
 use setup::{BakeWorld, LightSetup, NoSetup};
@@ -78,9 +80,14 @@ pub struct Skipped {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Severity {
-    /// Work saved, nothing lost (one pass instead of two, a light that
-    /// reaches nothing, geometry outside a light's reach).
+    /// Work saved or nothing that casts, nothing lost (one pass instead
+    /// of two, a light that reaches nothing, geometry outside a light's
+    /// reach, chunk items that draw into no shadow map).
     Info,
+    /// Casters the bake cannot model, kept for every light (no shadow is
+    /// lost, but they are never culled and hide nothing), or item kinds
+    /// it does not know (whether they cast is unknown).
+    Warning,
     /// Input the bake could not use: its verdicts may be wrong.
     Error,
 }
@@ -91,6 +98,14 @@ impl Skipped {
             what: what.into(),
             why: why.into(),
             severity: Severity::Info,
+        }
+    }
+
+    pub fn warning(what: impl Into<String>, why: impl Into<String>) -> Skipped {
+        Skipped {
+            what: what.into(),
+            why: why.into(),
+            severity: Severity::Warning,
         }
     }
 
@@ -292,6 +307,10 @@ pub fn bake_from(
         }
         lights.push(report);
     }
+    // Kept for every light the bake decides, traced or not.
+    for id in world.casters.unmodelled() {
+        masks[id as usize] |= config.baked_bits();
+    }
     skipped.sort();
     Ok(BakeResult {
         bottom_level_seconds: world.bottom_seconds,
@@ -319,21 +338,56 @@ fn world_skipped(world: &BakeWorld) -> Vec<Skipped> {
     for (index, instance) in scene.instances.iter().enumerate() {
         if world.casters.first_of_instance[index].is_none() {
             let chunk = &scene.chunks[instance.chunk];
+            let (what, part) = match instance.kind {
+                InstanceKind::SpeedTree => ("speedtree", "its proxy model"),
+                InstanceKind::Model | InstanceKind::Shell => ("instance", "a <resource> part"),
+            };
             skipped.push(Skipped::error(
                 format!(
-                    "{} instance {} ({})",
+                    "{} {what} {} ({})",
                     chunk.name,
                     instance.index,
                     instance.resources.join(", ")
                 ),
-                "a <resource> part did not load (see its problem); its <shadow> is left as it was",
+                format!("{part} did not load (see its problem); its <shadow> is left as it was"),
             ));
         }
     }
+    skipped.extend(items_skipped(scene));
     if world.ground.is_none() {
         skipped.push(Skipped::info(
             "below-ground test",
             "the world has no terrain: no height tests",
+        ));
+    }
+    skipped
+}
+
+/// The chunk items the bake leaves out, per kind (docs/contract.md §2),
+/// and the speedtrees it cannot model, per `.spt`.
+fn items_skipped(scene: &Scene) -> Vec<Skipped> {
+    let mut skipped = Vec::new();
+    for item in scene.item_entries() {
+        let chunks = plural(item.chunks, "chunk", "chunks");
+        let what = format!("{} <{}> in {chunks}", item.count, item.kind);
+        let why = format!("{}: {}", item.treatment.label(), item.why);
+        match item.treatment {
+            Treatment::Modelled | Treatment::ChunkData => {}
+            Treatment::ReceivesOnly | Treatment::NotGeometry => {
+                skipped.push(Skipped::info(what, why))
+            }
+            Treatment::Unknown => skipped.push(Skipped::warning(what, why)),
+        }
+    }
+    for trees in scene.unproxied_trees() {
+        skipped.push(Skipped::warning(
+            format!(
+                "{}: {} in {}",
+                trees.spt,
+                plural(trees.placements, "<speedtree> placement", "<speedtree> placements"),
+                plural(trees.chunks, "chunk", "chunks")
+            ),
+            "no proxy in <speedtrees> matches the .spt (docs/contract.md §3): kept for every light, they occlude nothing",
         ));
     }
     skipped
@@ -501,11 +555,12 @@ fn trace_grid_and_refine(
     traced
 }
 
-/// The casters of `useful` that count: receiver-only groups never do.
+/// The casters of `useful` that count: receiver-only groups never do;
+/// casters the bake cannot model always do (kept for every light).
 fn without_receivers(world: &BakeWorld, useful: &CasterSet) -> CasterSet {
     let mut kept = CasterSet::new(world.casters.len());
     for (id, caster) in world.casters.casters.iter().enumerate() {
-        if !caster.receiver_only && useful.contains(id as u32) {
+        if caster.is_unmodelled() || (!caster.receiver_only && useful.contains(id as u32)) {
             kept.insert(id as u32);
         }
     }
@@ -541,6 +596,7 @@ mod tests {
         let scene = crate::scene::load_scene(&crate::scene::LoadConfig {
             res_paths: ResPaths::new(settings.res_paths.clone()),
             space: settings.space.clone(),
+            speedtrees: settings.speedtrees.clone(),
         })
         .unwrap();
         (settings, scene)
@@ -683,6 +739,8 @@ mod tests {
                 })
                 .to_vec(),
             bits: vec![4, 0, 9],
+            speedtrees: Default::default(),
+            unmodelled_casters: Default::default(),
             unknown: Vec::new(),
         };
         let config = BakeConfig::from_settings(&settings);

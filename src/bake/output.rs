@@ -28,6 +28,7 @@ fn chunk_shadows_of(
 ) -> ChunkShadows {
     let chunk = &scene.chunks[chunk];
     let mut instances: Vec<Option<InstanceShadow>> = vec![None; chunk.instance_elements];
+    let mut speedtrees: Vec<Option<InstanceShadow>> = vec![None; chunk.speedtree_elements];
     for index in chunk.instances.clone() {
         let instance = &scene.instances[index];
         let Some(first) = casters.first_of_instance[index] else {
@@ -38,6 +39,10 @@ fn chunk_shadows_of(
             mask: 0,
             render_sets: Vec::new(),
         };
+        if instance.is_unmodelled() {
+            // No render sets: the mask stands alone.
+            shadow.mask = mask_of(caster);
+        }
         for &model in instance.parts.iter().flatten() {
             for geometries in &scene.models[model].layout {
                 let mut render_set = Vec::new();
@@ -50,14 +55,22 @@ fn chunk_shadows_of(
                 shadow.render_sets.push(render_set);
             }
         }
-        if let Some(slot) = instances.get_mut(instance.index) {
+        let slots = match instance.kind {
+            InstanceKind::SpeedTree => &mut speedtrees,
+            InstanceKind::Model | InstanceKind::Shell => &mut instances,
+        };
+        if let Some(slot) = slots.get_mut(instance.index) {
             *slot = Some(shadow);
         }
     }
     let terrain = chunk
         .terrain
         .map(|block| mask_of(casters.of_block[block] as usize));
-    ChunkShadows { instances, terrain }
+    ChunkShadows {
+        instances,
+        speedtrees,
+        terrain,
+    }
 }
 
 /// The masks the chunk files hold now, per caster id: per group where an
@@ -104,16 +117,17 @@ fn old_masks(
     let mut masks = Vec::new();
     for index in chunk.instances.clone() {
         let instance = &scene.instances[index];
-        let (Some(first), Some(Some(shadow))) = (
-            casters.first_of_instance[index],
-            old.instances.get(instance.index),
-        ) else {
+        let written = match instance.kind {
+            InstanceKind::SpeedTree => &old.speedtrees,
+            InstanceKind::Model | InstanceKind::Shell => &old.instances,
+        };
+        let Some(Some(shadow)) = written.get(instance.index) else {
             continue;
         };
         if !instance.casts_shadow {
             continue;
         }
-        let ids = first..first + instance_casters(scene, instance) as u32;
+        let ids = casters.of_instance(scene, index);
         let groups: Vec<u32> = shadow.groups().collect();
         for (n, id) in ids.clone().enumerate() {
             let mask = if groups.len() == ids.len() {
@@ -128,16 +142,6 @@ fn old_masks(
         masks.push((casters.of_block[block], mask));
     }
     Ok(masks)
-}
-
-/// How many caster ids (groups) an instance has.
-fn instance_casters(scene: &Scene, instance: &crate::scene::Instance) -> usize {
-    instance
-        .parts
-        .iter()
-        .flatten()
-        .map(|&m| scene.models[m].groups.len())
-        .sum()
 }
 
 /// One chunk file's new content and where it goes (or, under `--out`,
@@ -306,7 +310,7 @@ pub fn write_outputs<'a>(
 
 /// The version of the report's layout: raised when a field changes
 /// meaning or goes away (new fields may appear without it).
-pub const REPORT_VERSION: u32 = 2;
+pub const REPORT_VERSION: u32 = 3;
 
 /// The `--report` JSON (docs/contract.md §8).
 #[derive(Debug, Clone, Serialize)]
@@ -327,21 +331,33 @@ pub struct Report {
 #[derive(Debug, Clone, Serialize, PartialEq, Eq)]
 pub struct CasterEntry {
     pub chunk: String,
-    /// `model` (a `<model>` or `<shell>` instance) or `terrain`.
+    /// `model` (a `<model>` or `<shell>` instance), `speedtree` or
+    /// `terrain`.
     pub kind: &'static str,
     /// `model` or `shell`: the instance's element tag.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub element: Option<&'static str>,
+    /// Position among the chunk's `<model>`/`<shell>` elements, or among
+    /// its `<speedtree>` elements for a speedtree.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub index: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub resources: Option<Vec<String>>,
+    /// A speedtree's `.spt`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub spt: Option<String>,
+    /// A speedtree's proxy: its `.model`, or `parametric`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub proxy: Option<String>,
     pub mask: u32,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub groups: Option<Vec<u32>>,
     /// `castsShadow` false: listed with mask 0.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub receiver_only: bool,
+    /// A speedtree without a proxy: every baked bit set, no `groups`.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub unmodelled: bool,
 }
 
 pub fn report(scene: &Scene, result: &BakeResult) -> Report {
@@ -349,36 +365,14 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
     for (index, chunk) in scene.chunks.iter().enumerate() {
         let shadows = chunk_shadows(scene, result, index);
         for instance in &scene.instances[chunk.instances.clone()] {
-            let Some(Some(shadow)) = shadows.instances.get(instance.index) else {
+            let written = match instance.kind {
+                InstanceKind::SpeedTree => &shadows.speedtrees,
+                InstanceKind::Model | InstanceKind::Shell => &shadows.instances,
+            };
+            let Some(Some(shadow)) = written.get(instance.index) else {
                 continue;
             };
-            casters.push(CasterEntry {
-                chunk: chunk.name.clone(),
-                kind: "model",
-                element: Some(match instance.kind {
-                    InstanceKind::Model => "model",
-                    InstanceKind::Shell => "shell",
-                }),
-                index: Some(instance.index),
-                resources: Some(
-                    instance
-                        .resources
-                        .iter()
-                        .map(|r| r.trim().to_string())
-                        .collect(),
-                ),
-                mask: shadow.mask,
-                groups: Some(
-                    shadow
-                        .render_sets
-                        .iter()
-                        .flatten()
-                        .flatten()
-                        .copied()
-                        .collect(),
-                ),
-                receiver_only: !instance.casts_shadow,
-            });
+            casters.push(caster_entry(scene, &chunk.name, instance, shadow));
         }
         if let Some(mask) = shadows.terrain {
             casters.push(CasterEntry {
@@ -387,9 +381,12 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
                 element: None,
                 index: None,
                 resources: None,
+                spt: None,
+                proxy: None,
                 mask,
                 groups: None,
                 receiver_only: false,
+                unmodelled: false,
             });
         }
     }
@@ -402,5 +399,52 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
         lights: result.lights.clone(),
         casters,
         skipped: result.skipped.clone(),
+    }
+}
+
+/// The report's entry of a model, shell or speedtree that was written.
+fn caster_entry(
+    scene: &Scene,
+    chunk: &str,
+    instance: &crate::scene::Instance,
+    shadow: &InstanceShadow,
+) -> CasterEntry {
+    let groups = Some(shadow.groups().collect());
+    let entry = CasterEntry {
+        chunk: chunk.to_string(),
+        kind: "model",
+        element: Some(instance.kind.tag()),
+        index: Some(instance.index),
+        resources: None,
+        spt: None,
+        proxy: None,
+        mask: shadow.mask,
+        groups,
+        receiver_only: !instance.casts_shadow,
+        unmodelled: false,
+    };
+    if instance.kind != InstanceKind::SpeedTree {
+        let resources = instance.resources.iter().map(|r| r.trim().to_string());
+        return CasterEntry {
+            resources: Some(resources.collect()),
+            ..entry
+        };
+    }
+    let proxy = instance.parts.iter().flatten().next().map(|&m| {
+        let model = &scene.models[m];
+        if model.parametric {
+            "parametric".to_string()
+        } else {
+            model.resource.clone()
+        }
+    });
+    CasterEntry {
+        kind: "speedtree",
+        element: None,
+        spt: Some(crate::scene::items::spt_of(instance).to_string()),
+        unmodelled: proxy.is_none(),
+        groups: proxy.as_ref().and(entry.groups.clone()),
+        proxy,
+        ..entry
     }
 }

@@ -547,10 +547,13 @@ pub fn settings_lines(config: &BakeConfig) -> Vec<(String, String)> {
 /// radius; refinement runs in the merge and is not among them) and every file the load read, by its name relative to
 /// its res root (so machines mounting the roots elsewhere agree).
 pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> Fingerprint {
-    let settings: String = settings_lines(config)
+    let mut settings: String = settings_lines(config)
         .into_iter()
         .map(|(key, value)| format!("{key} = {value}\n"))
         .collect();
+    if let Some(proxies) = speedtree_proxies_line(scene) {
+        settings += &format!("speedtrees = {proxies}\n");
+    }
     let mut files: Vec<(String, Digest)> = scene
         .inputs
         .iter()
@@ -564,6 +567,32 @@ pub fn fingerprint(scene: &Scene, config: &BakeConfig, res_paths: &ResPaths) -> 
         .collect();
     files.sort();
     Fingerprint { settings, files }
+}
+
+/// The proxy every speedtree took, as a digest (`None`: the world has
+/// none, and its fingerprint is as it was before speedtrees): the
+/// `<speedtrees>` of the settings file shape the world but are no file
+/// the load reads, so shards must prove they used the same.
+fn speedtree_proxies_line(scene: &Scene) -> Option<String> {
+    let trees = scene
+        .instances
+        .iter()
+        .filter(|i| i.kind == crate::formats::chunk::InstanceKind::SpeedTree);
+    let mut text = String::new();
+    let mut count = 0;
+    for tree in trees {
+        let proxy = tree.parts.first().map_or("none", |part| {
+            part.map_or("failed", |m| scene.models[m].resource.as_str())
+        });
+        text += &format!("{} {} {proxy}\n", scene.chunks[tree.chunk].name, tree.index);
+        count += 1;
+    }
+    (count > 0).then(|| {
+        format!(
+            "{count} placements, proxies {}",
+            Digest::of(text.as_bytes())
+        )
+    })
 }
 
 /// Bakes shard `shard` of `plan`: the answer of each of its units.

@@ -144,7 +144,7 @@ pub fn load_scene_told(
     let scene = scene::load_scene_with(&load_config(settings), reporter)?;
     let keep_going = options.pipeline.keep_going;
     say_loaded(&scene, started, keep_going, reporter);
-    pipeline::refuse_problems(&scene, keep_going)?;
+    pipeline::refuse_problems(&scene, keep_going, settings.unmodelled_casters)?;
     Ok(scene)
 }
 
@@ -163,8 +163,13 @@ fn say_loaded(scene: &Scene, started: Instant, keep_going: bool, reporter: &Repo
             count(n, "problem", "problems")
         ),
     };
+    let trees = match (stats.speedtrees, stats.speedtrees_without_proxy) {
+        (0, _) => String::new(),
+        (n, 0) => format!(", {n} speedtrees"),
+        (n, unproxied) => format!(", {n} speedtrees ({unproxied} without a proxy)"),
+    };
     let text = format!(
-        "loaded {} chunks, {} instances ({} model parts), {} model triangles, {} terrain blocks in {seconds:.2} s{problems}",
+        "loaded {} chunks, {} instances ({} model parts){trees}, {} model triangles, {} terrain blocks in {seconds:.2} s{problems}",
         stats.chunks, stats.instances, parts, stats.triangles, stats.terrain_blocks,
     );
     let fields = serde_json::json!({
@@ -173,6 +178,8 @@ fn say_loaded(scene: &Scene, started: Instant, keep_going: bool, reporter: &Repo
         "model_parts": parts,
         "model_triangles": stats.triangles,
         "terrain_blocks": stats.terrain_blocks,
+        "speedtrees": stats.speedtrees,
+        "speedtrees_without_proxy": stats.speedtrees_without_proxy,
         "seconds": seconds,
         "problems": scene.problems.len(),
         "keep_going": keep_going,
@@ -180,14 +187,14 @@ fn say_loaded(scene: &Scene, started: Instant, keep_going: bool, reporter: &Repo
     reporter.say("loaded", &text, fields);
 }
 
-/// The model parts a bake places: one per `<resource>` of every instance
-/// whose resources all loaded (an instance with two is two parts), the
-/// unit a light's reach counts.
+/// The model parts a bake places: one per `<resource>` of every model or
+/// shell instance whose resources all loaded (an instance with two is two
+/// parts); a light's reach counts these and the speedtrees' proxies.
 pub fn placed_parts(scene: &Scene) -> usize {
     scene
         .instances
         .iter()
-        .filter(|i| i.is_complete())
+        .filter(|i| i.is_complete() && i.kind.names_models())
         .map(|i| i.parts.len())
         .sum()
 }
@@ -365,6 +372,9 @@ fn summary(
             "{} skipped: see the report's `skipped`",
             count(skipped_lights, "light", "lights")
         );
+    }
+    for line in results.scene.left_out_lines() {
+        let _ = writeln!(out, "{line}");
     }
     let dry = options.pipeline.writes_nothing();
     if dry {

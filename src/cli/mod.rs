@@ -18,7 +18,7 @@ mod xcheck;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use messages::{ProblemOutcome, StderrForm};
-use shadowcull::files::{self, ResPaths};
+use shadowcull::files;
 use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::{self, LoadConfig};
 use std::path::PathBuf;
@@ -80,7 +80,7 @@ enum Command {
         /// Output folder (created; existing files of the same names are replaced).
         dir: PathBuf,
         /// Size and content of the world.
-        #[arg(long, default_value = "village", value_parser = ["small", "village", "bench"], conflicts_with = "chunks")]
+        #[arg(long, default_value = "village", value_parser = ["small", "village", "bench", "forest"], conflicts_with = "chunks")]
         preset: String,
         /// Instead of a preset: N×N chunks of 100 m at the bench's density
         /// (128² terrain, 1 m sun texels), written chunk by chunk.
@@ -165,7 +165,7 @@ fn run(cli: Cli) -> Result<()> {
             let size = match chunks {
                 Some(n) => WorldSize::BenchChunks(n),
                 None => WorldSize::Preset(Preset::from_name(&preset).with_context(|| {
-                    format!("unknown preset `{preset}`: use small, village or bench")
+                    format!("unknown preset `{preset}`: use small, village, bench or forest")
                 })?),
             };
             let mut written = 0usize;
@@ -218,7 +218,7 @@ fn inspect(
     let reporter = progress::Reporter::new(progress);
     let scene = scene::load_scene_with(&load_config(&settings), &reporter)?;
     drop(reporter);
-    let mut inspection = shadowcull::inspect::inspect(&scene);
+    let mut inspection = shadowcull::inspect::inspect(&scene, settings.unmodelled_casters);
     let file = settings_args.settings.display();
     let unknown = settings
         .unknown
@@ -316,10 +316,7 @@ pub(crate) fn load_settings_with(
 }
 
 pub(crate) fn load_config(settings: &BakeSettings) -> LoadConfig {
-    LoadConfig {
-        res_paths: ResPaths::new(settings.res_paths.clone()),
-        space: settings.space.clone(),
-    }
+    LoadConfig::from_settings(settings)
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@
 use super::messages::{self, ProblemOutcome};
 use anyhow::{bail, Result};
 use shadowcull::bake::BakeConfig;
+use shadowcull::formats::bake_settings::UnmodelledCasters;
 use shadowcull::scene::Scene;
 use std::path::Path;
 
@@ -57,24 +58,83 @@ pub fn select_lights(config: BakeConfig, names: &[String], file: &Path) -> Resul
 }
 
 /// Broken input fails the bake before any work unless `--keep-going`:
-/// every problem is listed.
-pub fn refuse_problems(scene: &Scene, keep_going: bool) -> Result<()> {
+/// every problem is listed. So do casters the bake cannot model (speedtrees
+/// without a proxy, each `.spt` listed) unless the settings say
+/// `<unmodelledCasters> keep` or `--keep-going`; kept, they are baked
+/// kept for every light. With `--keep-going`, a world of which nothing
+/// loaded (no caster at all) still fails: there is nothing to bake.
+pub fn refuse_problems(
+    scene: &Scene,
+    keep_going: bool,
+    unmodelled: UnmodelledCasters,
+) -> Result<()> {
     if keep_going {
         for problem in &scene.problems {
             messages::problem(&problem.what, &problem.why, ProblemOutcome::LeftOut);
         }
-        return Ok(());
+        return refuse_nothing_loaded(scene);
     }
-    if scene.problems.is_empty() {
+    let unproxied = if unmodelled == UnmodelledCasters::Fail {
+        scene.unproxied_trees()
+    } else {
+        Vec::new()
+    };
+    if scene.problems.is_empty() && unproxied.is_empty() {
         return Ok(());
     }
     for problem in &scene.problems {
         messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
     }
+    for trees in &unproxied {
+        let why = format!(
+            "{} in {}: {}",
+            count(
+                trees.placements,
+                "<speedtree> placement",
+                "<speedtree> placements"
+            ),
+            count(trees.chunks, "chunk", "chunks"),
+            shadowcull::inspect::UNPROXIED_FAILS
+        );
+        messages::problem(&trees.spt, &why, ProblemOutcome::Fails);
+    }
+    let mut what = Vec::new();
+    if !scene.problems.is_empty() {
+        what.push(count(scene.problems.len(), "problem", "problems") + " in the input");
+    }
+    if !unproxied.is_empty() {
+        what.push(format!(
+            "{} without a proxy",
+            count(
+                scene.unmodelled_casters(),
+                "speedtree placement",
+                "speedtree placements"
+            )
+        ));
+    }
+    let how = match (scene.problems.is_empty(), unproxied.is_empty()) {
+        (false, true) => "Fix them, or bake what loaded with --keep-going",
+        (true, false) => "Declare the trees' proxies in <speedtrees> of the settings file (docs/contract.md §3), or keep them for every light with <unmodelledCasters> keep </unmodelledCasters> or --keep-going",
+        _ => "Fix the problems and declare the trees' proxies in <speedtrees> (docs/contract.md §3), or bake what loaded, the trees kept for every light, with --keep-going",
+    };
     bail!(
-        "{} in the input (listed above); nothing was written. Fix them, or bake what loaded with --keep-going",
-        count(scene.problems.len(), "problem", "problems")
+        "{} (listed above); nothing was written. {how}",
+        what.join(" and ")
     )
+}
+
+/// `--keep-going` over a world of which nothing loaded fails: no caster
+/// (no model part, speedtree or terrain block) means nothing to bake.
+fn refuse_nothing_loaded(scene: &Scene) -> Result<()> {
+    let loaded = scene.terrain.len() + scene.instances.iter().filter(|i| i.is_complete()).count();
+    if loaded == 0 {
+        bail!(
+            "nothing loaded: the {} hold no model, speedtree or terrain block that could be read ({}); nothing to bake, nothing was written",
+            count(scene.chunks.len(), "chunk", "chunks"),
+            count(scene.problems.len(), "problem", "problems")
+        );
+    }
+    Ok(())
 }
 
 /// `512M`, `8G`, `1.5GiB`, `100kB`, `1048576`: decimal (k, M, G, T) and

@@ -10,6 +10,7 @@ use shadowcull::bake::estimate::{self, human_bytes, Baseline, LightPlan, Plan};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files;
+use shadowcull::formats::bake_settings::UnmodelledCasters;
 use shadowcull::scene::{self, Scene};
 use std::time::Instant;
 
@@ -68,12 +69,22 @@ pub fn run(args: PlanArgs) -> Result<()> {
             for line in plan_lines(&plan) {
                 println!("{line}");
             }
+            for line in scene.left_out_lines() {
+                println!("plan: {line}");
+            }
         }
         check_memory(&plan, args.max_memory)?;
         anyhow::ensure!(
             scene.problems.is_empty(),
             "{} in the input (listed above): a bake fails unless --keep-going",
             pipeline::count(scene.problems.len(), "problem", "problems")
+        );
+        let unmodelled = scene.unmodelled_casters();
+        anyhow::ensure!(
+            unmodelled == 0 || settings.unmodelled_casters == UnmodelledCasters::Keep,
+            "{} without a proxy (listed above): a bake fails unless the settings declare their proxies in <speedtrees>, \
+             or say <unmodelledCasters> keep </unmodelledCasters>, or --keep-going",
+            pipeline::count(unmodelled, "speedtree placement", "speedtree placements")
         );
         Ok(())
     })

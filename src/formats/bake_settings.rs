@@ -6,6 +6,9 @@
 //! Everything a light needs to be baked is validated here, so a bad file
 //! fails before any work, with the element at fault named.
 
+pub use super::speedtree_proxies::{
+    CrownShape, ParametricTree, Proxy, ProxyRule, SpeedTreeProxies, SptPattern,
+};
 use super::Section;
 use crate::error::FormatError;
 use glam::DVec3;
@@ -65,6 +68,11 @@ pub struct BakeSettings {
     /// Per light (same order): its bit in every mask, `<bit>` or its
     /// position in the file. Distinct, each below [`MAX_LIGHTS`].
     pub bits: Vec<u32>,
+    /// `<speedtrees>`: the proxy geometry of SpeedTree placements.
+    pub speedtrees: SpeedTreeProxies,
+    /// `<unmodelledCasters>`: what a strict bake does with casters it
+    /// cannot model (speedtrees without a proxy).
+    pub unmodelled_casters: UnmodelledCasters,
     /// Elements the file holds that no setting reads (a typo such as
     /// `<heightBais>`): the caller decides (a strict bake refuses them,
     /// docs/contract.md §3), so every value here is read as if they were
@@ -185,6 +193,8 @@ const ROOT_TAGS: &[&str] = &[
     "heightBias",
     "tieEpsilon",
     "lights",
+    "speedtrees",
+    "unmodelledCasters",
 ];
 const RES_PATHS_TAGS: &[&str] = &["path"];
 const LIGHTS_TAGS: &[&str] = &["light"];
@@ -293,6 +303,19 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
         Some(lights_section) => parse_lights(lights_section, &mut unknown)?,
         None => (Vec::new(), Vec::new()),
     };
+    let speedtrees = match root.child("speedtrees") {
+        Some(section) => parse_speedtrees(section, &mut unknown)?,
+        None => SpeedTreeProxies::default(),
+    };
+    let unmodelled_casters = match root.child("unmodelledCasters") {
+        None => UnmodelledCasters::default(),
+        Some(s) => UnmodelledCasters::from_name(&s.value).ok_or_else(|| {
+            s.error(format!(
+                "unknown <unmodelledCasters> `{}`; expected fail or keep",
+                s.value
+            ))
+        })?,
+    };
 
     Ok(BakeSettings {
         res_paths,
@@ -302,6 +325,8 @@ pub fn parse(root: &Section, settings_dir: &Path) -> Result<BakeSettings, Format
         tie_epsilon,
         lights,
         bits,
+        speedtrees,
+        unmodelled_casters,
         unknown,
     })
 }
@@ -400,6 +425,38 @@ fn light_bit(light: &Section, index: usize) -> Result<u32, FormatError> {
     }
 }
 
+/// What a strict bake does with casters it cannot model (speedtrees
+/// without a proxy): `<unmodelledCasters>` (docs/contract.md §3). Either
+/// way such a caster is kept for every light and never occludes; the
+/// policy only says whether that is an error.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum UnmodelledCasters {
+    /// A strict bake (and `plan`, `inspect`) fails, listing them.
+    #[default]
+    Fail,
+    /// They are baked kept for every light; every output still lists them.
+    Keep,
+}
+
+impl UnmodelledCasters {
+    /// The settings-file spelling, case-insensitive.
+    pub fn from_name(name: &str) -> Option<UnmodelledCasters> {
+        match name.to_ascii_lowercase().as_str() {
+            "fail" => Some(UnmodelledCasters::Fail),
+            "keep" => Some(UnmodelledCasters::Keep),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            UnmodelledCasters::Fail => "fail",
+            UnmodelledCasters::Keep => "keep",
+        }
+    }
+}
+
+/// Adds the children of `section` whose tags are not in `known` to `out`.
 fn unknown_children(
     section: &Section,
     known: &'static [&'static str],
@@ -526,6 +583,133 @@ fn resolution(light: &Section) -> Result<u32, FormatError> {
         _ => Err(s.error(format!(
             "<resolution> must be between 1 and {MAX_RESOLUTION} texels, found {v}"
         ))),
+    }
+}
+
+const SPEEDTREES_TAGS: &[&str] = &["tree"];
+const TREE_TAGS: &[&str] = &["spt", "model", "trunk", "crown"];
+const TRUNK_TAGS: &[&str] = &["radius", "height"];
+const CROWN_TAGS: &[&str] = &["radius", "height", "base", "shape"];
+
+/// `<speedtrees>` (docs/contract.md §3): each `<tree>` rule checked (errors name the element, so
+/// the reader adds the file's line and column); elements nothing reads
+/// are added to `unknown`.
+fn parse_speedtrees(
+    section: &Section,
+    unknown: &mut Vec<UnknownElement>,
+) -> Result<SpeedTreeProxies, FormatError> {
+    unknown_children(section, SPEEDTREES_TAGS, unknown);
+    let mut rules: Vec<ProxyRule> = Vec::new();
+    for tree in section.children_named("tree") {
+        unknown_children(tree, TREE_TAGS, unknown);
+        let patterns = patterns(tree, &rules)?;
+        let proxy = proxy(tree, unknown)?;
+        rules.push(ProxyRule { patterns, proxy });
+    }
+    Ok(SpeedTreeProxies { rules })
+}
+
+/// A rule's `<spt>` patterns; one written in an earlier rule is an error
+/// (that rule takes every tree it matches: this one never would).
+fn patterns(tree: &Section, earlier: &[ProxyRule]) -> Result<Vec<SptPattern>, FormatError> {
+    let mut out: Vec<SptPattern> = Vec::new();
+    for spt in tree.children_named("spt") {
+        let pattern = SptPattern::new(&spt.value).map_err(|why| spt.error(why))?;
+        let taken = earlier
+            .iter()
+            .flat_map(|rule| &rule.patterns)
+            .chain(&out)
+            .any(|p| p.same_as(&pattern));
+        if taken {
+            return Err(spt.error(format!(
+                "<spt> `{}` is given before; the first rule that matches a tree wins, so this one never would: remove it",
+                pattern.text
+            )));
+        }
+        out.push(pattern);
+    }
+    if out.is_empty() {
+        return Err(tree.error(
+            "<tree> without <spt>; give the .spt names it covers (a name or a glob such as speedtree/**/Bush*.spt)",
+        ));
+    }
+    Ok(out)
+}
+
+/// A rule's proxy: `<model>`, or `<trunk>` and `<crown>`.
+fn proxy(tree: &Section, unknown: &mut Vec<UnknownElement>) -> Result<Proxy, FormatError> {
+    let models: Vec<&Section> = tree.children_named("model").collect();
+    let (trunk, crown) = (tree.child("trunk"), tree.child("crown"));
+    for tag in ["model", "trunk", "crown"] {
+        if let Some(second) = tree.children_named(tag).nth(1) {
+            return Err(second.error(format!("a second <{tag}> in one <tree>; give one")));
+        }
+    }
+    match (models.first(), trunk, crown) {
+        (Some(model), None, None) => {
+            if model.value.is_empty() {
+                return Err(model.error("empty <model>; give the proxy's .model resource name"));
+            }
+            Ok(Proxy::Model(model.value.clone()))
+        }
+        (Some(model), _, _) => Err(model.error(
+            "a <tree> with both <model> and <trunk>/<crown>; give one proxy: a .model or a parametric trunk and crown",
+        )),
+        (None, Some(trunk), Some(crown)) => {
+            unknown_children(trunk, TRUNK_TAGS, unknown);
+            unknown_children(crown, CROWN_TAGS, unknown);
+            Ok(Proxy::Parametric(parametric(trunk, crown)?))
+        }
+        (None, None, None) => Err(tree.error(
+            "<tree> without a proxy; give <model> (a .model resource) or <trunk> and <crown> (sizes in metres)",
+        )),
+        (None, _, None) => Err(tree.error("<trunk> without <crown>; a parametric proxy has both")),
+        (None, None, _) => Err(tree.error("<crown> without <trunk>; a parametric proxy has both")),
+    }
+}
+
+fn parametric(trunk: &Section, crown: &Section) -> Result<ParametricTree, FormatError> {
+    let crown_shape = match crown.child("shape") {
+        None => CrownShape::default(),
+        Some(s) => CrownShape::from_name(&s.value).ok_or_else(|| {
+            s.error(format!(
+                "unknown crown <shape> `{}`; expected ellipsoid or cone",
+                s.value
+            ))
+        })?,
+    };
+    let crown_base = match crown.child("base") {
+        None => 0.0,
+        Some(s) => {
+            let v = s.as_f64()?;
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(s.error(format!(
+                    "<base> must be a finite number of metres >= 0, found {v}"
+                )));
+            }
+            v
+        }
+    };
+    Ok(ParametricTree {
+        trunk_radius: size(trunk, "radius")?,
+        trunk_height: size(trunk, "height")?,
+        crown_radius: size(crown, "radius")?,
+        crown_height: size(crown, "height")?,
+        crown_base,
+        crown_shape,
+    })
+}
+
+/// A required size in metres: finite and above zero.
+fn size(section: &Section, tag: &str) -> Result<f64, FormatError> {
+    let s = section.required(tag)?;
+    let v = s.as_f64()?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(s.error(format!(
+            "<{tag}> must be a finite number of metres > 0, found {v}"
+        )))
     }
 }
 
@@ -890,5 +1074,180 @@ mod tests {
             .unwrap()
             .unknown
             .is_empty());
+    }
+}
+
+#[cfg(test)]
+mod speedtree_tests {
+    use super::*;
+    use crate::formats::xml;
+
+    const SETTINGS: &str = "<s>\n<speedtrees>\n\t<tree>\n\t\t<spt>speedtree/*/Bush*.spt</spt>\n\t\t<model>sets/proxies/bush.model</model>\n\t</tree>\n\t<tree>\n\t\t<spt>speedtree/**</spt>\n\t\t<trunk><radius>0.3</radius><height>6</height></trunk>\n\t\t<crown><radius>3</radius><height>5</height><base>2</base></crown>\n\t</tree>\n</speedtrees>\n</s>";
+
+    fn read(text: &str) -> Result<(SpeedTreeProxies, Vec<UnknownElement>), FormatError> {
+        let root = xml::parse(text.as_bytes()).unwrap();
+        let mut unknown = Vec::new();
+        let proxies = parse_speedtrees(root.child("speedtrees").unwrap(), &mut unknown)?;
+        Ok((proxies, unknown))
+    }
+
+    #[test]
+    fn the_first_matching_rule_wins() {
+        let (proxies, unknown) = read(SETTINGS).unwrap();
+        assert!(unknown.is_empty());
+        assert_eq!(
+            proxies.proxy_for("speedtree/m/Bush2.spt"),
+            Some(&Proxy::Model("sets/proxies/bush.model".into()))
+        );
+        let Some(Proxy::Parametric(tree)) = proxies.proxy_for("speedtree/m/Oak.spt") else {
+            panic!("the second rule covers every other tree");
+        };
+        assert_eq!(
+            (
+                tree.trunk_radius,
+                tree.trunk_height,
+                tree.crown_radius,
+                tree.crown_height,
+                tree.crown_base
+            ),
+            (0.3, 6.0, 3.0, 5.0, 2.0)
+        );
+        assert_eq!(tree.crown_shape, CrownShape::Ellipsoid);
+        assert_eq!(proxies.proxy_for("trees/Oak.spt"), None);
+    }
+
+    #[test]
+    fn mistakes_name_the_element() {
+        let cases = [
+            ("<tree><model>a.model</model></tree>", "without <spt>", "speedtrees/tree"),
+            ("<tree><spt>a.spt</spt></tree>", "without a proxy", "speedtrees/tree"),
+            ("<tree><spt>a.spt</spt><model>m</model><trunk/></tree>", "both <model>", "tree/model"),
+            ("<tree><spt>a.spt</spt><trunk><radius>1</radius><height>1</height></trunk></tree>", "without <crown>", "speedtrees/tree"),
+            ("<tree><spt>a.spt</spt><trunk><radius>0</radius><height>1</height></trunk><crown><radius>1</radius><height>1</height></crown></tree>", "> 0, found 0", "trunk/radius"),
+            ("<tree><spt>a.spt</spt><trunk><radius>1</radius></trunk><crown><radius>1</radius><height>1</height></crown></tree>", "missing required element <height>", "tree/trunk"),
+            ("<tree><spt>a.spt</spt><trunk><radius>1</radius><height>1</height></trunk><crown><radius>1</radius><height>nan</height></crown></tree>", "finite", "crown/height"),
+            ("<tree><spt>a.spt</spt><trunk><radius>1</radius><height>1</height></trunk><crown><radius>1</radius><height>1</height><shape>cube</shape></crown></tree>", "unknown crown <shape> `cube`", "crown/shape"),
+            ("<tree><spt>a.spt</spt><trunk><radius>1</radius><height>1</height></trunk><crown><radius>1</radius><height>1</height><base>-1</base></crown></tree>", ">= 0", "crown/base"),
+            ("<tree><spt>a/**b</spt><model>m</model></tree>", "whole segment", "tree/spt"),
+            ("<tree><spt>A.spt</spt><model>m</model></tree><tree><spt>a.SPT</spt><model>n</model></tree>", "never would", "tree/spt"),
+            ("<tree><spt>a.spt</spt><model>m</model><model>n</model></tree>", "a second <model>", "tree/model"),
+        ];
+        for (trees, message, element) in cases {
+            let text = format!("<s><speedtrees>{trees}</speedtrees></s>");
+            let err = read(&text).unwrap_err().to_string();
+            assert!(err.contains(message), "{trees}: {err}");
+            assert!(err.contains(element), "{trees}: {err}");
+        }
+    }
+
+    #[test]
+    fn unknown_elements_are_listed_with_their_level() {
+        let text = "<s><speedtrees><forest/><tree><spt>a.spt</spt><modle>x</modle><model>m</model></tree><tree><spt>b.spt</spt><trunk><radius>1</radius><height>1</height><girth>2</girth></trunk><crown><radius>1</radius><height>1</height></crown></tree></speedtrees></s>";
+        let (_, unknown) = read(text).unwrap();
+        let reasons: Vec<String> = unknown.iter().map(UnknownElement::reason).collect();
+        assert_eq!(reasons.len(), 3, "{reasons:?}");
+        assert!(reasons[0].contains("<forest>"), "{reasons:?}");
+        assert!(reasons[1].contains("did you mean <model>?"), "{reasons:?}");
+        assert!(
+            reasons[2].contains("<girth>") && reasons[2].contains("radius, height"),
+            "{reasons:?}"
+        );
+    }
+
+    #[test]
+    fn parametric_names_differ_exactly_when_parameters_do() {
+        let (proxies, _) = read(SETTINGS).unwrap();
+        let Proxy::Parametric(tree) = proxies.rules[1].proxy else {
+            panic!()
+        };
+        let cone = ParametricTree {
+            crown_shape: CrownShape::Cone,
+            ..tree
+        };
+        let taller = ParametricTree {
+            trunk_height: 6.000001,
+            ..tree
+        };
+        assert_ne!(tree.name(), cone.name());
+        assert_ne!(tree.name(), taller.name());
+        assert_eq!(tree.name(), ParametricTree { ..tree }.name());
+        assert!(tree.name().contains(':'));
+    }
+
+    #[test]
+    fn the_unmodelled_casters_policy_defaults_to_fail() {
+        let read = |extra: &str| {
+            let text = format!(
+                "<shadowcull><resPaths><path>r</path></resPaths><space>s</space>{extra}</shadowcull>"
+            );
+            from_bytes(text.as_bytes(), Path::new("bake.xml"))
+        };
+        assert_eq!(
+            read("").unwrap().unmodelled_casters,
+            UnmodelledCasters::Fail
+        );
+        assert!(read("").unwrap().speedtrees.is_empty());
+        let keep = read("<unmodelledCasters> KEEP </unmodelledCasters>").unwrap();
+        assert_eq!(keep.unmodelled_casters, UnmodelledCasters::Keep);
+        assert_eq!(UnmodelledCasters::Keep.name(), "keep");
+        let err = read("<unmodelledCasters>maybe</unmodelledCasters>").unwrap_err();
+        assert!(err.to_string().contains("expected fail or keep"), "{err}");
+    }
+
+    #[test]
+    fn speedtree_mistakes_give_the_file_line_and_column() {
+        let text = "<shadowcull>\n\t<resPaths><path>r</path></resPaths>\n\t<space>s</space>\n\t<speedtrees>\n\t\t<tree>\n\t\t\t<spt>a/*.spt</spt>\n\t\t\t<trunk><radius>-1</radius><height>2</height></trunk>\n\t\t\t<crown><radius>1</radius><height>1</height></crown>\n\t\t</tree>\n\t</speedtrees>\n</shadowcull>";
+        let err = from_bytes(text.as_bytes(), Path::new("bake.xml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("bake.xml:7:"), "{err}");
+        assert!(
+            err.contains("<radius> must be a finite number of metres > 0, found -1"),
+            "{err}"
+        );
+        let typo = text.replace(
+            "<trunk><radius>-1",
+            "<trunk><radius>1</radius><raduis>1</raduis><radius>1",
+        );
+        let settings = from_bytes(typo.as_bytes(), Path::new("bake.xml")).unwrap();
+        let [unknown] = &settings.unknown[..] else {
+            panic!("{:?}", settings.unknown);
+        };
+        // Three tabs, `<trunk>` and `<radius>1</radius>` (28 characters) before it.
+        assert_eq!(unknown.location(), "7:29");
+        assert!(
+            unknown.reason().contains("did you mean <radius>?"),
+            "{}",
+            unknown.reason()
+        );
+    }
+
+    #[test]
+    fn the_contract_sketch_reads_as_it_says() {
+        let contract = include_str!("../../docs/contract.md");
+        let section = &contract[contract.find("## 3. Bake settings").unwrap()..];
+        let start = section.find("```xml\n").unwrap() + "```xml\n".len();
+        let sketch = &section[start..start + section[start..].find("```").unwrap()];
+        let settings = from_bytes(sketch.as_bytes(), Path::new("sketch.xml")).unwrap();
+        assert!(settings.unknown.is_empty(), "{:?}", settings.unknown);
+        assert_eq!(settings.lights.len(), 3);
+        assert_eq!(settings.unmodelled_casters, UnmodelledCasters::Fail);
+        let proxies = &settings.speedtrees;
+        assert_eq!(
+            proxies.proxy_for("speedtree/arctic/Bush2_1.spt"),
+            Some(&Proxy::Model("sets/proxies/bush.model".into()))
+        );
+        assert_eq!(
+            proxies.proxy_for("speedtree/arctic/Oak.spt"),
+            Some(&Proxy::Parametric(ParametricTree {
+                trunk_radius: 0.3,
+                trunk_height: 6.0,
+                crown_radius: 3.0,
+                crown_height: 5.0,
+                crown_base: 2.0,
+                crown_shape: CrownShape::Ellipsoid,
+            }))
+        );
+        assert_eq!(proxies.proxy_for("trees/Oak.spt"), None);
     }
 }

@@ -1,17 +1,23 @@
 //! `.chunk` files (chunk/chunk.cpp, chunk_model.cpp): the instances a chunk
-//! places, its terrain, and (indoor chunks) its own transform. Everything else
-//! in a chunk is left alone; element spans let the bake rewrite `<shadow>`
+//! places (`<model>`, `<shell>`, `<speedtree>`), its terrain, (indoor
+//! chunks) its own transform, and how many items of every kind it holds,
+//! so nothing the bake leaves out goes unmentioned. Everything else in a
+//! chunk is left alone; element spans let the bake rewrite `<shadow>`
 //! without touching the rest.
 
 use super::Section;
 use crate::error::FormatError;
 use glam::DMat4;
+use std::collections::BTreeMap;
 use std::ops::Range;
 
+/// What a placed instance element is: a model, an indoor shell, or a
+/// SpeedTree placement (docs/contract.md §2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum InstanceKind {
     Model,
     Shell,
+    SpeedTree,
 }
 
 impl InstanceKind {
@@ -19,6 +25,7 @@ impl InstanceKind {
         match self {
             InstanceKind::Model => "model",
             InstanceKind::Shell => "shell",
+            InstanceKind::SpeedTree => SPEEDTREE_TAG,
         }
     }
 
@@ -27,19 +34,38 @@ impl InstanceKind {
         match tag {
             "model" => Some(InstanceKind::Model),
             "shell" => Some(InstanceKind::Shell),
+            SPEEDTREE_TAG => Some(InstanceKind::SpeedTree),
             _ => None,
         }
     }
+
+    /// A `<model>` or `<shell>`: the elements that name `.model`
+    /// resources and are counted by [`instance_elements`].
+    pub fn names_models(self) -> bool {
+        matches!(self, InstanceKind::Model | InstanceKind::Shell)
+    }
 }
 
-/// The chunk's instance elements in document order: the direct children of
-/// the root tagged `<model>` or `<shell>`. Their position in this sequence is
-/// the instance `index` everywhere (report, write-back), so both the reader
-/// and the shadow writer use this one definition.
+/// Tag of a SpeedTree placement.
+pub const SPEEDTREE_TAG: &str = "speedtree";
+
+/// The chunk's model instance elements in document order: the direct
+/// children of the root tagged `<model>` or `<shell>`. Their position in
+/// this sequence is the instance `index` everywhere (report, write-back),
+/// so both the reader and the shadow writer use this one definition.
 pub fn instance_elements(root: &Section) -> impl Iterator<Item = (InstanceKind, &Section)> + '_ {
-    root.children
-        .iter()
-        .filter_map(|e| InstanceKind::from_tag(&e.name).map(|kind| (kind, e)))
+    root.children.iter().filter_map(|e| {
+        InstanceKind::from_tag(&e.name)
+            .filter(|kind| kind.names_models())
+            .map(|kind| (kind, e))
+    })
+}
+
+/// The chunk's `<speedtree>` elements in document order: the direct
+/// children of the root with that tag. A tree's position here is its
+/// `index` (report, write-back), as [`instance_elements`] is a model's.
+pub fn speedtree_elements(root: &Section) -> impl Iterator<Item = &Section> + '_ {
+    root.children.iter().filter(|e| e.name == SPEEDTREE_TAG)
 }
 
 /// The chunk's terrain element: the first direct `<terrain>` child of the
@@ -68,6 +94,29 @@ pub struct InstanceElement {
     pub span: Range<usize>,
 }
 
+/// One `<speedtree>` element: a SpeedTree placement. The `.spt` itself is
+/// never read (a proprietary format, often not shipped): its geometry
+/// comes from a proxy in the settings file (docs/contract.md §3).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SpeedTreeElement {
+    /// 0-based position among the chunk's `<speedtree>` elements in
+    /// document order (the report's `index`).
+    pub index: usize,
+    /// `<spt>`: the tree's `.spt` resource name; empty when the element
+    /// has none.
+    pub spt: String,
+    /// `<seed>` and `<visibilityMask>`: read and checked, not used by the
+    /// bake (a proxy is the same for every seed).
+    pub seed: Option<i64>,
+    pub visibility_mask: Option<i64>,
+    /// Local-to-chunk transform: twelve numbers in `<transform>` or
+    /// `<row0>`..`<row3>`, as a model's; identity when absent.
+    pub transform: DMat4,
+    /// Tag path and byte span, for messages and the write-back.
+    pub path: String,
+    pub span: Range<usize>,
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct TerrainElement {
     /// e.g. `0000fffdo.cdata/terrain2`, relative to the space folder.
@@ -82,7 +131,11 @@ pub struct ChunkFile {
     /// An indoor chunk's own `<transform>` (outdoor chunks have none).
     pub transform: Option<DMat4>,
     pub instances: Vec<InstanceElement>,
+    pub speedtrees: Vec<SpeedTreeElement>,
     pub terrain: Option<TerrainElement>,
+    /// How many direct children of the root carry each tag: every item
+    /// kind the chunk holds, whether the bake models it or not.
+    pub items: BTreeMap<String, usize>,
 }
 
 pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
@@ -120,6 +173,10 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             span: element.span.clone(),
         });
     }
+    let speedtrees = speedtree_elements(root)
+        .enumerate()
+        .map(|(index, element)| parse_speedtree(index, element))
+        .collect::<Result<_, _>>()?;
     let terrain = match terrain_element(root) {
         Some(element) => Some(TerrainElement {
             resource: element.required("resource")?.value.clone(),
@@ -128,11 +185,36 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
         }),
         None => None,
     };
+    let mut items = BTreeMap::new();
+    for child in &root.children {
+        *items.entry(child.name.clone()).or_insert(0) += 1;
+    }
     Ok(ChunkFile {
         root_name: root.name.clone(),
         transform,
         instances,
+        speedtrees,
         terrain,
+        items,
+    })
+}
+
+/// One `<speedtree>` element; a value that does not read (a transform
+/// that is not 12 numbers, a seed that is no integer) is an error naming
+/// it, as for a model.
+fn parse_speedtree(index: usize, element: &Section) -> Result<SpeedTreeElement, FormatError> {
+    let integer = |tag: &str| element.child(tag).map(Section::as_i64).transpose();
+    Ok(SpeedTreeElement {
+        index,
+        spt: element.child_text("spt").unwrap_or_default().to_string(),
+        seed: integer("seed")?,
+        visibility_mask: integer("visibilityMask")?,
+        transform: match element.child("transform") {
+            Some(t) => t.as_matrix()?,
+            None => DMat4::IDENTITY,
+        },
+        path: element.path.clone(),
+        span: element.span.clone(),
     })
 }
 
@@ -175,5 +257,73 @@ mod tests {
         let text = "<root><model><resource>a.model</resource><castsShadow>perhaps</castsShadow></model></root>";
         let err = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap_err();
         assert!(err.to_string().contains("root/model/castsShadow"), "{err}");
+    }
+
+    const TREES: &str = "<root>\n\t<speedtree>\n\t\t<visibilityMask>\t255\t</visibilityMask>\n\t\t<spt>\tspeedtree/m/Bush2_1.spt\t</spt>\n\t\t<seed>\t4711\t</seed>\n\t\t<transform>\t1.3 0 0 0 1.69 0 0 0 -0.8 5 6 7\t</transform>\n\t\t<reflectionVisible>\ttrue\t</reflectionVisible>\n\t</speedtree>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<speedtree>\n\t\t<spt>\tspeedtree/m/Oak.spt\t</spt>\n\t\t<transform>\n\t\t\t<row0>\t1.3 0 0\t</row0>\n\t\t\t<row1>\t0 1.69 0\t</row1>\n\t\t\t<row2>\t0 0 -0.8\t</row2>\n\t\t\t<row3>\t5 6 7\t</row3>\n\t\t</transform>\n\t</speedtree>\n\t<vlo>\n\t\t<uid>\tA.B.C.D\t</uid>\n\t</vlo>\n\t<vlo />\n</root>\n";
+
+    #[test]
+    fn speedtrees_are_read_in_their_own_order_with_both_transform_forms() {
+        let root = xml::parse(TREES.as_bytes()).unwrap();
+        let packed = crate::formats::packed_xml::write(&root).unwrap();
+        for (encoding, root) in [
+            ("text", root),
+            (
+                "packed",
+                crate::formats::packed_xml::parse(&packed).unwrap(),
+            ),
+        ] {
+            let chunk = parse(&root).unwrap();
+            assert_eq!(chunk.instances.len(), 1, "{encoding}: trees are no models");
+            let [first, second] = &chunk.speedtrees[..] else {
+                panic!("{encoding}: {:?}", chunk.speedtrees);
+            };
+            assert_eq!((first.index, second.index), (0, 1));
+            assert_eq!(first.spt, "speedtree/m/Bush2_1.spt");
+            assert_eq!((first.seed, first.visibility_mask), (Some(4711), Some(255)));
+            assert_eq!((second.seed, second.visibility_mask), (None, None));
+            assert_eq!(
+                first.transform, second.transform,
+                "{encoding}: twelve numbers and rows are one placement"
+            );
+            // Row-vector: local x scales by 1.3, y by 1.69, z mirrors.
+            let p = first.transform.transform_point3(DVec3::new(1.0, 1.0, 1.0));
+            assert!((p - DVec3::new(6.3, 7.69, 6.2)).length() < 1e-12, "{p}");
+            assert!(first.transform.determinant() < 0.0);
+            assert_eq!(first.path, "root/speedtree");
+            assert_eq!(chunk.items["speedtree"], 2);
+            assert_eq!(chunk.items["vlo"], 2);
+            assert_eq!(chunk.items["model"], 1);
+            assert_eq!(speedtree_elements(&root).count(), 2);
+            assert_eq!(instance_elements(&root).count(), 1);
+        }
+        assert!(TREES[parse(&xml::parse(TREES.as_bytes()).unwrap())
+            .unwrap()
+            .speedtrees[1]
+            .span
+            .clone()]
+        .starts_with("<speedtree>"));
+    }
+
+    #[test]
+    fn a_speedtree_value_that_does_not_read_names_the_element() {
+        for (bad, element) in [
+            ("<seed>x</seed>", "root/speedtree/seed"),
+            (
+                "<visibilityMask>1.5</visibilityMask>",
+                "root/speedtree/visibilityMask",
+            ),
+            ("<transform>1 2 3</transform>", "root/speedtree/transform"),
+        ] {
+            let text = format!("<root><speedtree><spt>a.spt</spt>{bad}</speedtree></root>");
+            let err = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap_err();
+            assert!(err.to_string().contains(element), "{bad}: {err}");
+        }
+        let text = "<root><speedtree><seed>1</seed></speedtree></root>";
+        let chunk = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+        assert_eq!(
+            chunk.speedtrees[0].spt, "",
+            "no <spt>: the scene makes it a problem"
+        );
+        assert_eq!(chunk.speedtrees[0].transform, DMat4::IDENTITY);
     }
 }

@@ -14,6 +14,7 @@ pub mod primitives;
 pub mod section;
 pub mod shadow_write;
 pub mod space_settings;
+pub mod speedtree_proxies;
 pub mod terrain;
 pub mod visual;
 pub mod xml;

@@ -1,7 +1,7 @@
 //! Writing baked shadow-caster masks back into `.chunk` files (docs/contract.md §5).
 //!
 //! The bake's only output the engine reads is a `<shadow>` element inside
-//! each `<model>`/`<shell>` and `<terrain>` of a chunk. Chunk files are
+//! each `<model>`/`<shell>`/`<speedtree>` and `<terrain>` of a chunk. Chunk files are
 //! hand-edited, version-controlled and full of data this tool does not
 //! understand (entities, lights, navmesh references), so a text chunk is
 //! edited surgically: only the `<shadow>` elements change, every other byte
@@ -32,11 +32,15 @@
 //! →</terrain>
 //! ```
 //!
-//! An empty render set or geometry is written `<RenderSet />` /
-//! `<Geometry />`, as BigWorld writes empty sections; an instance without
-//! render sets gets `<shadow>\t0\t</shadow>` (the mask alone).
+//! A `<speedtree>` gets its proxy's render sets exactly as a model does
+//! (docs/contract.md §5). An empty render set or geometry is written
+//! `<RenderSet />` / `<Geometry />`, as BigWorld writes empty sections; an
+//! instance without render sets gets the mask alone (`<shadow>\t0\t</shadow>`;
+//! a speedtree without a proxy, every baked bit).
 
-use super::chunk::{instance_elements, terrain_element, InstanceKind};
+use super::chunk::{
+    instance_elements, speedtree_elements, terrain_element, InstanceKind, SPEEDTREE_TAG,
+};
 use super::{packed_xml, xml, Section};
 use crate::error::FormatError;
 use std::fmt::Write as _;
@@ -50,7 +54,8 @@ const GROUP_TAG: &str = "PrimitiveGroup";
 
 /// Masks of one instance: `mask` = OR of all group masks; `render_sets[r][g]`
 /// = the group masks of geometry g of render set r, render sets concatenated
-/// over the instance's `<resource>` parts in order.
+/// over the instance's `<resource>` parts in order (a speedtree's: its
+/// proxy's). Without render sets `mask` stands alone.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct InstanceShadow {
     pub mask: u32,
@@ -79,6 +84,9 @@ pub struct ChunkShadows {
     /// `<model>`/`<shell>` elements): the masks to write, or `None` to leave
     /// that element exactly as it is (e.g. its model could not be loaded).
     pub instances: Vec<Option<InstanceShadow>>,
+    /// The same for each `<speedtree>` element, by its index among the
+    /// chunk's `<speedtree>` elements.
+    pub speedtrees: Vec<Option<InstanceShadow>>,
     /// The terrain block's mask, if the chunk's terrain was baked; `None`
     /// leaves `<terrain>` exactly as it is.
     pub terrain: Option<u32>,
@@ -87,7 +95,8 @@ pub struct ChunkShadows {
 /// Returns the new content of a chunk file with `shadows` written in.
 ///
 /// **Text XML.** Only `<shadow>` elements that are direct children of the
-/// chunk's instance elements and of its `<terrain>` are touched:
+/// chunk's instance and speedtree elements and of its `<terrain>` are
+/// touched:
 /// - an existing `<shadow>` is replaced in place, wherever it is among the
 ///   element's children; further direct `<shadow>` children (an element has
 ///   one; a hand edit or a merge may leave more) are removed, together with
@@ -124,9 +133,10 @@ pub struct ChunkShadows {
 /// with their lengths. Re-running with the same masks gives the same bytes.
 ///
 /// Errors (with the element and byte offset): the file does not parse;
-/// `shadows.instances` does not have one entry per instance element (the
-/// chunk changed since it was read); an instance's `mask` is not the OR of
-/// its group masks; a terrain mask for a chunk without `<terrain>`.
+/// `shadows.instances` (`shadows.speedtrees`) does not have one entry per
+/// instance (speedtree) element (the chunk changed since it was read); an
+/// instance's `mask` is not the OR of its group masks while it has some; a
+/// terrain mask for a chunk without `<terrain>`.
 pub fn write_shadows(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
     if original.starts_with(&packed_xml::MAGIC) {
         write_packed(original, shadows)
@@ -163,6 +173,7 @@ pub fn without_masks(
 ) -> Result<Vec<u8>, FormatError> {
     let shadows = ChunkShadows {
         instances: vec![Some(InstanceShadow::default()); chunk.instances.len()],
+        speedtrees: vec![Some(InstanceShadow::default()); chunk.speedtrees.len()],
         terrain: chunk.terrain.as_ref().map(|_| 0),
     };
     if original.starts_with(&packed_xml::MAGIC) {
@@ -200,11 +211,18 @@ pub fn read_chunk_shadows(root: &Section) -> Result<ChunkShadows, FormatError> {
     let instances = instance_elements(root)
         .map(|(_, element)| read_instance_shadow(element))
         .collect::<Result<Vec<_>, _>>()?;
+    let speedtrees = speedtree_elements(root)
+        .map(read_instance_shadow)
+        .collect::<Result<Vec<_>, _>>()?;
     let terrain = match terrain_element(root).and_then(|t| t.child(SHADOW_TAG)) {
         Some(shadow) => Some(mask_value(shadow)?),
         None => None,
     };
-    Ok(ChunkShadows { instances, terrain })
+    Ok(ChunkShadows {
+        instances,
+        speedtrees,
+        terrain,
+    })
 }
 
 fn mask_value(section: &Section) -> Result<u32, FormatError> {
@@ -216,40 +234,56 @@ fn mask_value(section: &Section) -> Result<u32, FormatError> {
     })
 }
 
-/// The elements to write into, each with its masks, after checking that
-/// `shadows` fits the chunk.
+/// The elements to write into, as positions among the root's children,
+/// each with its masks, after checking that `shadows` fits the chunk.
 fn targets<'a>(
-    root: &'a Section,
+    root: &Section,
     shadows: &'a ChunkShadows,
-) -> Result<Vec<(&'a Section, Masks<'a>)>, FormatError> {
-    let elements: Vec<&Section> = instance_elements(root).map(|(_, e)| e).collect();
-    if elements.len() != shadows.instances.len() {
-        return Err(root.error(format!(
-            "masks were given for {} instances but the chunk has {} <{}>/<{}> elements; \
-             the file changed since it was read: bake again",
-            shadows.instances.len(),
-            elements.len(),
-            InstanceKind::Model.tag(),
-            InstanceKind::Shell.tag(),
-        )));
-    }
+) -> Result<Vec<(usize, Masks<'a>)>, FormatError> {
+    let positions = |is_target: fn(&str) -> bool| -> Vec<usize> {
+        (0..root.children.len())
+            .filter(|&i| is_target(&root.children[i].name))
+            .collect()
+    };
+    let models = |tag: &str| InstanceKind::from_tag(tag).is_some_and(InstanceKind::names_models);
     let mut out = Vec::new();
-    for (element, shadow) in elements.into_iter().zip(&shadows.instances) {
-        let Some(shadow) = shadow else { continue };
-        let or = shadow.groups().fold(0, |a, m| a | m);
-        if or != shadow.mask {
-            return Err(element.error(format!(
-                "instance mask {} is not the OR of its group masks ({or}); \
-                 this is a bug in the caller of the shadow writer",
-                shadow.mask
+    for (positions, wanted, what) in [
+        (positions(models), &shadows.instances, "<model>/<shell>"),
+        (
+            positions(|tag| tag == SPEEDTREE_TAG),
+            &shadows.speedtrees,
+            "<speedtree>",
+        ),
+    ] {
+        if positions.len() != wanted.len() {
+            return Err(root.error(format!(
+                "masks were given for {} instances but the chunk has {} {what} elements; \
+                 the file changed since it was read: bake again",
+                wanted.len(),
+                positions.len(),
             )));
         }
-        out.push((element, Masks::Instance(shadow)));
+        for (position, shadow) in positions.into_iter().zip(wanted) {
+            let Some(shadow) = shadow else { continue };
+            let or = shadow.groups().fold(0, |a, m| a | m);
+            if !shadow.render_sets.is_empty() && or != shadow.mask {
+                return Err(root.children[position].error(format!(
+                    "instance mask {} is not the OR of its group masks ({or}); \
+                     this is a bug in the caller of the shadow writer",
+                    shadow.mask
+                )));
+            }
+            out.push((position, Masks::Instance(shadow)));
+        }
     }
     if let Some(mask) = shadows.terrain {
-        let terrain = terrain_element(root).ok_or_else(|| {
-            root.error("a terrain mask was given but the chunk has no <terrain> element")
-        })?;
+        let terrain = root
+            .children
+            .iter()
+            .position(|c| c.name == "terrain")
+            .ok_or_else(|| {
+                root.error("a terrain mask was given but the chunk has no <terrain> element")
+            })?;
         out.push((terrain, Masks::Terrain(mask)));
     }
     Ok(out)
@@ -274,8 +308,8 @@ fn edit_text(
 ) -> Result<Vec<u8>, FormatError> {
     let eol = line_ending(original);
     let mut edits: Vec<(Range<usize>, Vec<u8>)> = Vec::new();
-    for (element, masks) in targets(root, shadows)? {
-        element_edits(original, element, masks, eol, &mut edits)?;
+    for (position, masks) in targets(root, shadows)? {
+        element_edits(original, &root.children[position], masks, eol, &mut edits)?;
     }
     edits.sort_by_key(|(range, _)| (range.start, range.end));
     let mut out =
@@ -310,12 +344,17 @@ fn verify(out: &[u8], shadows: &ChunkShadows) -> Result<(), FormatError> {
         super::parse_data_section(out).map_err(|e| internal(format!("does not parse ({e})")))?;
     let back =
         read_chunk_shadows(&root).map_err(|e| internal(format!("does not read back ({e})")))?;
-    if back.instances.len() != shadows.instances.len() {
-        return Err(internal("has a different number of instances".into()));
-    }
-    for (i, (want, got)) in shadows.instances.iter().zip(&back.instances).enumerate() {
-        if want.is_some() && want != got {
-            return Err(internal(format!("reads back other masks for instance {i}")));
+    for (kind, wanted, read) in [
+        ("instance", &shadows.instances, &back.instances),
+        ("speedtree", &shadows.speedtrees, &back.speedtrees),
+    ] {
+        if read.len() != wanted.len() {
+            return Err(internal(format!("has a different number of {kind}s")));
+        }
+        for (i, (want, got)) in wanted.iter().zip(read).enumerate() {
+            if want.is_some() && want != got {
+                return Err(internal(format!("reads back other masks for {kind} {i}")));
+            }
         }
     }
     if shadows.terrain.is_some() && shadows.terrain != back.terrain {
@@ -476,49 +515,15 @@ fn shadow_text(masks: Masks, depth: usize, eol: &str) -> String {
 fn write_packed(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
     let mut document = packed_xml::Document::parse(original)?;
     let root = document.to_section()?;
-    let targets = targets(&root, shadows)?;
-    let mut paths = child_paths(&root, targets.iter().map(|(element, _)| *element));
-    for ((element, masks), path) in targets.iter().zip(paths.iter_mut()) {
-        let path = path
-            .take()
-            .ok_or_else(|| element.error("internal error: element not found in its own file"))?;
-        let shadow = shadow_section(*masks, &element.path);
-        document.set_child(&path, &shadow, element)?;
+    // Checked on the unedited tree, so errors point at the original elements.
+    for (position, masks) in targets(&root, shadows)? {
+        let element = &root.children[position];
+        let shadow = shadow_section(masks, &element.path);
+        document.set_child(&[position], &shadow, element)?;
     }
     let out = document.to_bytes()?;
     verify(&out, shadows)?;
     Ok(out)
-}
-
-/// For each of `targets` (elements of `root`'s tree), the child indices
-/// from `root` down to it, found in one walk.
-fn child_paths<'a>(
-    root: &Section,
-    targets: impl Iterator<Item = &'a Section>,
-) -> Vec<Option<Vec<usize>>> {
-    let mut wanted: std::collections::HashMap<*const Section, Vec<usize>> = Default::default();
-    let mut count = 0;
-    for (i, target) in targets.enumerate() {
-        wanted.entry(target as *const Section).or_default().push(i);
-        count += 1;
-    }
-    let mut paths = vec![None; count];
-    let mut stack = vec![(root, Vec::new())];
-    while let Some((section, path)) = stack.pop() {
-        for &i in wanted
-            .get(&(section as *const Section))
-            .into_iter()
-            .flatten()
-        {
-            paths[i] = Some(path.clone());
-        }
-        for (i, child) in section.children.iter().enumerate() {
-            let mut child_path = path.clone();
-            child_path.push(i);
-            stack.push((child, child_path));
-        }
-    }
-    paths
 }
 
 fn shadow_section(masks: Masks, parent_path: &str) -> Section {
@@ -585,6 +590,7 @@ mod tests {
         let root = xml::parse(text).unwrap();
         let mut cuts: Vec<Range<usize>> = instance_elements(&root)
             .map(|(_, e)| e)
+            .chain(speedtree_elements(&root))
             .chain(terrain_element(&root))
             .flat_map(|e| e.children_named(SHADOW_TAG))
             .map(|s| whole_line(text, s.span.clone()))
@@ -607,6 +613,7 @@ mod tests {
     fn writes_the_spec_layout() {
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[2, 3]]))],
+            speedtrees: Vec::new(),
             terrain: Some(2),
         };
         assert_eq!(shadows.instances[0].as_ref().unwrap().mask, 3);
@@ -636,6 +643,7 @@ mod tests {
         assert_eq!(shadow.groups().collect::<Vec<_>>(), [1, 4, 0, 8]);
         let shadows = ChunkShadows {
             instances: vec![Some(shadow.clone())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(BASIC, &shadows);
@@ -656,6 +664,7 @@ mod tests {
         let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t7\n\t\t\t<RenderSet>\n\t\t\t</RenderSet>\n\t\t</shadow>\n\t</model>\n</root>";
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[1]]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -670,6 +679,7 @@ mod tests {
         let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t7\t</shadow>\n\t\t<transform>\n\t\t</transform>\n\t</model>\n</root>";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -681,6 +691,7 @@ mod tests {
         let text = "<root>\n\t<model>\n\t\t<shadow>\t1\t</shadow>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t2\t</shadow>\n\t\t<castsShadow>\ttrue\t</castsShadow><shadow>\t3\t</shadow>\n\t</model>\n</root>";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::from_groups(vec![]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -700,6 +711,7 @@ mod tests {
         let text = "<root>\n\t<model>\n\t\t<editorOnly>\n\t\t\t<shadow>\t5\t</shadow>\n\t\t</editorOnly>\n\t\t<resource>\ta\t</resource>\n\t</model>\n</root>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -720,6 +732,7 @@ mod tests {
         let text = "<root> <!-- <model><shadow>9</shadow></model> -->\n  <model>   <!-- keep -->\n      <resource>a</resource>  \n  <!-- <shadow> -->\n  </model>  \n</root>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::from_groups(vec![vec![vec![6]]]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -737,6 +750,7 @@ mod tests {
         let text = "<root>\n<!-- header -->\n   <model>  <!-- a <shadow> in a comment -->\n\t  <resource>\t<![CDATA[sets/a<b>.model]]>  </resource>\n  \t\t<shadow>\t7\t</shadow>   <!-- after -->\n<metaData><![CDATA[ <shadow>1</shadow> ]]></metaData>\n\n\t\t<transform>\n  <row0> 1 0 0 </row0>\n\t\t</transform>\n   </model>\t\n  <terrain>\r\n<resource>t</resource>\t</terrain>\n</root>  \n<!-- trailer -->\n";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::from_groups(vec![vec![vec![6, 1]]]))],
+            speedtrees: Vec::new(),
             terrain: Some(3),
         };
         let out = write_str(text, &shadows);
@@ -767,6 +781,7 @@ mod tests {
         let text = BASIC.replace('\n', "\r\n");
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[2, 3]]))],
+            speedtrees: Vec::new(),
             terrain: Some(1),
         };
         let out = write_str(&text, &shadows);
@@ -789,6 +804,7 @@ mod tests {
         let text = "<root>\n\t<model><resource>a</resource></model>\n</root>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[1]]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -804,6 +820,7 @@ mod tests {
         let text = "<root><model><resource>a</resource></model><terrain><resource>t</resource></terrain></root>";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: Some(4),
         };
         let out = write_str(text, &shadows);
@@ -822,6 +839,7 @@ mod tests {
                 Some(InstanceShadow::default()),
                 Some(InstanceShadow::default()),
             ],
+            speedtrees: Vec::new(),
             terrain: Some(3),
         };
         let out = write_str(text, &shadows);
@@ -837,6 +855,7 @@ mod tests {
         let text = b"<root>\n\t<model a=\"\xe9\" />\n\t<entity>\xff</entity>\n</root>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_shadows(text, &shadows).unwrap();
@@ -849,6 +868,7 @@ mod tests {
         let text = "<fffb0000o.chunk>\n\t<shell>\n\t\t<resource>\ts\t</resource>\n\t</shell>\n</fffb0000o.chunk>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[0]]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -861,6 +881,7 @@ mod tests {
         let text = "\u{feff}<root>\n\t<entity>\n\t\t<name>\ta &amp; b &lt;c&gt; &#233;\t</name>\n\t</entity>\n\t<model>\n\t\t<resource>\tsets/&amp;.model\t</resource>\n\t</model>\n</root>\n";
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[5]]))],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &shadows);
@@ -880,11 +901,13 @@ mod tests {
         let text = "<root>\n\t<model>\n\t\t<resource>\ta\t</resource>\n\t\t<shadow>\t9\t</shadow>\n\t\t<shadow>\t8\t</shadow>\n\t</model>\n\t<model>\n\t\t<resource>\tb\t</resource>\n\t</model>\n\t<terrain>\n\t\t<shadow>\t1\t</shadow>\n\t</terrain>\n</root>\n";
         let nothing = ChunkShadows {
             instances: vec![None, None],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         assert_eq!(write_str(text, &nothing), text);
         let second = ChunkShadows {
             instances: vec![None, Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let out = write_str(text, &second);
@@ -906,6 +929,7 @@ mod tests {
     fn receiver_only_instance_gets_zeros() {
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[0, 0]]))],
+            speedtrees: Vec::new(),
             terrain: Some(0),
         };
         let out = write_str(BASIC, &shadows);
@@ -922,6 +946,7 @@ mod tests {
     fn mismatches_are_errors_naming_the_element() {
         let too_many = ChunkShadows {
             instances: vec![None, None],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let err = write_shadows(BASIC.as_bytes(), &too_many).unwrap_err();
@@ -934,6 +959,7 @@ mod tests {
                 mask: 1,
                 render_sets: vec![vec![vec![2]]],
             })],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         let err = write_shadows(BASIC.as_bytes(), &wrong_or).unwrap_err();
@@ -943,6 +969,7 @@ mod tests {
         let text = "<root>\n\t<model>\t</model>\n</root>";
         let no_terrain = ChunkShadows {
             instances: vec![None],
+            speedtrees: Vec::new(),
             terrain: Some(1),
         };
         let err = write_shadows(text.as_bytes(), &no_terrain).unwrap_err();
@@ -961,6 +988,7 @@ mod tests {
         assert!(err.to_string().contains("root/model/shadow"), "{err}");
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: None,
         };
         assert_eq!(write_str(text, &shadows), text.replace("lots", "0"));
@@ -978,6 +1006,7 @@ mod tests {
                 ])),
                 None,
             ],
+            speedtrees: Vec::new(),
             terrain: Some(6),
         };
         let out = write_shadows(&packed, &shadows).unwrap();
@@ -1173,6 +1202,7 @@ mod tests {
     fn every_prefix_and_garbage_is_an_error_not_a_panic() {
         let shadows = ChunkShadows {
             instances: vec![Some(InstanceShadow::default())],
+            speedtrees: Vec::new(),
             terrain: Some(1),
         };
         for len in 0..BASIC.len() {
@@ -1197,6 +1227,7 @@ mod tests {
             |text: &[u8]| super::super::chunk::parse(&xml::parse(text).unwrap()).unwrap();
         let shadows = ChunkShadows {
             instances: vec![Some(one(&[&[5, 2]]))],
+            speedtrees: Vec::new(),
             terrain: Some(3),
         };
         let written = write_str(BASIC, &shadows);
@@ -1205,6 +1236,7 @@ mod tests {
             let root = xml::parse(text).unwrap();
             let zeroed = ChunkShadows {
                 instances: vec![Some(InstanceShadow::default())],
+                speedtrees: Vec::new(),
                 terrain: Some(0),
             };
             assert_eq!(
@@ -1227,5 +1259,81 @@ mod tests {
             after.unwrap(),
             "writing masks leaves the fingerprinted bytes alone"
         );
+    }
+
+    const TREES: &str = "<root>\n\t<speedtree>\n\t\t<spt>\ta.spt\t</spt>\n\t\t<transform>\t1 0 0 0 1 0 0 0 1 5 0 5\t</transform>\n\t</speedtree>\n\t<model>\n\t\t<resource>\tm.model\t</resource>\n\t</model>\n\t<speedtree>\n\t\t<spt>\tb.spt\t</spt>\n\t\t<shadow>\t9\t</shadow>\n\t</speedtree>\n\t<speedtree>\n\t\t<spt>\tc.spt\t</spt>\n\t</speedtree>\n</root>\n";
+
+    fn tree_shadows() -> ChunkShadows {
+        ChunkShadows {
+            instances: vec![Some(one(&[&[1]]))],
+            speedtrees: vec![
+                // A parametric proxy: trunk and crown.
+                Some(one(&[&[3, 2]])),
+                // No proxy: the mask alone.
+                Some(InstanceShadow {
+                    mask: 7,
+                    render_sets: Vec::new(),
+                }),
+                None,
+            ],
+            terrain: None,
+        }
+    }
+
+    #[test]
+    fn speedtrees_get_their_masks_inside_the_item_like_models() {
+        let shadows = tree_shadows();
+        let out = write_str(TREES, &shadows);
+        assert!(out.contains("\t\t<shadow>\t3\n\t\t\t<RenderSet>\n\t\t\t\t<Geometry>\n\t\t\t\t\t<PrimitiveGroup>\t3\t</PrimitiveGroup>\n\t\t\t\t\t<PrimitiveGroup>\t2\t</PrimitiveGroup>"), "{out}");
+        assert!(
+            out.contains("<spt>\tb.spt\t</spt>\n\t\t<shadow>\t7\t</shadow>\n\t</speedtree>"),
+            "the old mask replaced in place: {out}"
+        );
+        assert!(
+            out.contains("<spt>\tc.spt\t</spt>\n\t</speedtree>"),
+            "None leaves it: {out}"
+        );
+        assert_eq!(write_str(&out, &shadows), out, "idempotent");
+        assert_eq!(
+            String::from_utf8(strip_shadows(out.as_bytes())).unwrap(),
+            String::from_utf8(strip_shadows(TREES.as_bytes())).unwrap(),
+        );
+        let back = read_chunk_shadows(&xml::parse(out.as_bytes()).unwrap()).unwrap();
+        assert_eq!(back.instances, shadows.instances);
+        assert_eq!(&back.speedtrees[..2], &shadows.speedtrees[..2]);
+        assert_eq!(back.speedtrees[2], None);
+
+        let packed = packed_xml::write(&xml::parse(TREES.as_bytes()).unwrap()).unwrap();
+        let packed_out = write_shadows(&packed, &shadows).unwrap();
+        assert_eq!(write_shadows(&packed_out, &shadows).unwrap(), packed_out);
+        let packed_back = read_chunk_shadows(&packed_xml::parse(&packed_out).unwrap()).unwrap();
+        assert_eq!(packed_back, back, "packed and text agree");
+
+        let root = xml::parse(TREES.as_bytes()).unwrap();
+        let chunk = super::super::chunk::parse(&root).unwrap();
+        let zeroed = without_masks(TREES.as_bytes(), &root, &chunk).unwrap();
+        let zeroed_back = read_chunk_shadows(&xml::parse(&zeroed).unwrap()).unwrap();
+        assert!(zeroed_back
+            .speedtrees
+            .iter()
+            .all(|s| s == &Some(InstanceShadow::default())));
+    }
+
+    #[test]
+    fn speedtree_masks_that_do_not_fit_are_errors() {
+        let mut too_few = tree_shadows();
+        too_few.speedtrees.pop();
+        let err = write_shadows(TREES.as_bytes(), &too_few).unwrap_err();
+        assert!(
+            err.to_string().contains("has 3 <speedtree> elements"),
+            "{err}"
+        );
+        let mut wrong_or = tree_shadows();
+        wrong_or.speedtrees[0] = Some(InstanceShadow {
+            mask: 1,
+            render_sets: vec![vec![vec![2]]],
+        });
+        let err = write_shadows(TREES.as_bytes(), &wrong_or).unwrap_err();
+        assert!(err.to_string().contains("root/speedtree"), "{err}");
     }
 }

@@ -9,6 +9,7 @@
 //! deterministic (same preset and seed, same bytes). `packed.rs` turns a
 //! world into its packed variant, as a shipped game holds it.
 
+mod forest;
 mod mesh;
 mod models;
 mod packed;
@@ -30,10 +31,19 @@ pub enum Preset {
     Village,
     /// 10×10 chunks, ~30 000 instances, millions of triangles.
     Bench,
+    /// 3×3 chunks of 50 m: small's showcase, speedtrees in every chunk (22
+    /// in one chunk of terrain and trees only) with their proxies in the
+    /// settings, every other chunk item kind, and packed chunks.
+    Forest,
 }
 
 impl Preset {
-    pub const ALL: [Preset; 3] = [Preset::Small, Preset::Village, Preset::Bench];
+    pub const ALL: [Preset; 4] = [
+        Preset::Small,
+        Preset::Village,
+        Preset::Bench,
+        Preset::Forest,
+    ];
 
     /// Parses a preset name (`small`, `village`, `bench`; case-insensitive).
     pub fn from_name(name: &str) -> Option<Preset> {
@@ -47,6 +57,7 @@ impl Preset {
             Preset::Small => "small",
             Preset::Village => "village",
             Preset::Bench => "bench",
+            Preset::Forest => "forest",
         }
     }
 }
@@ -67,6 +78,11 @@ pub struct Expected {
     pub alpha_tested_groups: u64,
     pub double_sided_groups: u64,
     pub receiver_only_instances: u64,
+    /// `<speedtree>` placements, those without a proxy in the settings,
+    /// and the distinct proxies they use.
+    pub speedtrees: u64,
+    pub speedtrees_without_proxy: u64,
+    pub speedtree_proxies: u64,
 }
 
 /// Every file of a world, paths relative to the output folder (which is the
@@ -136,16 +152,33 @@ pub fn generate_each<E>(
         ..Expected::default()
     };
     let space = plan.params.space();
-    sink(SETTINGS_FILE, world::bake_settings(&plan))?;
+    let settings = world::bake_settings(&plan);
+    let settings = if plan.params.forest {
+        forest::with_proxies(settings)
+    } else {
+        settings
+    };
+    sink(SETTINGS_FILE, settings)?;
     sink(
         &format!("{space}/space.settings"),
         world::space_settings(&plan.params),
     )?;
     let mut used = std::collections::BTreeSet::new();
+    let mut proxies = std::collections::BTreeSet::new();
     let mut rng = plan.scatter_rng.clone();
     for i in 0..plan.chunks.len() {
         let mut ch = std::mem::take(&mut plan.chunks[i]);
         world::scatter(&plan, &mut rng, &mut ch);
+        let trees = if plan.params.forest {
+            forest::add_models(&plan, &mut ch);
+            forest::trees(&plan, &ch)
+        } else {
+            Vec::new()
+        };
+        for tree in &trees {
+            expected.speedtrees += 1;
+            proxies.insert(tree.proxy());
+        }
         for p in &ch.placements {
             expected.instances += 1;
             if p.shadow.receiver_only() {
@@ -161,10 +194,13 @@ pub fn generate_each<E>(
             }
         }
         let name = ch.name();
-        sink(
-            &format!("{space}/{name}.chunk"),
-            world::chunk_xml(&ch, plan.seed),
-        )?;
+        let chunk = world::chunk_xml(&ch, plan.seed);
+        let chunk = if plan.params.forest {
+            forest::chunk_file(chunk, &plan, &ch, &trees)
+        } else {
+            chunk
+        };
+        sink(&format!("{space}/{name}.chunk"), chunk)?;
         sink(
             &format!("{space}/{name}.cdata"),
             world::terrain_cdata(&plan, &ch),
@@ -175,6 +211,10 @@ pub fn generate_each<E>(
         plan.chunks[i] = ch;
     }
     expected.models = used.len() as u64;
+    expected.speedtree_proxies = proxies.len() as u64;
+    if proxies.contains(&forest::TreeProxy::Bush) {
+        used.insert(models::Kind::Bush);
+    }
     for def in catalog.iter().filter(|d| used.contains(&d.kind)) {
         for (path, bytes) in models::files(def) {
             sink(&path, bytes)?;

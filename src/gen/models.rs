@@ -31,11 +31,14 @@ pub(crate) enum Kind {
     House,
     Banner,
     Signpost,
+    /// The `.model` a studio exports as the proxy of its bushes' `.spt`s:
+    /// only the forest preset's settings name it, never a chunk.
+    Bush,
 }
 
 impl Kind {
     #[cfg(test)]
-    pub(crate) const ALL: [Kind; 8] = [
+    pub(crate) const ALL: [Kind; 9] = [
         Kind::Crate,
         Kind::Pillar,
         Kind::Boulder,
@@ -44,6 +47,7 @@ impl Kind {
         Kind::House,
         Kind::Banner,
         Kind::Signpost,
+        Kind::Bush,
     ];
 
     /// Resource path without extension.
@@ -57,6 +61,7 @@ impl Kind {
             Kind::House => "sets/gen/buildings/house",
             Kind::Banner => "sets/gen/props/banner",
             Kind::Signpost => "sets/gen/props/signpost",
+            Kind::Bush => "sets/gen/proxies/bush",
         }
     }
 
@@ -119,6 +124,11 @@ pub(crate) fn catalog(detail: usize) -> Vec<ModelDef> {
         house(),
         banner(),
         signpost(),
+        one_group(Kind::Bush, OPAQUE("leaves"), |m| {
+            // A ball of leaves resting on the ground.
+            let round = |_: usize, _: usize| 1.0;
+            m.add_sphere([0.0, 0.9, 0.0], 1.0, 6 * d, 10 * d, &round)
+        }),
     ]
 }
 

@@ -60,7 +60,7 @@ fn preset_names_round_trip() {
 
 #[test]
 fn same_seed_same_bytes_other_seed_other_bytes() {
-    for p in [Preset::Small, Preset::Village] {
+    for p in [Preset::Small, Preset::Village, Preset::Forest] {
         let a = generate(p, 7);
         let b = generate(p, 7);
         assert_eq!(a, b);
@@ -136,18 +136,27 @@ fn every_reference_resolves_to_a_generated_file() {
 fn recount(w: &GeneratedWorld) -> Expected {
     let mut e = Expected::default();
     let mut distinct = BTreeSet::new();
+    let mut proxies = BTreeSet::new();
     let mut per_model: BTreeMap<String, (u64, u64, u64)> = BTreeMap::new();
+    let settings = crate::formats::bake_settings::from_bytes(
+        w.file(SETTINGS_FILE).unwrap(),
+        std::path::Path::new(SETTINGS_FILE),
+    )
+    .unwrap();
     for c in chunk_paths(w) {
-        let s = text(w, &c);
+        // Text or packed, read as the bake reads it.
+        let root = crate::formats::parse_data_section(w.file(&c).unwrap()).unwrap();
         e.chunks += 1;
-        e.terrain_blocks += s.matches("<terrain>").count() as u64;
-        for m in s.split("<model>").skip(1) {
-            let m = &m[..m.find("</model>").unwrap()];
+        e.terrain_blocks += root.children_named("terrain").count() as u64;
+        for m in root.children_named("model") {
             e.instances += 1;
-            if m.contains("<castsShadow>\tfalse\t</castsShadow>") {
+            let flag = m
+                .child("castsShadow")
+                .or_else(|| m.child("editorOnly").and_then(|e| e.child("castsShadow")));
+            if flag.is_some_and(|f| f.value == "false") {
                 e.receiver_only_instances += 1;
             }
-            for r in leaves(m, "resource") {
+            for r in m.children_named("resource").map(|r| r.value.as_str()) {
                 distinct.insert(r.to_string());
                 let counts = per_model.entry(r.to_string()).or_insert_with(|| {
                     let model = text(w, r);
@@ -169,8 +178,21 @@ fn recount(w: &GeneratedWorld) -> Expected {
                 e.double_sided_groups += counts.2;
             }
         }
+        for tree in root.children_named("speedtree") {
+            e.speedtrees += 1;
+            match settings
+                .speedtrees
+                .proxy_for(tree.child_text("spt").unwrap())
+            {
+                Some(proxy) => {
+                    proxies.insert(format!("{proxy:?}"));
+                }
+                None => e.speedtrees_without_proxy += 1,
+            }
+        }
     }
     e.models = distinct.len() as u64;
+    e.speedtree_proxies = proxies.len() as u64;
     e
 }
 
@@ -418,6 +440,7 @@ fn scene_loader_reads_back_every_generated_model_exactly() {
         let scene = load_scene(&LoadConfig {
             res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
             space: plan(preset, 2).params.space(),
+            speedtrees: Default::default(),
         })
         .unwrap();
         let catalog = models::catalog(plan(preset, 2).params.detail);
@@ -501,6 +524,7 @@ fn streamed_generation_equals_the_in_memory_one_and_any_size_loads() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(vec![dir.path().to_path_buf()]),
         space: "spaces/bench".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     assert!(scene.problems.is_empty(), "{:?}", scene.problems);
@@ -527,4 +551,54 @@ fn stacked_copies_repeat_the_first_model_and_nothing_else() {
         .iter()
         .all(|m| m.resources == first.resources && m.transform == first.transform));
     assert_eq!(stack_first_model(b"<root></root>", 3), None);
+}
+
+#[test]
+fn the_forest_holds_speedtrees_every_item_kind_and_packed_chunks() {
+    let w = generate(Preset::Forest, 2);
+    let e = w.expected;
+    assert_eq!((e.chunks, e.terrain_blocks), (9, 9));
+    assert_eq!(e.speedtree_proxies, 3, "a .model and two parametric shapes");
+    assert_eq!(e.speedtrees_without_proxy, 0, "bake.xml covers every tree");
+    let mut packed = 0;
+    let mut kinds = BTreeSet::new();
+    let mut forms = BTreeSet::new();
+    for c in chunk_paths(&w) {
+        let bytes = w.file(&c).unwrap();
+        packed += usize::from(bytes.starts_with(&crate::formats::packed_xml::MAGIC));
+        let root = crate::formats::parse_data_section(bytes).unwrap();
+        kinds.extend(root.children.iter().map(|c| c.name.clone()));
+        for tree in root.children_named("speedtree") {
+            let transform = tree.child("transform").unwrap();
+            forms.insert(transform.children.is_empty());
+        }
+        if c.ends_with(&format!("{}.chunk", world::chunk_name(1, 1))) {
+            assert_eq!(root.children_named("speedtree").count(), 22);
+            assert_eq!(root.children_named("model").count(), 0);
+        }
+    }
+    assert_eq!(packed, 4, "the corner chunks");
+    assert_eq!(forms.len(), 2, "twelve numbers and rows");
+    for kind in [
+        "speedtree",
+        "model",
+        "terrain",
+        "vlo",
+        "particles",
+        "audio",
+        "UserDataObject",
+        "entity",
+        "omniLight",
+        "worldNavmesh",
+        "flora",
+        "ControlPoint",
+    ] {
+        assert!(kinds.contains(kind), "{kind}: {kinds:?}");
+    }
+    let settings = String::from_utf8(w.file(SETTINGS_FILE).unwrap().to_vec()).unwrap();
+    assert!(settings.contains("<speedtrees>") && settings.contains("sets/gen/proxies/bush.model"));
+    assert!(
+        w.file("sets/gen/proxies/bush.model").is_some(),
+        "the proxy model is written"
+    );
 }

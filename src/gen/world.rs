@@ -77,6 +77,9 @@ pub(crate) struct Params {
     pub hill_height: f64,
     /// Directional light texels along the world's width.
     pub sun_texels: f64,
+    /// The forest's content besides the showcase: speedtrees, their
+    /// proxies in the settings, every other chunk item kind, packed chunks.
+    pub forest: bool,
 }
 
 impl Params {
@@ -91,6 +94,7 @@ impl Params {
                 detail: 1,
                 hill_height: 3.0,
                 sun_texels: 512.0,
+                forest: false,
             },
             Preset::Village => Params {
                 name: "village",
@@ -101,6 +105,7 @@ impl Params {
                 detail: 1,
                 hill_height: 6.0,
                 sun_texels: 512.0,
+                forest: false,
             },
             Preset::Bench => Params {
                 name: "bench",
@@ -111,6 +116,18 @@ impl Params {
                 detail: 2,
                 hill_height: 10.0,
                 sun_texels: 1024.0,
+                forest: false,
+            },
+            Preset::Forest => Params {
+                name: "forest",
+                grid: (-1, 1),
+                chunk_size: 50.0,
+                height_map_size: 16,
+                scatter: 0,
+                detail: 1,
+                hill_height: 3.0,
+                sun_texels: 512.0,
+                forest: true,
             },
         }
     }

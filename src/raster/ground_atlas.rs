@@ -236,6 +236,7 @@ mod tests {
                 transform: DMat4::from_translation(origin),
                 instances: 0..0,
                 instance_elements: 0,
+                speedtree_elements: 0,
                 terrain: block.map(|b| {
                     terrain.push(b);
                     terrain.len() - 1
@@ -258,6 +259,7 @@ mod tests {
             models: Vec::new(),
             instances: Vec::new(),
             terrain,
+            items: Vec::new(),
             problems: Vec::new(),
             inputs: Vec::new(),
         }

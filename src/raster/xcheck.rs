@@ -462,7 +462,8 @@ fn compare_light(
     };
     let mut hits = Vec::new();
     for (id, caster) in casters.casters.iter().enumerate() {
-        if caster.receiver_only {
+        // Neither method traces a caster it cannot model.
+        if caster.receiver_only || caster.is_unmodelled() {
             continue;
         }
         report.pairs += 1;
@@ -589,11 +590,24 @@ fn describe(
             instance, group, ..
         } => {
             let inst = &scene.instances[instance as usize];
+            let kind = match inst.kind {
+                crate::formats::chunk::InstanceKind::SpeedTree => "speedtree",
+                _ => "model",
+            };
             (
                 scene.chunks[inst.chunk].name.clone(),
-                "model",
+                kind,
                 Some(inst.index),
                 Some(group as usize),
+            )
+        }
+        Owner::Unmodelled { instance } => {
+            let tree = &scene.instances[instance as usize];
+            (
+                scene.chunks[tree.chunk].name.clone(),
+                "speedtree",
+                Some(tree.index),
+                None,
             )
         }
         Owner::Terrain { block } => {

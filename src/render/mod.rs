@@ -145,6 +145,9 @@ pub struct LightSummary {
     /// come from the chunk files).
     pub no_mask_casters: usize,
     pub receiver_only_groups: usize,
+    /// Of the useful casters, the speedtrees without a proxy: kept for
+    /// every light and drawn nowhere (they have no geometry).
+    pub unmodelled_casters: usize,
     /// Every culled caster: `chunk model INDEX RESOURCE group G` or
     /// `chunk terrain`, in caster id order.
     pub culled: Vec<String>,
@@ -205,6 +208,16 @@ impl Picture {
             self.height
         );
         out = out.replacen("\n", &format!(" from {}\n", self.light.source), 1);
+        if self.light.unmodelled_casters > 0 {
+            out = out.replacen(
+                "receiver-only groups\n",
+                &format!(
+                    "receiver-only groups\n{} of the useful casters are speedtrees without a proxy: kept for every light, not drawn (no geometry)\n",
+                    self.light.unmodelled_casters
+                ),
+                1,
+            );
+        }
         for (class, count) in Class::ALL.iter().zip(self.counts()) {
             let [r, g, b] = class.colour();
             out += &format!(
@@ -319,6 +332,7 @@ fn verdicts(
             culled_casters: count(&[Class::Culled, Class::TerrainCulled]),
             no_mask_casters: count(&[Class::NoMask]),
             receiver_only_groups: count(&[Class::ReceiverOnly]),
+            unmodelled_casters: casters.unmodelled().count(),
             culled,
             source: match source {
                 Source::Bake => "a bake of this light alone (nothing written)".into(),
@@ -361,6 +375,15 @@ fn describe(world: &BakeWorld, caster: &Caster) -> String {
                 .find(|c| c.terrain == Some(block as usize))
                 .map_or("?", |c| c.name.as_str());
             format!("{chunk} terrain")
+        }
+        crate::bake::casters::Owner::Unmodelled { instance } => {
+            let tree = &scene.instances[instance as usize];
+            format!(
+                "{} speedtree {} {} (no proxy)",
+                scene.chunks[tree.chunk].name,
+                tree.index,
+                crate::scene::items::spt_of(tree)
+            )
         }
     }
 }

@@ -5,12 +5,16 @@
 //! at all (no settings, no chunks) is an error. Stray placements (world
 //! boxes outside the space's `SpaceRegion`) are found after the terrain is
 //! read, since how high an instance may reach follows the terrain.
+//! Speedtrees take the proxy the settings give their `.spt`: a `.model`
+//! loaded like any other, or a parametric model built once per shape.
 
+use super::items::ItemCount;
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
 use crate::files::{self, ResPaths};
-use crate::formats::chunk::{self, ChunkFile};
+use crate::formats::bake_settings::{BakeSettings, ParametricTree, Proxy, SpeedTreeProxies};
+use crate::formats::chunk::{self, ChunkFile, InstanceKind};
 use crate::formats::space_settings;
 use crate::formats::{
     self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
@@ -18,16 +22,30 @@ use crate::formats::{
 use crate::progress::{Counter, Phase, Progress};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-/// Where the world is.
+/// Where the world is, and the proxies of its speedtrees.
 #[derive(Debug, Clone)]
 pub struct LoadConfig {
     pub res_paths: ResPaths,
     /// Space folder as a resource name, e.g. `spaces/arctic`.
     pub space: String,
+    /// `<speedtrees>` of the settings file: without a rule that matches
+    /// its `.spt`, a speedtree is an unmodelled caster.
+    pub speedtrees: SpeedTreeProxies,
+}
+
+impl LoadConfig {
+    /// The world a settings file names, with its speedtree proxies.
+    pub fn from_settings(settings: &BakeSettings) -> LoadConfig {
+        LoadConfig {
+            res_paths: ResPaths::new(settings.res_paths.clone()),
+            space: settings.space.clone(),
+            speedtrees: settings.speedtrees.clone(),
+        }
+    }
 }
 
 /// Below this |determinant| a placement has collapsed to a plane, line or
@@ -78,6 +96,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         mut chunks,
         mut instances,
         terrain_jobs,
+        items,
     } = loader.place_chunks(&by_name, &settings, &model_names);
     let region = SpaceRegion::of(&settings);
     let terrain =
@@ -96,6 +115,7 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
         models,
         instances,
         terrain,
+        items,
         problems,
         inputs: log.into_sorted(),
     })
@@ -116,6 +136,47 @@ struct Placed {
     chunks: Vec<Chunk>,
     instances: Vec<Instance>,
     terrain_jobs: Vec<TerrainJob>,
+    items: Vec<ItemCount>,
+}
+
+/// Where a model the chunks need comes from.
+enum ModelSource {
+    /// A `.model` resource; `referenced_by` is the first chunk that
+    /// places it (by a `<resource>` or a speedtree's proxy).
+    Resource { referenced_by: PathBuf },
+    /// A parametric speedtree proxy, built rather than read.
+    Parametric(ParametricTree),
+}
+
+/// How much of the world uses one model: what its loss costs.
+#[derive(Default)]
+struct Usage {
+    placements: usize,
+    chunks: BTreeSet<String>,
+}
+
+impl Usage {
+    /// `3 placements in 2 chunks lose it (left out of the bake)`.
+    fn loss(&self) -> String {
+        let placements = self.placements;
+        let chunks = self.chunks.len();
+        format!(
+            "{placements} placement{} in {chunks} chunk{} lose{} it (left out of the bake)",
+            if placements == 1 { "" } else { "s" },
+            if chunks == 1 { "" } else { "s" },
+            if placements == 1 { "s" } else { "" },
+        )
+    }
+}
+
+/// The model name of a speedtree's proxy (the `.model` resource, or the
+/// parametric shape's name) and, for a parametric proxy, its shape;
+/// `None` when no rule matches its `.spt`.
+fn proxy_model(proxies: &SpeedTreeProxies, spt: &str) -> Option<(String, Option<ParametricTree>)> {
+    match proxies.proxy_for(spt)? {
+        Proxy::Model(resource) => Some((files::normalise(resource), None)),
+        Proxy::Parametric(tree) => Some((tree.name(), Some(*tree))),
+    }
 }
 
 /// A chunk's terrain block to read: the chunk's index and file, the
@@ -251,44 +312,35 @@ impl Loader<'_> {
         Ok(by_name)
     }
 
-    /// Each distinct model resource the chunks place, once, in name order,
-    /// loaded in parallel; with each loaded name's index in the models.
+    /// Each distinct model the chunks place (resources, and the proxies of
+    /// their speedtrees), once, in name order, loaded in parallel; with
+    /// each loaded name's index in the models. A model that fails is a
+    /// problem saying how many placements in how many chunks lose it.
     fn load_models(
         &mut self,
         by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
     ) -> (Vec<Model>, BTreeMap<String, usize>) {
-        let mut model_names: BTreeMap<String, usize> = BTreeMap::new();
-        let mut first_reference: BTreeMap<String, PathBuf> = BTreeMap::new();
-        for (path, chunk) in by_name.values() {
-            for instance in &chunk.instances {
-                for resource in &instance.resources {
-                    let name = files::normalise(resource);
-                    first_reference
-                        .entry(name.clone())
-                        .or_insert_with(|| path.clone());
-                    model_names.insert(name, 0);
-                }
-            }
-        }
+        let (sources, usage) = self.models_needed(by_name);
         let (res_paths, log) = (&self.config.res_paths, &self.log);
-        let counter = Counter::begin(
-            self.progress,
-            Phase::Models,
-            None,
-            first_reference.len() as u64,
-        );
-        let loaded: Vec<(String, Result<Model>)> = first_reference
+        let counter = Counter::begin(self.progress, Phase::Models, None, sources.len() as u64);
+        let loaded: Vec<(String, Result<Model>)> = sources
             .into_iter()
             .collect::<Vec<_>>()
             .into_par_iter()
-            .map(|(name, referenced_by)| {
-                let model = load_model(res_paths, &name, &referenced_by, log);
+            .map(|(name, source)| {
+                let model = match source {
+                    ModelSource::Resource { referenced_by } => {
+                        load_model(res_paths, &name, &referenced_by, log)
+                    }
+                    ModelSource::Parametric(tree) => Ok(super::speedtree::parametric_model(&tree)),
+                };
                 counter.add(1);
                 (name, model)
             })
             .collect();
         counter.finish();
         let mut models = Vec::new();
+        let mut model_names = BTreeMap::new();
         for (name, model) in loaded {
             match model {
                 Ok(model) => {
@@ -296,15 +348,54 @@ impl Loader<'_> {
                     models.push(model);
                 }
                 Err(err) => {
-                    model_names.remove(&name);
+                    let loss = usage.get(&name).map(Usage::loss).unwrap_or_default();
                     self.problems.push(Problem {
                         what: name,
-                        why: err.to_string(),
+                        why: format!("{err}; {loss}"),
                     });
                 }
             }
         }
         (models, model_names)
+    }
+
+    /// Every model name the chunks need, with where it comes from and how
+    /// much of the world uses it.
+    fn models_needed(
+        &self,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+    ) -> (BTreeMap<String, ModelSource>, BTreeMap<String, Usage>) {
+        let mut sources: BTreeMap<String, ModelSource> = BTreeMap::new();
+        let mut usage: BTreeMap<String, Usage> = BTreeMap::new();
+        let mut proxies: BTreeMap<String, Option<(String, Option<ParametricTree>)>> =
+            BTreeMap::new();
+        let mut need = |name: String, source: ModelSource, chunk: &str| {
+            let used = usage.entry(name.clone()).or_default();
+            used.placements += 1;
+            used.chunks.insert(chunk.to_string());
+            sources.entry(name).or_insert(source);
+        };
+        for (chunk, (path, file)) in by_name {
+            let first = || ModelSource::Resource {
+                referenced_by: path.clone(),
+            };
+            for instance in &file.instances {
+                for resource in &instance.resources {
+                    need(files::normalise(resource), first(), chunk);
+                }
+            }
+            for tree in &file.speedtrees {
+                let spt = files::normalise(&tree.spt);
+                let proxy = proxies
+                    .entry(spt)
+                    .or_insert_with_key(|spt| proxy_model(&self.config.speedtrees, spt));
+                if let Some((name, shape)) = proxy {
+                    let source = shape.map_or_else(first, ModelSource::Parametric);
+                    need(name.clone(), source, chunk);
+                }
+            }
+        }
+        (sources, usage)
     }
 
     /// Every chunk with its world transform and its instances placed in
@@ -319,9 +410,24 @@ impl Loader<'_> {
         let mut chunks = Vec::new();
         let mut instances = Vec::new();
         let mut terrain_jobs = Vec::new();
+        let mut items: BTreeMap<&str, ItemCount> = BTreeMap::new();
         // Held for the whole bake: sized exactly rather than grown by doubling.
-        instances.reserve_exact(by_name.values().map(|(_, f)| f.instances.len()).sum());
+        instances.reserve_exact(
+            by_name
+                .values()
+                .map(|(_, f)| f.instances.len() + f.speedtrees.len())
+                .sum(),
+        );
         for (name, (path, file)) in by_name {
+            for (kind, &count) in &file.items {
+                let item = items.entry(kind).or_insert_with(|| ItemCount {
+                    kind: kind.clone(),
+                    count: 0,
+                    chunks: 0,
+                });
+                item.count += count;
+                item.chunks += 1;
+            }
             let grid = space_settings::parse_outdoor_chunk_name(name);
             let transform = self.chunk_transform(path, file, grid, settings.chunk_size);
             let chunk_index = chunks.len();
@@ -331,6 +437,13 @@ impl Loader<'_> {
                     self.place_instance(path, chunk_index, transform, element, model_names)
                 {
                     instances.push(instance);
+                }
+            }
+            for element in &file.speedtrees {
+                if let Some(tree) =
+                    self.place_speedtree(path, chunk_index, transform, element, model_names)
+                {
+                    instances.push(tree);
                 }
             }
             if let Some(element) = &file.terrain {
@@ -348,6 +461,7 @@ impl Loader<'_> {
                 transform,
                 instances: first_instance..instances.len(),
                 instance_elements: file.instances.len(),
+                speedtree_elements: file.speedtrees.len(),
                 terrain: None,
             });
         }
@@ -355,6 +469,7 @@ impl Loader<'_> {
             chunks,
             instances,
             terrain_jobs,
+            items: items.into_values().collect(),
         }
     }
 
@@ -395,24 +510,8 @@ impl Loader<'_> {
         model_names: &BTreeMap<String, usize>,
     ) -> Option<Instance> {
         let what = format!("{} <{}>", chunk_path.display(), element.path);
-        let world = chunk_transform * element.transform;
-        if !world.is_finite() {
-            self.problems.push(Problem {
-                what,
-                why: "transform holds NaN or infinite values; instance left out".into(),
-            });
-            return None;
-        }
-        let determinant = world.determinant();
-        if determinant.abs() < SINGULAR_DETERMINANT {
-            self.problems.push(Problem {
-                what,
-                why: format!(
-                    "singular transform (determinant {determinant:e}, zero scale); instance left out"
-                ),
-            });
-            return None;
-        }
+        let (world, determinant) =
+            self.world_transform(&what, chunk_transform * element.transform)?;
         if element.resources.is_empty() {
             self.problems.push(Problem {
                 what,
@@ -435,6 +534,67 @@ impl Loader<'_> {
             mirrored: determinant < 0.0,
             casts_shadow: element.casts_shadow,
         })
+    }
+
+    /// A chunk's `<speedtree>` placed in the world with its proxy as its
+    /// one part (none when no rule matches its `.spt`), or a problem when
+    /// its transform is not finite or singular, or it names no `.spt`.
+    fn place_speedtree(
+        &mut self,
+        chunk_path: &Path,
+        chunk_index: usize,
+        chunk_transform: DMat4,
+        element: &chunk::SpeedTreeElement,
+        model_names: &BTreeMap<String, usize>,
+    ) -> Option<Instance> {
+        let what = format!("{} <{}>", chunk_path.display(), element.path);
+        let (world, determinant) =
+            self.world_transform(&what, chunk_transform * element.transform)?;
+        let spt = files::normalise(&element.spt);
+        if spt.is_empty() {
+            self.problems.push(Problem {
+                what,
+                why: "no <spt>; speedtree left out".into(),
+            });
+            return None;
+        }
+        let parts = match proxy_model(&self.config.speedtrees, &spt) {
+            Some((name, _)) => vec![model_names.get(&name).copied()],
+            None => Vec::new(),
+        };
+        Some(Instance {
+            chunk: chunk_index,
+            index: element.index,
+            kind: InstanceKind::SpeedTree,
+            resources: vec![element.spt.trim().to_string()],
+            parts,
+            world,
+            mirrored: determinant < 0.0,
+            casts_shadow: true,
+        })
+    }
+
+    /// An element's world transform and its determinant, or a problem
+    /// about `what` when it is not finite or singular.
+    fn world_transform(&mut self, what: &str, world: DMat4) -> Option<(DMat4, f64)> {
+        if !world.is_finite() {
+            self.problems.push(Problem {
+                what: what.to_string(),
+                why: "transform holds NaN or infinite values; instance left out".into(),
+            });
+            return None;
+        }
+        let determinant = world.determinant();
+        if determinant.abs() < SINGULAR_DETERMINANT {
+            self.problems.push(Problem {
+                what: what.to_string(),
+                why: format!(
+                    "singular transform (determinant {determinant:e}, zero scale); instance left out"
+                ),
+            });
+            return None;
+        }
+        Some((world, determinant))
     }
 
     /// The chunks' terrain blocks, read in parallel; each kept block is
@@ -659,11 +819,41 @@ fn load_terrain(
     }
     let dir = chunk_path.parent().unwrap_or(Path::new("."));
     let cdata_path = res_paths.beside(dir, folder, &file)?;
-    let bytes = files::read_file(&cdata_path)?;
+    let bytes = files::read_file(&cdata_path)
+        .map_err(|err| cdata_not_found(err, chunk_path, &file, &cdata_path, res_paths))?;
     log.record(&cdata_path, &bytes);
     let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
     TerrainBlock::new(&data, origin, chunk_size)
         .map_err(|message| Error::invalid(&cdata_path, message))
+}
+
+/// A missing `.cdata` named as a missing model is: where it was looked
+/// for, what to check, and what the bake loses.
+fn cdata_not_found(
+    err: Error,
+    chunk_path: &Path,
+    file: &str,
+    looked_at: &Path,
+    res_paths: &ResPaths,
+) -> Error {
+    match err {
+        Error::Io { os_error, .. } if os_error.kind() == std::io::ErrorKind::NotFound => {
+            let roots: Vec<String> = res_paths
+                .roots
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect();
+            Error::invalid(
+                chunk_path,
+                format!(
+                    "terrain `{file}` not found beside the chunk or in the res paths (looked for {}); check <resPaths> ({}) and that the space's .cdata files were copied with its chunks: 1 chunk loses its terrain block (left out of the bake)",
+                    looked_at.display(),
+                    roots.join(", ")
+                ),
+            )
+        }
+        other => other,
+    }
 }
 
 /// Loads one model resource's LOD 0 geometry: `.model` → its own visual

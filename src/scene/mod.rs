@@ -1,8 +1,12 @@
-//! The world model the bake consumes: chunks, placed instances, primitive
-//! groups with their flags, terrain blocks. `load` builds it from the
-//! `formats/` readers; everything else here is plain data.
+//! The world model the bake consumes: chunks, placed instances (models,
+//! shells and speedtrees through their proxies), primitive groups with
+//! their flags, terrain blocks, and the count of every chunk item kind.
+//! `load` builds it from the `formats/` readers; everything else here is
+//! plain data.
 
+pub mod items;
 pub mod load;
+pub mod speedtree;
 pub mod terrain;
 
 use crate::formats::chunk::InstanceKind;
@@ -11,6 +15,7 @@ use glam::{DMat4, DVec3, Vec3};
 use std::ops::Range;
 use std::path::PathBuf;
 
+pub use items::{ItemCount, ItemEntry, Treatment, UnproxiedTrees};
 pub use load::{load_scene, load_scene_with, LoadConfig};
 pub use terrain::TerrainBlock;
 
@@ -23,9 +28,12 @@ pub struct Scene {
     pub chunks: Vec<Chunk>,
     /// Each distinct model resource, loaded once; sorted by resource name.
     pub models: Vec<Model>,
-    /// Chunk by chunk, in document order within a chunk.
+    /// Chunk by chunk; within a chunk its `<model>`/`<shell>` instances in
+    /// document order, then its `<speedtree>`s in document order.
     pub instances: Vec<Instance>,
     pub terrain: Vec<TerrainBlock>,
+    /// Every item kind the chunks hold (their roots' child tags), by kind.
+    pub items: Vec<ItemCount>,
     /// What could not be loaded and was left out, in a stable order.
     pub problems: Vec<Problem>,
     /// Every file the load read, with its content hash, sorted by path
@@ -167,19 +175,27 @@ pub struct Chunk {
     /// How many `<model>`/`<shell>` elements the chunk file holds, including
     /// those left out of the scene (bad transform, no resource).
     pub instance_elements: usize,
+    /// How many `<speedtree>` elements it holds, likewise.
+    pub speedtree_elements: usize,
     /// Into `Scene::terrain`.
     pub terrain: Option<usize>,
 }
 
+/// A placed instance: a `<model>` or `<shell>` with its parts, or a
+/// `<speedtree>` with its proxy as its one part.
 #[derive(Debug, Clone)]
 pub struct Instance {
     pub chunk: usize,
-    /// Position among the chunk's `<model>`/`<shell>` elements.
+    /// Position among the chunk's `<model>`/`<shell>` elements, or among
+    /// its `<speedtree>` elements for a speedtree.
     pub index: usize,
     pub kind: InstanceKind,
+    /// The `<resource>`s, or a speedtree's `<spt>` alone.
     pub resources: Vec<String>,
     /// One entry per `<resource>`: the loaded model, or `None` when that
-    /// resource could not be loaded (see `Scene::problems`).
+    /// resource could not be loaded (see `Scene::problems`). A speedtree's
+    /// one entry is its proxy model; it has none when no proxy matches
+    /// its `.spt` ([`Instance::is_unmodelled`]).
     pub parts: Vec<Option<usize>>,
     /// Model to world, kept in f64 so worlds far from the origin stay exact.
     pub world: DMat4,
@@ -193,6 +209,12 @@ pub struct Instance {
 impl Instance {
     pub fn is_complete(&self) -> bool {
         self.parts.iter().all(Option::is_some)
+    }
+
+    /// A speedtree no proxy matches: a caster the bake cannot model, kept
+    /// for every light and never occluding (docs/contract.md §4).
+    pub fn is_unmodelled(&self) -> bool {
+        self.kind == InstanceKind::SpeedTree && self.parts.is_empty()
     }
 }
 
@@ -209,6 +231,9 @@ pub struct Model {
     /// The visual's structure: per renderSet, per geometry, its group
     /// count (the shape of the `<shadow>` element, empty geometries too).
     pub layout: Vec<Vec<usize>>,
+    /// A parametric speedtree proxy built from the settings
+    /// (`speedtree::parametric_model`), not read from a file.
+    pub parametric: bool,
 }
 
 impl Model {
@@ -248,6 +273,8 @@ pub struct Group {
 }
 
 /// Counts of what a scene holds (docs/contract.md §8, `inspect --json`).
+/// `instances` to `receiver_only_instances` count `<model>`/`<shell>`
+/// instances and their models; speedtrees are counted apart.
 #[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
 pub struct Stats {
     pub chunks: usize,
@@ -259,6 +286,13 @@ pub struct Stats {
     pub alpha_tested_groups: usize,
     pub double_sided_groups: usize,
     pub receiver_only_instances: usize,
+    /// `<speedtree>` placements in the scene.
+    pub speedtrees: usize,
+    /// Of those, the ones no proxy matches (unmodelled casters).
+    pub speedtrees_without_proxy: usize,
+    /// Distinct proxies the placed speedtrees use (`.model` resources and
+    /// parametric shapes).
+    pub speedtree_proxies: usize,
 }
 
 impl Scene {
@@ -268,16 +302,26 @@ impl Scene {
     }
 
     /// Counts over placed instances: a model placed twice counts its groups
-    /// and triangles twice; `models` counts distinct resources in use.
+    /// and triangles twice; `models` counts distinct resources in use
+    /// (speedtrees and their proxies are counted apart).
     pub fn stats(&self) -> Stats {
         let mut stats = Stats {
             chunks: self.chunks.len(),
-            instances: self.instances.len(),
             terrain_blocks: self.terrain.len(),
             ..Stats::default()
         };
         let mut used = vec![false; self.models.len()];
+        let mut proxies = vec![false; self.models.len()];
         for instance in &self.instances {
+            if instance.kind == InstanceKind::SpeedTree {
+                stats.speedtrees += 1;
+                stats.speedtrees_without_proxy += usize::from(instance.is_unmodelled());
+                for &part in instance.parts.iter().flatten() {
+                    proxies[part] = true;
+                }
+                continue;
+            }
+            stats.instances += 1;
             if !instance.casts_shadow {
                 stats.receiver_only_instances += 1;
             }
@@ -293,6 +337,7 @@ impl Scene {
             }
         }
         stats.models = used.iter().filter(|u| **u).count();
+        stats.speedtree_proxies = proxies.iter().filter(|u| **u).count();
         stats
     }
 }

@@ -24,6 +24,7 @@ fn load(dir: &Path) -> Result<Scene, Error> {
     load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths),
         space: settings.space,
+        speedtrees: settings.speedtrees,
     })
 }
 

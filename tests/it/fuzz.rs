@@ -12,7 +12,7 @@ use crate::support::realdata;
 use glam::DVec3;
 use shadowcull::bake::{self, output, BakeConfig, Silent};
 use shadowcull::files::{write_tree, ResPaths};
-use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
+use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings, SpeedTreeProxies};
 use shadowcull::gen::{generate, Preset};
 use shadowcull::rng::Rng;
 use shadowcull::scene::{load_scene, LoadConfig};
@@ -35,6 +35,8 @@ struct Corpus {
     input: TempDir,
     res_roots: Vec<PathBuf>,
     space: String,
+    /// The settings' speedtree proxies (the forest's; none elsewhere).
+    speedtrees: SpeedTreeProxies,
     /// The files a case may damage.
     targets: Vec<PathBuf>,
     out: TempDir,
@@ -83,6 +85,7 @@ fn corpus(name: &'static str, input: TempDir, res_roots: Vec<PathBuf>, space: &s
         input,
         res_roots,
         space: space.into(),
+        speedtrees: SpeedTreeProxies::default(),
         targets,
         out: tempfile::tempdir().unwrap(),
     }
@@ -98,6 +101,15 @@ fn corpora() -> Vec<Corpus> {
         vec![root],
         "spaces/small",
     )];
+    // Speedtrees with their proxies, every item kind, packed chunks.
+    let forest = tempfile::tempdir().unwrap();
+    let world = generate(Preset::Forest, 1);
+    write_tree(forest.path(), &world.files).unwrap();
+    let settings = shadowcull::files::read_bake_settings(&forest.path().join("bake.xml")).unwrap();
+    let root = forest.path().to_path_buf();
+    let mut forest = corpus("generated forest", forest, vec![root], "spaces/forest");
+    forest.speedtrees = settings.speedtrees;
+    corpora.push(forest);
 
     let Some(data) = realdata("fuzzing_real_files (the generated world is fuzzed regardless)")
     else {
@@ -245,6 +257,7 @@ const STAGES: [&str; 4] = ["did not load", "loaded only", "baked only", "written
 fn run_case(corpus: &Corpus, config: &BakeConfig, limit: Duration) -> Result<Stage, String> {
     let res_paths = ResPaths::new(corpus.res_roots.clone());
     let space = corpus.space.clone();
+    let speedtrees = corpus.speedtrees.clone();
     let out = corpus.out.path().to_path_buf();
     let config = config.clone();
     let (sender, receiver) = mpsc::channel();
@@ -253,10 +266,11 @@ fn run_case(corpus: &Corpus, config: &BakeConfig, limit: Duration) -> Result<Sta
             let Ok(scene) = load_scene(&LoadConfig {
                 res_paths: res_paths.clone(),
                 space,
+                speedtrees,
             }) else {
                 return 0;
             };
-            let _ = shadowcull::inspect::inspect(&scene).to_text();
+            let _ = shadowcull::inspect::inspect(&scene, Default::default()).to_text();
             let Ok(mut result) = bake::bake(&scene, &config, &Silent) else {
                 return 1;
             };

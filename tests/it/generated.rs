@@ -22,6 +22,7 @@ pub fn load_world(settings_file: &Path) -> Scene {
     load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths),
         space: settings.space,
+        speedtrees: settings.speedtrees,
     })
     .unwrap()
 }
@@ -37,12 +38,15 @@ fn stats_of(expected: &Expected) -> Stats {
         alpha_tested_groups: expected.alpha_tested_groups as usize,
         double_sided_groups: expected.double_sided_groups as usize,
         receiver_only_instances: expected.receiver_only_instances as usize,
+        speedtrees: expected.speedtrees as usize,
+        speedtrees_without_proxy: expected.speedtrees_without_proxy as usize,
+        speedtree_proxies: expected.speedtree_proxies as usize,
     }
 }
 
 #[test]
 fn generated_worlds_read_back_with_the_generators_counts() {
-    for preset in [Preset::Small, Preset::Village] {
+    for preset in [Preset::Small, Preset::Village, Preset::Forest] {
         for seed in [1, 7] {
             let world = generate(preset, seed);
             let dir = tempfile::tempdir().unwrap();

@@ -27,6 +27,7 @@ fn load(dir: &Path) -> Scene {
     load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths),
         space: settings.space,
+        speedtrees: settings.speedtrees,
     })
     .unwrap()
 }
@@ -336,7 +337,7 @@ fn a_stray_placement_is_a_problem_and_the_sun_grid_stays_the_space() {
     }
     assert_eq!(scene.problems.len(), 2, "{:#?}", scene.problems);
     assert_eq!(scene.instances.len() + 2, clean_scene.instances.len());
-    let inspection = shadowcull::inspect::inspect(&scene).to_text();
+    let inspection = shadowcull::inspect::inspect(&scene, Default::default()).to_text();
     assert!(
         inspection.contains("2 problems;") && inspection.contains("far outside the space"),
         "{inspection}"

@@ -23,6 +23,7 @@ mod render;
 mod robustness;
 mod shadow_write_real;
 mod shards;
+mod speedtrees;
 mod support;
 mod sweep;
 mod terrain_real;

@@ -49,6 +49,7 @@ fn peak_memory_follows_the_memory_model_not_placed_triangles() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     })
     .unwrap();
     let size = WorldSize::of(&scene);

@@ -121,6 +121,7 @@ impl World {
                     )),
                     instances: 0..0,
                     instance_elements: 0,
+                    speedtree_elements: 0,
                     terrain: None,
                 });
             }
@@ -143,6 +144,7 @@ impl World {
                 models: Vec::new(),
                 instances: Vec::new(),
                 terrain: Vec::new(),
+                items: Vec::new(),
                 problems: Vec::new(),
                 inputs: Vec::new(),
             },

@@ -517,7 +517,7 @@ fn the_report_lists_files_and_versions_and_can_go_to_stdout() {
     let out = run(&["bake", &settings(&dir), "--report", "-", "--quiet"]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let report: Value = serde_json::from_slice(&out.stdout).expect("stdout is the report alone");
-    assert_eq!(report["report_version"], 2);
+    assert_eq!(report["report_version"], 3);
     assert_eq!(report["tool_version"], env!("CARGO_PKG_VERSION"));
     let written: Vec<&str> = report["files_written"]
         .as_array()
@@ -982,6 +982,7 @@ fn plan_counts_model_parts_and_says_so() {
     let scene = shadowcull::scene::load_scene(&shadowcull::scene::LoadConfig {
         res_paths: shadowcull::files::ResPaths::new(vec![dir.path().to_path_buf()]),
         space: "spaces/small".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     let instances = scene.instances.len();

@@ -44,6 +44,7 @@ fn fixture(name: &str) -> (Scene, BakeConfig) {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     })
     .unwrap();
     (scene, BakeConfig::from_settings(&settings))
@@ -507,6 +508,7 @@ fn bench_sun_at_a_quarter_metre_counts_exactly() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     })
     .unwrap();
     let mut config = BakeConfig::from_settings(&settings);

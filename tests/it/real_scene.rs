@@ -82,6 +82,7 @@ fn every_real_model_loads_with_its_index_header_counts() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res.clone()]),
         space: "spaces/real".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     assert!(scene.problems.is_empty(), "{:#?}", scene.problems);
@@ -164,6 +165,7 @@ pub(crate) fn world_on_a_slab(
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(vec![dir.path().to_path_buf(), res]),
         space: "spaces/real".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     (dir, models, scene)
@@ -240,6 +242,7 @@ fn arctic_loads_and_lists_every_missing_resource() {
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(vec![root.join("fantasydemo-arctic/res")]),
         space: "spaces/arctic".into(),
+        speedtrees: Default::default(),
     })
     .unwrap();
     let stats = scene.stats();

@@ -696,6 +696,7 @@ fn nan_zero_scale_and_singular_transforms_are_skipped_and_reported_by_the_bake()
     let scene = load_scene(&LoadConfig {
         res_paths: ResPaths::new(settings.res_paths.clone()),
         space: settings.space.clone(),
+        speedtrees: settings.speedtrees.clone(),
     })
     .unwrap();
     let transform_problems = |why: &str| {

@@ -5,7 +5,7 @@
 use crate::packed_world::differences_outside_shadows;
 use crate::support::realdata;
 use crate::xml_real::files_with_extensions;
-use shadowcull::formats::chunk::{self, instance_elements, terrain_element};
+use shadowcull::formats::chunk::{self, instance_elements, speedtree_elements, terrain_element};
 use shadowcull::formats::shadow_write::{
     read_chunk_shadows, write_shadows, ChunkShadows, InstanceShadow,
 };
@@ -40,7 +40,12 @@ fn masks_for(root: &Section, seed: u64) -> ChunkShadows {
         })
         .collect();
     let terrain = terrain_element(root).map(|_| rng.next_u64() as u32);
-    ChunkShadows { instances, terrain }
+    let speedtrees = vec![None; speedtree_elements(root).count()];
+    ChunkShadows {
+        instances,
+        speedtrees,
+        terrain,
+    }
 }
 
 /// Where a direct `<shadow>` of an instance or the terrain is, widened to
