@@ -6,11 +6,12 @@ use super::pipeline;
 use super::progress::{ProgressArgs, Reporter};
 use super::{load_config, load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
+use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::estimate::{self, human_bytes, Baseline, LightPlan, Plan};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files;
-use shadowcull::scene::{self, Scene};
+use shadowcull::scene::{self, Scene, SceneKeys};
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
@@ -34,6 +35,8 @@ pub struct PlanArgs {
     json: bool,
     #[command(flatten)]
     progress: ProgressArgs,
+    #[command(flatten)]
+    cache: super::cache::CacheArgs,
 }
 
 impl PlanArgs {
@@ -61,7 +64,21 @@ pub fn run(args: PlanArgs) -> Result<()> {
         }
         bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
         let world = BakeWorld::build(&scene, &reporter);
-        let plan = make_plan(&scene, &world, &config, started, &reporter)?;
+        let cache = args.cache.open(&file)?;
+        let session = cache
+            .as_ref()
+            .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
+        let plan = make_plan(
+            &scene,
+            &world,
+            &config,
+            started,
+            &reporter,
+            session.as_ref(),
+        )?;
+        if let Some(cache) = &cache {
+            super::cache::warn_damaged(cache);
+        }
         if args.json {
             println!("{}", serde_json::to_string_pretty(&plan)?);
         } else {
@@ -86,6 +103,7 @@ pub fn make_plan(
     config: &BakeConfig,
     started: Instant,
     progress: &dyn shadowcull::progress::Progress,
+    cache: Option<&BakeCache>,
 ) -> Result<Plan> {
     let memory = files::resident_memory();
     let baseline = Baseline {
@@ -95,7 +113,9 @@ pub fn make_plan(
         chunk_file_bytes: files::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
         threads: rayon::current_num_threads(),
     };
-    Ok(estimate::plan(world, config, baseline, progress)?)
+    Ok(estimate::plan_with(
+        world, config, baseline, progress, cache,
+    )?)
 }
 
 /// `--max-memory`: refuse cleanly, before tracing, above the estimate.
@@ -165,6 +185,12 @@ fn light_line(light: &LightPlan) -> String {
                 light.rays_per_second / 1e6,
                 human_bytes(light.estimated_bytes)
             );
+            if let (Some(cells), Some(stored)) = (light.cells, light.cells_stored) {
+                line += &format!(
+                    "; cache: {stored} of {cells} cells stored, a cached bake traces {}",
+                    cells - stored
+                );
+            }
         }
     }
     line

@@ -1,6 +1,8 @@
 //! What the system says about processes: this host's name, whether a
 //! process still runs, and this process's resident memory.
 
+use crate::error::{Error, Result};
+use std::io::Read as _;
 use std::path::Path;
 use std::sync::OnceLock;
 
@@ -106,5 +108,25 @@ mod tests {
         assert!(process_alive(std::process::id()));
         // Linux process ids stay below 2^22 (`pid_max`'s ceiling).
         assert!(!process_alive(1 << 22 | 1));
+    }
+}
+
+/// Hands the bytes of this process's own executable to `each`, a piece at
+/// a time (what identifies the build: the bake cache keys its results
+/// under its hash, so another build never reuses them).
+pub fn read_own_executable(each: &mut dyn FnMut(&[u8])) -> Result<()> {
+    let path = std::env::current_exe()
+        .map_err(|e| Error::io(Path::new("shadowcull"), "find the running executable", e))?;
+    let mut file = std::fs::File::open(&path)
+        .map_err(|e| Error::io(&path, "read the running executable", e))?;
+    let mut buffer = vec![0u8; 1 << 20];
+    loop {
+        let n = file
+            .read(&mut buffer)
+            .map_err(|e| Error::io(&path, "read the running executable", e))?;
+        if n == 0 {
+            return Ok(());
+        }
+        each(&buffer[..n]);
     }
 }

@@ -2,6 +2,7 @@
 //! groups with their flags, terrain blocks. `load` builds it from the
 //! `formats/` readers; everything else here is plain data.
 
+pub mod keys;
 pub mod load;
 pub mod terrain;
 
@@ -11,6 +12,7 @@ use glam::{DMat4, DVec3, Vec3};
 use std::ops::Range;
 use std::path::PathBuf;
 
+pub use keys::SceneKeys;
 pub use load::{load_scene, load_scene_with, LoadConfig};
 pub use terrain::TerrainBlock;
 
