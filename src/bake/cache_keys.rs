@@ -2,11 +2,12 @@
 //!
 //! A cell's value (the casters its rays prove useful) is a pure function
 //! of the light's settings, the bake options that change a ray's answer,
-//! the grid (which the world's bounds place), the cell, and everything in
-//! its reach (`cells`): each part's identity, its model's content, its
-//! world transform and flags, each terrain block's content and origin, and
-//! the blocks the below-ground test may read. A cell's key hashes exactly
-//! those, under the cache's build identity, in the reach's scene order.
+//! the world's bounds (which place a directional light's grid), the cell,
+//! and everything in its reach (`cells`): each part's model content, world
+//! transform and `castsShadow`, each terrain block's content and origin,
+//! and the blocks the below-ground test may read. A cell's key hashes
+//! exactly those, under the cache's build identity, in the reach's scene
+//! order.
 //!
 //! A value names its casters by their place in the cell's reach (the nth
 //! part's group g, the nth block), never by caster id: ids shift when an
@@ -23,32 +24,33 @@ use crate::scene::SceneKeys;
 use rayon::prelude::*;
 
 /// An input of the cache's keys, for the tests that leave one out and
-/// check that a bake then goes wrong (every input must be needed).
+/// check that a bake then goes wrong (every input is needed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum KeyInput {
-    /// A part's chunk, element and part index.
-    PartIdentity,
     /// A part's model content key.
     PartModel,
     /// A part's world transform.
     PartTransform,
-    /// A part's `castsShadow` and mirrored flags.
-    PartFlags,
+    /// A part's `castsShadow`.
+    PartCastsShadow,
     /// A terrain block's content key.
     BlockContent,
     /// A terrain block's origin.
     BlockOrigin,
     /// The blocks the below-ground test reads near a cell's parts.
     GroundBlocks,
+    /// Which cell of the grid.
+    CellIndex,
     /// The light's own settings.
     LightSettings,
+    /// The world's bounds (which place a directional light's grid).
+    WorldBounds,
     /// The bake options.
     Options,
-    /// The grid's placement (the world's bounds).
-    Grid,
     /// A refined caster's cells.
     RefineCells,
-    /// A refined caster's id and light position (its surface points' seed).
+    /// A refined caster's id and the light's position among the lights
+    /// baked (its surface points' seed).
     RefineSeed,
     /// The refinement options.
     RefineOptions,
@@ -56,16 +58,16 @@ pub enum KeyInput {
 
 impl KeyInput {
     pub const ALL: [KeyInput; 13] = [
-        KeyInput::PartIdentity,
         KeyInput::PartModel,
         KeyInput::PartTransform,
-        KeyInput::PartFlags,
+        KeyInput::PartCastsShadow,
         KeyInput::BlockContent,
         KeyInput::BlockOrigin,
         KeyInput::GroundBlocks,
+        KeyInput::CellIndex,
         KeyInput::LightSettings,
+        KeyInput::WorldBounds,
         KeyInput::Options,
-        KeyInput::Grid,
         KeyInput::RefineCells,
         KeyInput::RefineSeed,
         KeyInput::RefineOptions,
@@ -77,13 +79,16 @@ impl KeyInput {
 #[derive(Debug, Clone)]
 pub struct WorldKeys {
     pub scene: SceneKeys,
-    /// Per part (`BakeWorld::parts` order): where and how it is placed
-    /// (chunk, element, part, resource name, transform, flags), without its
-    /// model's content.
-    pub placements: Vec<Key>,
-    /// Per part: its placement and its model's content key.
+    /// Per part (`BakeWorld::parts` order): what a ray can meet of it, its
+    /// model's content, world transform and `castsShadow` (the mirrored
+    /// flag follows from the transform). Its chunk, element and resource
+    /// name are not: where a value names it, its place in a reach is the
+    /// part this key's reach holds there.
     pub parts: Vec<Key>,
-    /// Per terrain block: its chunk's name, its content key and origin.
+    /// Per part: its chunk, element, part, resource name, transform and
+    /// flags, without its model's content (a manifest's words).
+    pub placements: Vec<Key>,
+    /// Per terrain block: its content key and origin.
     pub blocks: Vec<Key>,
     /// Per terrain block: its chunk (into `Scene::chunks`).
     pub block_chunks: Vec<usize>,
@@ -100,40 +105,40 @@ impl WorldKeys {
     pub fn new(world: &BakeWorld, scene: SceneKeys, left_out: Option<KeyInput>) -> WorldKeys {
         let s = world.scene;
         let keep = |input: KeyInput| left_out != Some(input);
-        let placements: Vec<Key> = world
+        let parts = world
             .parts
             .par_iter()
             .map(|part| {
                 let instance = &s.instances[part.instance];
-                let mut h = KeyHasher::content("placement");
-                if keep(KeyInput::PartIdentity) {
-                    h.str(&s.chunks[instance.chunk].name)
-                        .u64(instance.index as u64)
-                        .u64(part.part as u64);
+                let mut h = KeyHasher::content("part");
+                if keep(KeyInput::PartModel) {
+                    h.key(&scene.models[part.model]);
                 }
-                h.str(&s.models[part.model].resource);
                 if keep(KeyInput::PartTransform) {
                     for v in instance.world.to_cols_array() {
                         h.f64(v);
                     }
                 }
-                if keep(KeyInput::PartFlags) {
-                    h.bool(instance.casts_shadow).bool(instance.mirrored);
+                if keep(KeyInput::PartCastsShadow) {
+                    h.bool(instance.casts_shadow);
                 }
                 h.finish()
             })
             .collect();
-        let parts = world
+        let placements = world
             .parts
             .par_iter()
-            .zip(&placements)
-            .map(|(part, placement)| {
-                let mut h = KeyHasher::content("part");
-                h.key(placement);
-                if keep(KeyInput::PartModel) {
-                    h.key(&scene.models[part.model]);
+            .map(|part| {
+                let instance = &s.instances[part.instance];
+                let mut h = KeyHasher::content("placement");
+                h.str(&s.chunks[instance.chunk].name)
+                    .u64(instance.index as u64)
+                    .u64(part.part as u64)
+                    .str(&s.models[part.model].resource);
+                for v in instance.world.to_cols_array() {
+                    h.f64(v);
                 }
-                h.finish()
+                h.bool(instance.casts_shadow).finish()
             })
             .collect();
         let mut block_chunks = vec![0; s.terrain.len()];
@@ -145,7 +150,6 @@ impl WorldKeys {
         let blocks = (0..s.terrain.len())
             .map(|b| {
                 let mut h = KeyHasher::content("block");
-                h.str(&s.chunks[block_chunks[b]].name);
                 if keep(KeyInput::BlockContent) {
                     h.key(&scene.blocks[b]);
                 }
@@ -158,8 +162,8 @@ impl WorldKeys {
             .collect();
         WorldKeys {
             scene,
-            placements,
             parts,
+            placements,
             blocks,
             block_chunks,
             ground: GroundNear::of(world),
@@ -172,21 +176,25 @@ impl WorldKeys {
     }
 }
 
-/// The three parts of a light's key a manifest compares, and the key.
+/// The parts of a light's key a manifest compares, and the key.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LightKey {
     /// The light's own settings.
     pub light: Key,
-    /// The bake options that change a ray's answer, and the chunk size.
+    /// The bake options that change a ray's answer (supersampling, grid
+    /// mode, filter radius, face culling, height bias, tie epsilon, the
+    /// grid offset, brute force).
     pub options: Key,
-    /// Where the grid lies (the world's bounds place a sun's grid).
-    pub grid: Key,
+    /// A directional light's: the world's bounds, which its grid covers
+    /// (its origin, size and rays' span follow from them).
+    pub bounds: Key,
     /// All three under the cache's build identity.
     pub key: Key,
 }
 
 impl LightKey {
-    /// The key of light `setup.index` of `config` over `world`.
+    /// The key of light `setup.index` of `config` over `world`: what its
+    /// grid (`TexelGrid::new`) and its rays' rules are made from.
     pub fn new(
         cache: &Cache,
         world: &BakeWorld,
@@ -210,32 +218,31 @@ impl LightKey {
             };
             hasher.str(&name).str(&value);
         }
-        options.f64(world.scene.settings.chunk_size);
-        let mut grid = KeyHasher::content("grid");
-        if keys.keeps(KeyInput::Grid) {
-            grid.str(&format!("{:?}", setup.grid));
+        let mut bounds = KeyHasher::content("bounds");
+        if setup.grid.direction().is_some() && keys.keeps(KeyInput::WorldBounds) {
+            if let Some((min, max)) = world.bounds {
+                for v in [min, max] {
+                    bounds.f64(v.x).f64(v.y).f64(v.z);
+                }
+            }
         }
-        let light = if keys.keeps(KeyInput::LightSettings) {
-            light.finish()
-        } else {
-            KeyHasher::content("light").finish()
+        let finish = |hasher: KeyHasher, input: KeyInput, domain: &str| match keys.keeps(input) {
+            true => hasher.finish(),
+            false => KeyHasher::content(domain).finish(),
         };
-        let options = if keys.keeps(KeyInput::Options) {
-            options.finish()
-        } else {
-            KeyHasher::content("options").finish()
-        };
-        let grid = grid.finish();
+        let light = finish(light, KeyInput::LightSettings, "light");
+        let options = finish(options, KeyInput::Options, "options");
+        let bounds = bounds.finish();
         let key = cache
             .hasher(Kind::Cell)
             .key(&light)
             .key(&options)
-            .key(&grid)
+            .key(&bounds)
             .finish();
         LightKey {
             light,
             options,
-            grid,
+            bounds,
             key,
         }
     }
@@ -245,7 +252,10 @@ impl LightKey {
 pub fn cell_key(light: &LightKey, cell: u64, reach: &CellReach, keys: &WorldKeys) -> Key {
     let c = cell as usize;
     let mut h = KeyHasher::content("cell");
-    h.key(&light.key).u64(cell);
+    h.key(&light.key);
+    if keys.keeps(KeyInput::CellIndex) {
+        h.u64(cell);
+    }
     h.u64(reach.parts[c].len() as u64);
     for &p in &reach.parts[c] {
         h.key(&keys.parts[p as usize]);

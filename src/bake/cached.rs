@@ -672,7 +672,16 @@ impl GridSource for BakeCache<'_> {
         let pass = GridPass::new(world, setup, rays_of_light, config);
         let samples = config.supersample.max(1);
         let answer = Mutex::new(CasterSet::new(world.casters.len()));
-        let calibrated = std::mem::take(&mut *lock(&self.calibrated));
+        let calibrated: HashSet<(usize, u64)> = {
+            let mut all = lock(&self.calibrated);
+            let mine = all
+                .iter()
+                .filter(|(light, _)| *light == setup.index)
+                .copied()
+                .collect();
+            all.retain(|(light, _)| *light != setup.index);
+            mine
+        };
         let (outcomes, values): (Vec<CellOutcome>, Vec<Vec<u32>>) = (0..light.cells.count())
             .into_par_iter()
             .map(|cell| {

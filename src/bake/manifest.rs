@@ -1,7 +1,7 @@
 //! A light's manifest: what its cells' keys were made of at its last bake
 //! with this cache, so a cell traced again can say which input changed
 //! ("chunk 00010002o", "model sets/house.model", "terrain of chunk
-//! 00000001o", "the light", "the options", "the grid"). Only words come of
+//! 00000001o", "the light", "the options", "the world's bounds"). Only words come of
 //! it: a manifest never decides a mask, and a missing or unreadable one
 //! only makes the words vaguer ("no earlier bake").
 //!
@@ -45,7 +45,8 @@ pub struct Manifest {
 pub struct LightDigests {
     pub light: Key,
     pub options: Key,
-    pub grid: Key,
+    /// The world's bounds (a directional light's grid covers them).
+    pub bounds: Key,
 }
 
 impl From<&LightKey> for LightDigests {
@@ -53,7 +54,7 @@ impl From<&LightKey> for LightDigests {
         LightDigests {
             light: key.light,
             options: key.options,
-            grid: key.grid,
+            bounds: key.bounds,
         }
     }
 }
@@ -61,7 +62,7 @@ impl From<&LightKey> for LightDigests {
 /// Why a cell was traced again: an input that differs from its record.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 pub struct Because {
-    /// `chunk`, `model`, `terrain`, `light`, `options`, `grid`, `build`
+    /// `chunk`, `model`, `terrain`, `light`, `options`, `bounds`, `build`
     /// (another shadowcull), `new` (no earlier bake of this light in this
     /// cache, or a cell it did not have) or `missing` (same inputs, entry
     /// evicted or damaged).
@@ -91,6 +92,7 @@ impl Because {
             (None, "new") => "no earlier bake".into(),
             (None, "missing") => "entry evicted or damaged".into(),
             (None, "build") => "another shadowcull build".into(),
+            (None, "bounds") => "the world's bounds (the light's grid moved)".into(),
             (None, input) => format!("the {input}"),
         }
     }
@@ -177,7 +179,7 @@ pub fn because(
     for (input, before, now) in [
         ("light", old.light.light, light.light),
         ("options", old.light.options, light.options),
-        ("grid", old.light.grid, light.grid),
+        ("bounds", old.light.bounds, light.bounds),
     ] {
         if before != now {
             return vec![Because::of(input)];
@@ -262,7 +264,7 @@ impl Manifest {
             &self.build,
             &self.light.light,
             &self.light.options,
-            &self.light.grid,
+            &self.light.bounds,
         ] {
             e.bytes(&key.0);
         }
@@ -289,7 +291,7 @@ impl Manifest {
     pub fn decode(bytes: &[u8]) -> Option<Manifest> {
         let mut d = Decoder::new(bytes);
         let mut key = || -> Option<Key> { Some(Key(d.bytes().ok()?.try_into().ok()?)) };
-        let (build, light, options, grid) = (key()?, key()?, key()?, key()?);
+        let (build, light, options, bounds) = (key()?, key()?, key()?, key()?);
         let names: Vec<String> = (0..d.len(1).ok()?)
             .map(|_| d.str().ok())
             .collect::<Option<_>>()?;
@@ -321,7 +323,7 @@ impl Manifest {
             light: LightDigests {
                 light,
                 options,
-                grid,
+                bounds,
             },
             cells,
         })
@@ -351,7 +353,7 @@ mod tests {
         let light = LightDigests {
             light: Key([1; 32]),
             options: Key([2; 32]),
-            grid: Key([3; 32]),
+            bounds: Key([3; 32]),
         };
         let old = Manifest {
             build: Key([9; 32]),

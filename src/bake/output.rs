@@ -409,13 +409,13 @@ fn encode_shadows(shadows: &ChunkShadows) -> Vec<u8> {
             for groups in geometries {
                 e.var(groups.len() as u64);
                 for &mask in groups {
-                    e.u32(mask);
+                    e.var(u64::from(mask));
                 }
             }
         }
     }
     match shadows.terrain {
-        Some(mask) => e.u8(1).u32(mask),
+        Some(mask) => e.u8(1).var(u64::from(mask)),
         None => e.u8(0),
     };
     e.into_bytes()
@@ -428,13 +428,13 @@ fn decode_shadows(bytes: &[u8]) -> Option<ChunkShadows> {
         shadows.instances.push(match d.u8().ok()? {
             0 => None,
             1 => {
-                let mask = d.u32().ok()?;
+                let mask = var_mask(&mut d)?;
                 let mut render_sets = Vec::new();
                 for _ in 0..d.len(1).ok()? {
                     let mut geometries = Vec::new();
                     for _ in 0..d.len(1).ok()? {
-                        let groups = (0..d.len(4).ok()?)
-                            .map(|_| d.u32().ok())
+                        let groups = (0..d.len(1).ok()?)
+                            .map(|_| var_mask(&mut d))
                             .collect::<Option<Vec<u32>>>()?;
                         geometries.push(groups);
                     }
@@ -447,10 +447,15 @@ fn decode_shadows(bytes: &[u8]) -> Option<ChunkShadows> {
     }
     shadows.terrain = match d.u8().ok()? {
         0 => None,
-        1 => Some(d.u32().ok()?),
+        1 => Some(var_mask(&mut d)?),
         _ => return None,
     };
     d.is_done().then_some(shadows)
+}
+
+/// A mask as [`encode_shadows`] writes it (LEB128).
+fn var_mask(d: &mut Decoder) -> Option<u32> {
+    u32::try_from(d.var().ok()?).ok()
 }
 
 /// Writes the outputs that change something, as one batch

@@ -198,6 +198,20 @@ fn light_line(light: &LightPlan) -> String {
 
 /// The whole bake's estimate and how it was made.
 fn total_line(plan: &Plan) -> String {
+    if plan.lights.iter().any(|l| l.cells.is_some()) {
+        return format!(
+            "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
+             Time is a calibration: up to {} cells per light that the cache does not hold, traced on this \
+             machine in {:.2} s and stored (the bake reuses them); memory is what this process holds now \
+             plus the largest light's top level and tracing, the masks and the chunk files",
+            plan.estimated_seconds,
+            human_bytes(plan.estimated_peak_bytes),
+            plan.casters,
+            human_bytes(plan.bottom_level_bytes as u64),
+            shadowcull::bake::cached::CALIBRATION_CELLS,
+            plan.calibration_seconds
+        );
+    }
     format!(
         "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
          Time is a calibration: {} tiles of 32×32 texels per light and their neighbours traced on this machine in {:.2} s; \
