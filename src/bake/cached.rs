@@ -1097,8 +1097,8 @@ mod tests {
             let dir = tempfile::tempdir().unwrap();
             let cache = Cache::open(dir.path(), u64::MAX, content_key(b"test"));
             for round in ["empty cache", "full cache"] {
-                let session = BakeCache::new(&cache, &world, SceneKeys::of(&scene), None);
-                let cached = bake_cached(&world, &config, &Silent, &session).unwrap();
+                let bake_cache = BakeCache::new(&cache, &world, SceneKeys::of(&scene), None);
+                let cached = bake_cached(&world, &config, &Silent, &bake_cache).unwrap();
                 same(&fresh, &cached, &format!("{what}, {round}"));
                 let report = cached.cache.unwrap();
                 assert!(report.cells.reused + report.cells.computed > 0, "{what}");

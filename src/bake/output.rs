@@ -402,7 +402,7 @@ fn encode_shadows(shadows: &ChunkShadows) -> Vec<u8> {
             continue;
         };
         e.u8(1)
-            .u32(instance.mask)
+            .var(u64::from(instance.mask))
             .var(instance.render_sets.len() as u64);
         for geometries in &instance.render_sets {
             e.var(geometries.len() as u64);
@@ -584,5 +584,32 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
         casters,
         skipped: result.skipped.clone(),
         cache: result.cache.clone(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn written_shadows_read_back_from_their_entry() {
+        let shadows = ChunkShadows {
+            instances: vec![
+                None,
+                Some(InstanceShadow::from_groups(vec![
+                    vec![vec![3, 0, 1 << 31]],
+                    vec![],
+                ])),
+                Some(InstanceShadow::from_groups(Vec::new())),
+            ],
+            terrain: Some(5),
+        };
+        let bytes = encode_shadows(&shadows);
+        assert_eq!(decode_shadows(&bytes), Some(shadows.clone()));
+        for cut in 0..bytes.len() {
+            assert_eq!(decode_shadows(&bytes[..cut]), None, "cut at {cut}");
+        }
+        let none = ChunkShadows::default();
+        assert_eq!(decode_shadows(&encode_shadows(&none)), Some(none));
     }
 }

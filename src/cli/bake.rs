@@ -68,13 +68,19 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
             bake::bake_from(&world, config, &reporter, &plan)
         }
         Some(cache) => {
-            let session = BakeCache::new(cache, &world, SceneKeys::of(&scene), None);
-            let plan =
-                super::plan::make_plan(&scene, &world, config, started, &reporter, Some(&session))?;
+            let bake_cache = BakeCache::new(cache, &world, SceneKeys::of(&scene), None);
+            let plan = super::plan::make_plan(
+                &scene,
+                &world,
+                config,
+                started,
+                &reporter,
+                Some(&bake_cache),
+            )?;
             super::plan::say_plan(&plan, &reporter);
             super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
             // The plan's calibration cells are stored: the bake reuses them.
-            bake::bake_cached(&world, config, &reporter, &session)
+            bake::bake_cached(&world, config, &reporter, &bake_cache)
         }
     };
     let result = result.with_context(|| file.display().to_string())?;

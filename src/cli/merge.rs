@@ -92,11 +92,11 @@ pub fn run(args: MergeArgs) -> Result<()> {
         );
         // With a cache, refinement is reused or refined per chunk and
         // stored; the grid answers are the shards'.
-        let session = cache
+        let bake_cache = cache
             .as_ref()
             .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
-        let result = bake::bake_with(&world, &config, &reporter, &merged, session.as_ref())?;
-        drop((session, merged, world));
+        let result = bake::bake_with(&world, &config, &reporter, &merged, bake_cache.as_ref())?;
+        drop((bake_cache, merged, world));
         let results = Results {
             scene: &scene,
             res_paths: &settings.res_paths,

@@ -65,7 +65,7 @@ pub fn run(args: PlanArgs) -> Result<()> {
         bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
         let world = BakeWorld::build(&scene, &reporter);
         let cache = args.cache.open(&file)?;
-        let session = cache
+        let bake_cache = cache
             .as_ref()
             .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
         let plan = make_plan(
@@ -74,7 +74,7 @@ pub fn run(args: PlanArgs) -> Result<()> {
             &config,
             started,
             &reporter,
-            session.as_ref(),
+            bake_cache.as_ref(),
         )?;
         if let Some(cache) = &cache {
             super::cache::warn_damaged(cache);

@@ -104,7 +104,7 @@ pub fn run(
     );
     messages::say("shard_plan", &said, serde_json::json!({ "units": own }));
     let cpu_before = cpu_seconds();
-    let session = cache
+    let bake_cache = cache
         .as_ref()
         .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
     let (units, cached) = shard::bake_shard_cached(
@@ -113,7 +113,7 @@ pub fn run(
         &plan,
         shard.index,
         &reporter,
-        session.as_ref(),
+        bake_cache.as_ref(),
     )?;
     if let Some(cache) = &cache {
         reporter.say(

@@ -66,8 +66,8 @@ fn cached(
     left_out: Option<KeyInput>,
 ) -> BakeResult {
     let bake_world = BakeWorld::new(&world.scene);
-    let session = BakeCache::new(cache, &bake_world, SceneKeys::of(&world.scene), left_out);
-    bake::bake_cached(&bake_world, config, &Silent, &session).expect("cached bake")
+    let bake_cache = BakeCache::new(cache, &bake_world, SceneKeys::of(&world.scene), left_out);
+    bake::bake_cached(&bake_world, config, &Silent, &bake_cache).expect("cached bake")
 }
 
 fn fresh(world: &World, config: &BakeConfig) -> BakeResult {
@@ -532,4 +532,684 @@ fn a_key_without_any_one_input_goes_wrong() {
             scenario.name, scenario.input
         );
     }
+}
+
+// ---------------------------------------------------------------------------
+// Generated worlds through the binary.
+
+use shadowcull::files::write_tree;
+use shadowcull::gen::{generate, Preset};
+use shadowcull::rng::Rng;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::Instant;
+
+const SPACE: &str = "spaces/small";
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_shadowcull"))
+        .args(args)
+        .output()
+        .expect("run shadowcull")
+}
+
+fn ok(output: Output, what: &str) -> Output {
+    assert!(
+        output.status.success(),
+        "{what}: {}\n{}",
+        String::from_utf8_lossy(&output.stderr),
+        String::from_utf8_lossy(&output.stdout)
+    );
+    output
+}
+
+fn s(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
+
+/// The `small` world written to `dir`; its settings file.
+fn small_world(dir: &Path) -> PathBuf {
+    write_tree(dir, &generate(Preset::Small, 1).files).unwrap();
+    dir.join("bake.xml")
+}
+
+/// Every file of `dir` but its bake cache, relative path → bytes.
+fn world_files(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut pending = vec![dir.to_path_buf()];
+    while let Some(folder) = pending.pop() {
+        for entry in std::fs::read_dir(&folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.ends_with(".shadowcull-cache") {
+                continue;
+            }
+            if path.is_dir() {
+                pending.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                out.insert(path.strip_prefix(dir).unwrap().to_path_buf(), bytes);
+            }
+        }
+    }
+    out
+}
+
+fn report(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+/// What two bakes must agree on: the report's casters and each light's
+/// rays.
+fn masks_and_rays(report: &serde_json::Value) -> (serde_json::Value, Vec<(u64, u64)>) {
+    let rays = report["lights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| {
+            (
+                l["rays"].as_u64().unwrap(),
+                l["refine_rays"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    (report["casters"].clone(), rays)
+}
+
+/// A world baked with a cache and its twin baked without, edited alike.
+struct Twins {
+    cached: tempfile::TempDir,
+    fresh: tempfile::TempDir,
+}
+
+impl Twins {
+    fn new() -> Twins {
+        let twins = Twins {
+            cached: tempfile::tempdir().unwrap(),
+            fresh: tempfile::tempdir().unwrap(),
+        };
+        small_world(twins.cached.path());
+        small_world(twins.fresh.path());
+        twins
+    }
+
+    /// Writes `bytes` to `relative` in both worlds.
+    fn write(&self, relative: &str, bytes: &[u8]) {
+        for dir in [self.cached.path(), self.fresh.path()] {
+            std::fs::write(dir.join(relative), bytes).unwrap();
+        }
+    }
+
+    fn read(&self, relative: &str) -> Vec<u8> {
+        std::fs::read(self.cached.path().join(relative)).unwrap()
+    }
+
+    /// Bakes both in place with `flags` (the cached one with its default
+    /// cache) and checks they agree; returns the cached bake's report.
+    fn bake_and_compare(&self, flags: &[&str], what: &str) -> serde_json::Value {
+        let mut reports = Vec::new();
+        for (dir, cache) in [
+            (self.cached.path(), None),
+            (self.fresh.path(), Some("--no-cache")),
+        ] {
+            let report_path = dir.join("report.json");
+            let settings = dir.join("bake.xml");
+            let mut args = vec!["bake", s(&settings), "--report", s(&report_path), "--quiet"];
+            args.extend(flags);
+            args.extend(cache);
+            ok(run(&args), what);
+            reports.push(report(&report_path));
+        }
+        let chunks = |dir: &Path| {
+            world_files(&dir.join(SPACE))
+                .into_iter()
+                .filter(|(p, _)| p.extension().is_some_and(|e| e == "chunk"))
+                .collect::<Vec<_>>()
+        };
+        assert!(
+            chunks(self.cached.path()) == chunks(self.fresh.path()),
+            "{what}: the chunk files differ"
+        );
+        assert_eq!(
+            masks_and_rays(&reports[0]),
+            masks_and_rays(&reports[1]),
+            "{what}: the reports differ"
+        );
+        assert!(
+            reports[1].get("cache").is_none(),
+            "no cache, no report of it"
+        );
+        reports.swap_remove(0)
+    }
+}
+
+/// The `<model>` elements of chunk text `text`, as byte ranges.
+fn model_elements(text: &str) -> Vec<std::ops::Range<usize>> {
+    let mut out = Vec::new();
+    let mut from = 0;
+    while let Some(start) = text[from..].find("\t<model>") {
+        let start = from + start;
+        let end = start + text[start..].find("</model>\n").unwrap() + "</model>\n".len();
+        out.push(start..end);
+        from = end;
+    }
+    out
+}
+
+/// `element` (a `<model>` element's text) with its translation moved by
+/// `dx`, `dz` metres.
+fn moved(element: &str, dx: f64, dz: f64) -> String {
+    let start = element.find("<row3>\t").unwrap() + "<row3>\t".len();
+    let end = start + element[start..].find('\t').unwrap();
+    let v: Vec<f64> = element[start..end]
+        .split(' ')
+        .map(|n| n.parse().unwrap())
+        .collect();
+    let row = format!("{:.6} {:.6} {:.6}", v[0] + dx, v[1], v[2] + dz);
+    format!("{}{row}{}", &element[..start], &element[end..])
+}
+
+const CHUNKS: [&str; 4] = ["00000000o", "0000ffffo", "ffff0000o", "ffffffffo"];
+
+/// One seeded edit of the world (both twins alike); says what it did.
+fn edit(twins: &Twins, rng: &mut Rng, kind: usize) -> String {
+    let chunk = CHUNKS[rng.below(CHUNKS.len())];
+    let chunk_file = format!("{SPACE}/{chunk}.chunk");
+    let text = String::from_utf8(twins.read(&chunk_file)).unwrap();
+    let models = model_elements(&text);
+    let pick = models[rng.below(models.len())].clone();
+    let element = &text[pick.clone()];
+    let with = |replacement: String| {
+        let edited = format!("{}{replacement}{}", &text[..pick.start], &text[pick.end..]);
+        twins.write(&chunk_file, edited.as_bytes());
+    };
+    match kind {
+        0 => {
+            let (dx, dz) = (rng.range(-5.0, 5.0), rng.range(-5.0, 5.0));
+            with(moved(element, dx, dz));
+            format!("moved an instance of {chunk} by ({dx:.1}, {dz:.1}) m")
+        }
+        1 => {
+            with(format!("{element}{}", moved(element, 3.0, -2.0)));
+            format!("added an instance to {chunk}")
+        }
+        2 if models.len() > 1 => {
+            with(String::new());
+            format!("deleted an instance of {chunk}")
+        }
+        3 => {
+            let flipped = if element.contains("<castsShadow>\tfalse") {
+                element.replace("<castsShadow>\tfalse", "<castsShadow>\ttrue")
+            } else if element.contains("<castsShadow>\ttrue") {
+                element.replace("<castsShadow>\ttrue", "<castsShadow>\tfalse")
+            } else {
+                element.replace(
+                    "\t</model>",
+                    "\t\t<castsShadow>\tfalse\t</castsShadow>\n\t</model>",
+                )
+            };
+            with(flipped);
+            format!("flipped castsShadow of an instance of {chunk}")
+        }
+        4 => {
+            let model = [
+                "props/crate",
+                "props/pillar",
+                "buildings/house",
+                "trees/tree",
+            ][rng.below(4)];
+            let file = format!("sets/gen/{model}.primitives");
+            let scale = rng.range(0.6, 1.6) as f32;
+            twins.write(&file, &scaled_primitives(&twins.read(&file), scale));
+            format!("scaled {model}'s primitives by {scale:.2} in height")
+        }
+        5 => {
+            let file = format!("{SPACE}/{chunk}.cdata");
+            let raise = rng.range(-2.0, 2.0) as f32;
+            twins.write(&file, &raised_terrain(&twins.read(&file), raise));
+            format!("raised the terrain of {chunk} by {raise:.2} m")
+        }
+        _ => {
+            let settings = String::from_utf8(twins.read("bake.xml")).unwrap();
+            let x = rng.range(-0.5, 0.5);
+            let turned = settings.replace(
+                "-0.300000 -1.000000 0.200000",
+                &format!("{x:.6} -1.000000 0.200000"),
+            );
+            twins.write("bake.xml", turned.as_bytes());
+            format!("turned the sun (x {x:.2})")
+        }
+    }
+}
+
+/// A `.primitives` file's vertices scaled by `scale` in height.
+fn scaled_primitives(bytes: &[u8], scale: f32) -> Vec<u8> {
+    use shadowcull::formats::{binsection, primitives};
+    let container = binsection::parse(bytes).unwrap();
+    let sections: Vec<(String, Vec<u8>)> = container
+        .entries
+        .iter()
+        .map(|entry| {
+            let data = &bytes[entry.data.clone()];
+            let data = match primitives::read_vertices(data) {
+                Ok(vertices) if entry.name.contains("vertices") => {
+                    let positions: Vec<[f32; 3]> = vertices
+                        .positions
+                        .iter()
+                        .map(|&[x, y, z]| [x, y * scale, z])
+                        .collect();
+                    primitives::write_vertices(&positions, &vec![[0.0, 1.0, 0.0]; positions.len()])
+                }
+                _ => data.to_vec(),
+            };
+            (entry.name.clone(), data)
+        })
+        .collect();
+    let refs: Vec<(&str, &[u8])> = sections
+        .iter()
+        .map(|(n, d)| (n.as_str(), d.as_slice()))
+        .collect();
+    binsection::write(&refs)
+}
+
+/// A terrain2 `.cdata`'s heights raised by `raise` metres.
+fn raised_terrain(bytes: &[u8], raise: f32) -> Vec<u8> {
+    use shadowcull::formats::terrain;
+    let mut data = terrain::read_terrain(bytes, "terrain2").unwrap();
+    for h in &mut data.heights.heights {
+        *h += raise;
+    }
+    terrain::write_terrain2_cdata(&data.heights, data.holes.as_ref())
+}
+
+/// The options a step bakes with: each a way to change the answer.
+const OPTIONS: &[&[&str]] = &[
+    &[],
+    &["--filter-radius", "1"],
+    &["--supersample", "2"],
+    &["--conservative"],
+    &["--refine", "--refine-samples", "8", "--refine-density", "2"],
+    &["--light", "spot"],
+    &["--light", "sun", "--light", "point"],
+    &["--height-bias", "0.3"],
+];
+
+fn edit_sequence(seed: u64, steps: usize) {
+    let twins = Twins::new();
+    twins.bake_and_compare(&[], "the first bake");
+    let again = twins.bake_and_compare(&[], "nothing changed");
+    let cells = &again["cache"]["cells"];
+    assert_eq!(cells["computed"], 0, "nothing changed: {cells}");
+    assert!(cells["reused"].as_u64().unwrap() > 10, "{cells}");
+    assert_eq!(
+        again["cache"]["output"]["computed"], 0,
+        "{}",
+        again["cache"]
+    );
+    let mut rng = Rng::new(seed);
+    for step in 0..steps {
+        let kind = rng.below(8);
+        let what = match kind {
+            7 => "the options changed".to_string(),
+            _ => edit(&twins, &mut rng, kind),
+        };
+        let options = OPTIONS[if kind == 7 {
+            1 + rng.below(OPTIONS.len() - 1)
+        } else {
+            0
+        }];
+        twins.bake_and_compare(options, &format!("seed {seed} step {step}: {what}"));
+    }
+}
+
+#[test]
+fn seeded_edit_sequences_on_a_generated_world_equal_fresh_bakes() {
+    edit_sequence(7, 10);
+}
+
+#[test]
+#[cfg_attr(
+    not(shadowcull_slow),
+    ignore = "longer edit sequences: set SHADOWCULL_SLOW=1"
+)]
+fn long_seeded_edit_sequences_equal_fresh_bakes() {
+    for seed in 1..=4 {
+        edit_sequence(seed, 25);
+    }
+}
+
+#[test]
+fn a_recomputed_cell_says_which_input_changed() {
+    let twins = Twins::new();
+    twins.bake_and_compare(&[], "the first bake");
+    let becauses = |report: &serde_json::Value| -> Vec<(String, String)> {
+        report["cache"]["lights"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|l| l["traced_because"].as_array().unwrap().clone())
+            .map(|b| {
+                (
+                    b["input"].as_str().unwrap().to_string(),
+                    b["name"].as_str().unwrap_or_default().to_string(),
+                )
+            })
+            .collect()
+    };
+    let chunk_file = format!("{SPACE}/ffffffffo.chunk");
+    let text = String::from_utf8(twins.read(&chunk_file)).unwrap();
+    let first = model_elements(&text)[0].clone();
+    let edited = format!(
+        "{}{}{}",
+        &text[..first.start],
+        moved(&text[first.clone()], 0.5, 0.0),
+        &text[first.end..]
+    );
+    twins.write(&chunk_file, edited.as_bytes());
+    let why = becauses(&twins.bake_and_compare(&[], "moved"));
+    assert!(
+        why.contains(&("chunk".into(), "ffffffffo".into())),
+        "{why:?}"
+    );
+    let cdata = format!("{SPACE}/0000ffffo.cdata");
+    twins.write(&cdata, &raised_terrain(&twins.read(&cdata), 0.5));
+    let why = becauses(&twins.bake_and_compare(&[], "raised"));
+    assert!(
+        why.contains(&("terrain".into(), "0000ffffo".into())),
+        "{why:?}"
+    );
+    let file = "sets/gen/trees/tree.primitives";
+    twins.write(file, &scaled_primitives(&twins.read(file), 1.2));
+    let why = becauses(&twins.bake_and_compare(&[], "scaled"));
+    assert!(
+        why.contains(&("model".into(), "sets/gen/trees/tree.model".into())),
+        "{why:?}"
+    );
+    let why = becauses(&twins.bake_and_compare(&["--filter-radius", "1"], "options"));
+    assert!(why.contains(&("options".into(), String::new())), "{why:?}");
+}
+
+/// The cache folder of `dir`'s default cache.
+fn cache_of(dir: &Path) -> PathBuf {
+    dir.join(".shadowcull-cache")
+}
+
+/// Every entry file of the cache folder `dir` of kind `kind`.
+fn entries(dir: &Path, kind: &str) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let Ok(folders) = std::fs::read_dir(dir.join(kind)) else {
+        return out;
+    };
+    for folder in folders {
+        for entry in std::fs::read_dir(folder.unwrap().path()).unwrap() {
+            let path = entry.unwrap().path();
+            if !path.to_string_lossy().ends_with(".tmp") {
+                out.push(path);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn damaged_entries_are_warned_about_recomputed_and_the_result_is_the_same() {
+    let twins = Twins::new();
+    let flags = ["--refine", "--refine-samples", "8", "--refine-density", "2"];
+    twins.bake_and_compare(&flags, "the first bake");
+    let cache = cache_of(twins.cached.path());
+    let cells = entries(&cache, "cell");
+    let refine = entries(&cache, "refine");
+    let output = entries(&cache, "output");
+    assert!(cells.len() >= 4 && refine.len() >= 2 && !output.is_empty());
+    // Truncated, a bit flipped, another entry's bytes, emptied.
+    let bytes = std::fs::read(&cells[0]).unwrap();
+    std::fs::write(&cells[0], &bytes[..bytes.len() / 2]).unwrap();
+    let mut flipped = std::fs::read(&cells[1]).unwrap();
+    flipped[60] ^= 0x10;
+    std::fs::write(&cells[1], flipped).unwrap();
+    std::fs::copy(&refine[0], &refine[1]).unwrap();
+    std::fs::copy(&cells[3], &cells[2]).unwrap();
+    std::fs::write(&output[0], b"").unwrap();
+    let touched = [&cells[0], &cells[1], &refine[1], &cells[2], &output[0]];
+    let settings = twins.cached.path().join("bake.xml");
+    let report_path = twins.cached.path().join("report.json");
+    let mut args = vec!["bake", s(&settings), "--report", s(&report_path)];
+    args.extend(flags);
+    let out = ok(run(&args), "the bake over damaged entries");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let warned = stderr.lines().filter(|l| l.contains("cache entry")).count();
+    assert!(warned >= 4, "a line per damaged entry read: {stderr}");
+    for path in touched.iter().take(3) {
+        assert!(
+            stderr.contains(&*path.to_string_lossy()),
+            "{} named: {stderr}",
+            path.display()
+        );
+    }
+    let cached = report(&report_path);
+    assert!(
+        cached["cache"]["cells"]["damaged"].as_u64().unwrap() >= 3,
+        "{}",
+        cached["cache"]
+    );
+    // The twin without cache baked the same world: the same result.
+    twins.bake_and_compare(&flags, "after the damage");
+    for path in touched {
+        let bytes = std::fs::read(path).unwrap_or_default();
+        assert!(bytes.len() > 60, "{} rewritten whole", path.display());
+    }
+}
+
+#[test]
+fn a_bake_killed_at_any_moment_leaves_a_cache_the_next_bake_can_trust() {
+    let twins = Twins::new();
+    let settings = twins.cached.path().join("bake.xml");
+    let flags = ["--refine", "--refine-samples", "8", "--refine-density", "2"];
+    let mut args = vec!["bake", s(&settings), "--quiet"];
+    args.extend(flags);
+    // How long a whole bake takes here, to kill the others within it.
+    let started = Instant::now();
+    ok(run(&args), "a whole bake");
+    let whole = started.elapsed();
+    let mut rng = Rng::new(3);
+    for _ in 0..6 {
+        // Something to recompute each time: a moved instance.
+        edit(&twins, &mut rng, 0);
+        let mut child = Command::new(env!("CARGO_BIN_EXE_shadowcull"))
+            .args(&args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let after = whole.mul_f64(rng.range(0.05, 1.0));
+        std::thread::sleep(after);
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    twins.bake_and_compare(&flags, "after the killed bakes");
+    let stats = ok(
+        run(&[
+            "cache",
+            s(&cache_of(twins.cached.path())),
+            "stats",
+            "--json",
+        ]),
+        "stats",
+    );
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert!(stats["entries"].as_u64().unwrap() > 0, "{stats}");
+}
+
+#[test]
+fn two_bakes_sharing_one_cache_are_both_right_and_leave_it_sound() {
+    let dirs = [tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap()];
+    let fresh = tempfile::tempdir().unwrap();
+    let shared = tempfile::tempdir().unwrap();
+    let cache = shared.path().join("cache");
+    for dir in dirs.iter().chain([&fresh]) {
+        small_world(dir.path());
+    }
+    let bake = |dir: &Path| -> Command {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_shadowcull"));
+        command
+            .args([
+                "bake",
+                s(&dir.join("bake.xml")),
+                "--cache",
+                s(&cache),
+                "--quiet",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        command
+    };
+    let children: Vec<_> = dirs
+        .iter()
+        .map(|d| bake(d.path()).spawn().unwrap())
+        .collect();
+    for child in children {
+        let out = child.wait_with_output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    ok(
+        run(&[
+            "bake",
+            s(&fresh.path().join("bake.xml")),
+            "--no-cache",
+            "--quiet",
+        ]),
+        "fresh",
+    );
+    let expected = world_files(&fresh.path().join(SPACE));
+    for dir in &dirs {
+        assert!(
+            world_files(&dir.path().join(SPACE)) == expected,
+            "a concurrent bake differs"
+        );
+    }
+    let stats = ok(run(&["cache", s(&cache), "stats", "--json"]), "stats");
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert_eq!(stats["temporaries"], 0, "{stats}");
+    // Every entry they left passes its check: a third bake reuses them all
+    // without a warning.
+    let third = tempfile::tempdir().unwrap();
+    small_world(third.path());
+    let report_path = third.path().join("report.json");
+    let out = ok(
+        run(&[
+            "bake",
+            s(&third.path().join("bake.xml")),
+            "--cache",
+            s(&cache),
+            "--report",
+            s(&report_path),
+        ]),
+        "a third bake",
+    );
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("cache entry"));
+    let cells = &report(&report_path)["cache"]["cells"];
+    assert_eq!(
+        (cells["computed"].as_u64(), cells["damaged"].as_u64()),
+        (Some(0), Some(0)),
+        "{cells}"
+    );
+    assert!(world_files(&third.path().join(SPACE)) == expected);
+}
+
+#[test]
+fn shards_and_merge_with_a_cache_write_what_one_bake_writes() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = small_world(dir.path());
+    let work = tempfile::tempdir().unwrap();
+    let cache = work.path().join("cache");
+    let one = work.path().join("one");
+    ok(
+        run(&[
+            "bake",
+            s(&settings),
+            "--out",
+            s(&one),
+            "--no-cache",
+            "--refine",
+            "--quiet",
+        ]),
+        "one bake",
+    );
+    for round in ["an empty cache", "the cache the first round filled"] {
+        let merged = work.path().join(format!("merged {round}"));
+        let mut partials = Vec::new();
+        for index in 0..3 {
+            let partial = work.path().join(format!("p{index}.part"));
+            let shard = format!("{index}/3");
+            let out = ok(
+                run(&[
+                    "bake",
+                    s(&settings),
+                    "--shard",
+                    &shard,
+                    "--partial",
+                    s(&partial),
+                    "--cache",
+                    s(&cache),
+                ]),
+                &format!("shard {shard} with {round}"),
+            );
+            let stdout = String::from_utf8_lossy(&out.stderr);
+            if round.starts_with("the cache") {
+                assert!(stdout.contains(" 0 traced"), "{stdout}");
+            }
+            partials.push(partial);
+        }
+        let mut args = vec!["merge", s(&settings)];
+        args.extend(partials.iter().map(|p| s(p)));
+        args.extend([
+            "--out",
+            s(&merged),
+            "--cache",
+            s(&cache),
+            "--refine",
+            "--quiet",
+        ]);
+        ok(run(&args), &format!("merge with {round}"));
+        assert!(
+            world_files(&one) == world_files(&merged),
+            "{round}: the merge differs"
+        );
+    }
+}
+
+#[test]
+fn plan_and_the_cache_command_say_what_the_cache_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = small_world(dir.path());
+    let cache = cache_of(dir.path());
+    let plan = |expect: &str| {
+        let out = ok(run(&["plan", s(&settings)]), "plan");
+        let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+        assert!(stdout.contains(expect), "`{expect}` in: {stdout}");
+    };
+    plan("cache: 0 of ");
+    ok(run(&["bake", s(&settings), "--quiet"]), "bake");
+    plan("cells stored, a cached bake traces 0");
+    let stats = ok(run(&["cache", s(&cache), "stats"]), "stats");
+    let text = String::from_utf8_lossy(&stats.stdout).to_string();
+    for kind in ["cell", "manifest", "output"] {
+        assert!(text.contains(kind), "{text}");
+    }
+    ok(run(&["cache", s(&cache), "clear"]), "clear");
+    let stats = ok(run(&["cache", s(&cache), "stats", "--json"]), "stats");
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert_eq!(stats["entries"], 0, "{stats}");
+    // A cache limit evicts the least recently used entries after a bake.
+    ok(
+        run(&["bake", s(&settings), "--quiet", "--cache-max", "5k"]),
+        "a bake under a limit",
+    );
+    let stats = ok(run(&["cache", s(&cache), "stats", "--json"]), "stats");
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert!(stats["bytes"].as_u64().unwrap() <= 5000, "{stats}");
 }
