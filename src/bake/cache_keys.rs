@@ -160,13 +160,14 @@ impl WorldKeys {
                 h.finish()
             })
             .collect();
+        let ground = GroundNear::of(world);
         WorldKeys {
             scene,
             parts,
             placements,
             blocks,
             block_chunks,
-            ground: GroundNear::of(world),
+            ground,
             left_out,
         }
     }

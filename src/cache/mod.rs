@@ -98,15 +98,44 @@ impl Key {
 }
 
 /// Builds a [`Key`] from typed values; every value is framed (lengths
-/// prefixed) so two different sequences cannot hash alike.
+/// prefixed) so two different sequences cannot hash alike. Small values
+/// gather in a buffer before they reach the hash: a part's key is a few
+/// dozen of them, and the hash's cost per call would outweigh them.
 #[derive(Debug, Clone)]
-pub struct KeyHasher(blake3::Hasher);
+pub struct KeyHasher {
+    hasher: blake3::Hasher,
+    buffer: [u8; KeyHasher::BUFFER],
+    held: usize,
+}
 
 impl KeyHasher {
+    const BUFFER: usize = 1024;
+
+    fn empty() -> KeyHasher {
+        KeyHasher {
+            hasher: blake3::Hasher::new(),
+            buffer: [0; KeyHasher::BUFFER],
+            held: 0,
+        }
+    }
+
+    fn update(&mut self, bytes: &[u8]) {
+        if self.held + bytes.len() > KeyHasher::BUFFER {
+            self.hasher.update(&self.buffer[..self.held]);
+            self.held = 0;
+            if bytes.len() > KeyHasher::BUFFER {
+                self.hasher.update(bytes);
+                return;
+            }
+        }
+        self.buffer[self.held..self.held + bytes.len()].copy_from_slice(bytes);
+        self.held += bytes.len();
+    }
+
     /// A hasher for keys of `kind`, under the cache's build identity.
     pub fn new(kind: Kind, build: &Key) -> KeyHasher {
         let mut hasher = KeyHasher::across_builds(kind);
-        hasher.0.update(&build.0);
+        hasher.update(&build.0);
         hasher
     }
 
@@ -114,24 +143,24 @@ impl KeyHasher {
     /// a build's own code reads back for what it says about an earlier
     /// bake (a light's manifest, which records the build that wrote it).
     pub fn across_builds(kind: Kind) -> KeyHasher {
-        let mut hasher = blake3::Hasher::new();
+        let mut hasher = KeyHasher::empty();
         hasher.update(MAGIC);
         hasher.update(&FORMAT_VERSION.to_le_bytes());
         hasher.update(&[kind.code()]);
-        KeyHasher(hasher)
+        hasher
     }
 
     /// A hasher of content (a model's geometry, a terrain block's samples)
     /// for keys that other keys are built from; `domain` keeps the
     /// content keys of different things apart.
     pub fn content(domain: &str) -> KeyHasher {
-        let mut hasher = KeyHasher(blake3::Hasher::new());
+        let mut hasher = KeyHasher::empty();
         hasher.str("shadowcull content").str(domain);
         hasher
     }
 
     pub fn u32(&mut self, v: u32) -> &mut Self {
-        self.0.update(&v.to_le_bytes());
+        self.update(&v.to_le_bytes());
         self
     }
 
@@ -140,12 +169,12 @@ impl KeyHasher {
     }
 
     pub fn bool(&mut self, v: bool) -> &mut Self {
-        self.0.update(&[u8::from(v)]);
+        self.update(&[u8::from(v)]);
         self
     }
 
     pub fn u64(&mut self, v: u64) -> &mut Self {
-        self.0.update(&v.to_le_bytes());
+        self.update(&v.to_le_bytes());
         self
     }
 
@@ -155,7 +184,7 @@ impl KeyHasher {
 
     pub fn bytes(&mut self, v: &[u8]) -> &mut Self {
         self.u64(v.len() as u64);
-        self.0.update(v);
+        self.update(v);
         self
     }
 
@@ -164,12 +193,14 @@ impl KeyHasher {
     }
 
     pub fn key(&mut self, v: &Key) -> &mut Self {
-        self.0.update(&v.0);
+        self.update(&v.0);
         self
     }
 
     pub fn finish(&self) -> Key {
-        Key(*self.0.finalize().as_bytes())
+        let mut hasher = self.hasher.clone();
+        hasher.update(&self.buffer[..self.held]);
+        Key(*hasher.finalize().as_bytes())
     }
 }
 
@@ -197,6 +228,46 @@ pub fn executable_build() -> crate::Result<Key> {
         hasher.update(bytes);
     })?;
     Ok(Key(*hasher.finalize().as_bytes()))
+}
+
+/// A file this old or older than its hash's record is trusted by its
+/// stamp: one written since, within the file system's time resolution,
+/// could carry the same times (git's rule for racily clean entries).
+const RACY_NANOSECONDS: u64 = 2_000_000_000;
+
+/// [`executable_build`] with a stat shortcut kept in the cache folder
+/// `dir`: the hash is read again only when the executable's length, inode,
+/// device, or modification or status-change time differ from the record,
+/// or when it was modified less than two seconds before the record was
+/// made (it could have changed since within the same time stamp).
+pub fn executable_build_in(dir: &Path) -> crate::Result<Key> {
+    let Some(stamp) = files::own_executable_stamp() else {
+        return executable_build();
+    };
+    let mut key = KeyHasher::across_builds(Kind::Manifest);
+    key.str("the running executable");
+    for v in stamp {
+        key.u64(v);
+    }
+    let key = key.finish();
+    let record = Cache::open(dir, u64::MAX, Key::default());
+    let modified = stamp[3];
+    let recorded = record.get(Kind::Manifest, &key).and_then(|value| {
+        let at = u64::from_le_bytes(value.get(..8)?.try_into().ok()?);
+        let build = Key(value.get(8..40)?.try_into().ok()?);
+        (value.len() == 40 && modified.saturating_add(RACY_NANOSECONDS) < at).then_some(build)
+    });
+    if let Some(build) = recorded {
+        return Ok(build);
+    }
+    let build = executable_build()?;
+    let now = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let mut value = now.to_le_bytes().to_vec();
+    value.extend_from_slice(&build.0);
+    record.put(Kind::Manifest, &key, &value);
+    Ok(build)
 }
 
 /// What one bake did with the cache, per kind.

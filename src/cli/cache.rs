@@ -47,7 +47,7 @@ impl CacheArgs {
                 .unwrap_or(Path::new("."))
                 .join(DEFAULT_FOLDER),
         };
-        let build = cache::executable_build().context("the bake cache's build identity")?;
+        let build = cache::executable_build_in(&dir).context("the bake cache's build identity")?;
         let max = self.cache_max.unwrap_or(cache::DEFAULT_MAX_BYTES);
         Ok(Some(Cache::open(dir, max, build)))
     }
