@@ -149,8 +149,8 @@ for world in $WORLDS; do
     edit raise "$cdata" $(( 2 * sign ))
     timed bake "$settings" --cache "$cache" --quiet --threads 2 >>"$WORK/terrain.runs"
   done
-  world_bytes=$(du -sb --exclude=.shadowcull-cache "$dir" | cut -f1)
-  cache_bytes=$(du -sb "$cache" | cut -f1)
+  world_bytes=$(find "$dir" -type f -not -path '*/.shadowcull-cache/*' -printf '%s\n' | awk '{s += $1} END {print s}')
+  cache_bytes=$("$BIN" cache "$cache" stats --json | python3 -c 'import json, sys; print(json.load(sys.stdin)["bytes"])')
   cache_blocks=$(du -sk "$cache" | cut -f1)
   echo
   echo "### $world ($(ls "$space"/*.chunk | wc -l) chunks; edits in $(basename "$chunk"))"
@@ -163,7 +163,7 @@ for world in $WORLDS; do
   row "in place, one instance moved 5 m" "$WORK/moved.runs"
   row "in place, one chunk's terrain raised 2 m" "$WORK/terrain.runs"
   echo
-  echo "world $((world_bytes / 1000)) kB; cache $((cache_bytes / 1000)) kB of entries ($(( 100 * cache_bytes / world_bytes )) %), $cache_blocks KiB on disk ($(( 100 * cache_blocks * 1024 / world_bytes )) %)"
+  echo "world $((world_bytes / 1000)) kB in its files; cache $((cache_bytes / 1000)) kB in its entries ($(( 100 * cache_bytes / world_bytes )) %), $cache_blocks KiB on disk with its folders ($(( 100 * cache_blocks * 1024 / world_bytes )) %)"
   "$BIN" cache "$cache" stats
   rm -rf "$dir" && mv "$WORK/$world-pristine" "$dir"
 done

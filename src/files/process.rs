@@ -81,36 +81,6 @@ pub fn resident_memory() -> ResidentMemory {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn host_names_are_file_name_safe() {
-        let host = host_name();
-        assert!(!host.is_empty());
-        assert!(host
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_')));
-    }
-
-    #[cfg(target_os = "linux")]
-    #[test]
-    fn resident_memory_is_read_and_the_peak_is_at_least_the_present() {
-        let memory = resident_memory();
-        assert!(memory.resident > 0, "{memory:?}");
-        assert!(memory.peak >= memory.resident, "{memory:?}");
-    }
-
-    #[cfg(target_os = "linux")]
-    #[test]
-    fn this_process_runs_and_one_above_the_largest_id_does_not() {
-        assert!(process_alive(std::process::id()));
-        // Linux process ids stay below 2^22 (`pid_max`'s ceiling).
-        assert!(!process_alive(1 << 22 | 1));
-    }
-}
-
 /// Hands the bytes of this process's own executable to `each`, a piece at
 /// a time (what identifies the build: the bake cache keys its results
 /// under its hash, so another build never reuses them).
@@ -141,7 +111,11 @@ pub fn own_executable_stamp() -> Option<[u64; 5]> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::MetadataExt;
-        let ns = |s: i64, n: i64| (s as u64).wrapping_mul(1_000_000_000).wrapping_add(n as u64);
+        let ns = |s: i64, n: i64| {
+            (s as u64)
+                .wrapping_mul(1_000_000_000)
+                .wrapping_add(n as u64)
+        };
         Some([
             meta.len(),
             meta.ino(),
@@ -154,5 +128,35 @@ pub fn own_executable_stamp() -> Option<[u64; 5]> {
     {
         let _ = meta;
         None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn host_names_are_file_name_safe() {
+        let host = host_name();
+        assert!(!host.is_empty());
+        assert!(host
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_')));
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn resident_memory_is_read_and_the_peak_is_at_least_the_present() {
+        let memory = resident_memory();
+        assert!(memory.resident > 0, "{memory:?}");
+        assert!(memory.peak >= memory.resident, "{memory:?}");
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn this_process_runs_and_one_above_the_largest_id_does_not() {
+        assert!(process_alive(std::process::id()));
+        // Linux process ids stay below 2^22 (`pid_max`'s ceiling).
+        assert!(!process_alive(1 << 22 | 1));
     }
 }

@@ -105,7 +105,8 @@ mod tests {
         };
         let key = model_key(&model);
         assert_eq!(key, model_key(&model.clone()));
-        let edits: Vec<Box<dyn Fn(&mut Model)>> = vec![
+        type Edit = Box<dyn Fn(&mut Model)>;
+        let edits: Vec<Edit> = vec![
             Box::new(|m| m.positions[1].x = 2.0),
             Box::new(|m| m.triangles[0] = [0, 2, 1]),
             Box::new(|m| m.groups[0].alpha_tested = true),
