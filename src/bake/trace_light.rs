@@ -295,10 +295,11 @@ struct Settled {
 
 impl Settled {
     fn new(casters: &CasterTable, known: Option<&CasterSet>, by_corners: bool) -> Settled {
-        let mut words = known.map_or_else(|| vec![0; casters.len().div_ceil(64)], |k| k.0.clone());
-        for (id, caster) in casters.casters.iter().enumerate() {
-            if caster.receiver_only {
-                words[id / 64] |= 1 << (id % 64);
+        let mut words = casters.receiver_only.clone();
+        words.resize(casters.len().div_ceil(64), 0);
+        if let Some(known) = known {
+            for (word, k) in words.iter_mut().zip(&known.0) {
+                *word |= k;
             }
         }
         Settled {
