@@ -77,6 +77,10 @@ pub trait Progress: Sync {
     fn begin(&self, _phase: Phase, _light: Option<&str>, _total: u64) {}
     fn advance(&self, _done: u64) {}
     fn end(&self) {}
+    /// A line of what a phase did (the bake cache's: what was reused,
+    /// what was computed and why): `text` for people, `event` and `fields`
+    /// for machines.
+    fn note(&self, _event: &str, _text: &str, _fields: &serde_json::Value) {}
 }
 
 /// No progress output.

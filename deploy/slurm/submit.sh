@@ -8,10 +8,12 @@
 #   Environment: SHADOWCULL (the binary, default `shadowcull` on PATH),
 #   BAKE_FLAGS (flags for every shard and the merge), MERGE_FLAGS (merge
 #   only, e.g. --refine), REPORT (merge report file), SBATCH_FLAGS (extra
-#   sbatch options for both jobs, e.g. "--partition=bake --time=2:00:00").
+#   sbatch options for both jobs, e.g. "--partition=bake --time=2:00:00"),
+#   CACHE (the bake cache the jobs share, default PARTIALS_DIR/../shadowcull-cache;
+#   `none` for no cache).
 set -euo pipefail
 if [ $# -lt 3 ]; then
-  sed -n '2,12p' "$0" >&2
+  sed -n '2,14p' "$0" >&2
   exit 2
 fi
 settings=$(realpath "$1")

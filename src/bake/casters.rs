@@ -80,6 +80,10 @@ pub struct CasterTable {
     /// The double-sided casters as bits of their ids (64 a word): the ones
     /// face culling never drops (`trace::FaceCull`).
     pub double_sided: Vec<u64>,
+    /// The receiver-only casters as bits of their ids: settled from the
+    /// start of every grid pass (they are never useful), copied rather than
+    /// found caster by caster for each of a cached bake's cells.
+    pub receiver_only: Vec<u64>,
 }
 
 impl CasterTable {
@@ -143,9 +147,13 @@ impl CasterTable {
             });
         }
         table.double_sided = vec![0; table.casters.len().div_ceil(64)];
+        table.receiver_only = vec![0; table.casters.len().div_ceil(64)];
         for (id, caster) in table.casters.iter().enumerate() {
             if caster.double_sided {
                 table.double_sided[id / 64] |= 1 << (id % 64);
+            }
+            if caster.receiver_only {
+                table.receiver_only[id / 64] |= 1 << (id % 64);
             }
         }
         table

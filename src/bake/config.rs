@@ -3,7 +3,8 @@
 //! reads it while the bake's root (`bake/mod.rs`) uses those parts, so
 //! it sits below them all.
 
-use crate::formats::bake_settings::{FaceCulling, LightSettings};
+use crate::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
+use crate::formats::partial;
 
 /// What to bake (the settings file's values after command-line overrides).
 #[derive(Debug, Clone)]
@@ -139,4 +140,82 @@ impl Default for BakeConfig {
             bits: Vec::new(),
         }
     }
+}
+
+/// The settings a grid answer depends on (a shard's, a cached cell's), one (key, value) each: keys
+/// are the settings file's element paths (`lights/light[0]/texelSize`) or
+/// the flags (`--supersample`), values as written, so a difference reads as
+/// the element and its two values.
+pub fn settings_lines(config: &BakeConfig) -> Vec<(String, String)> {
+    let v3 = |v: glam::DVec3| format!("{} {} {}", v.x, v.y, v.z);
+    let mut lines = vec![
+        (
+            "shadowcull".to_string(),
+            format!(
+                "{} (partial format {})",
+                env!("CARGO_PKG_VERSION"),
+                partial::VERSION
+            ),
+        ),
+        ("faceCulling".into(), config.face_culling.name().into()),
+        ("heightBias".into(), config.height_bias.to_string()),
+        ("tieEpsilon".into(), config.tie_epsilon.to_string()),
+        (
+            "--supersample".into(),
+            config.supersample.max(1).to_string(),
+        ),
+        ("--brute-force".into(), config.brute_force.to_string()),
+        (
+            "--conservative".into(),
+            (config.grid_mode == GridMode::Conservative).to_string(),
+        ),
+        ("--filter-radius".into(), config.filter_radius.to_string()),
+        (
+            "grid offset".into(),
+            format!("{} {}", config.grid_offset.0, config.grid_offset.1),
+        ),
+        ("lights".into(), config.lights.len().to_string()),
+    ];
+    for (index, light) in config.lights.iter().enumerate() {
+        let key = |name: &str| format!("lights/light[{index}]/{name}");
+        lines.push((key("name"), light.name.clone()));
+        lines.push((key("type"), light.kind.type_name().into()));
+        let values: Vec<(&str, String)> = match &light.kind {
+            LightKind::Directional {
+                direction,
+                texel_size,
+            } => vec![
+                ("direction", v3(*direction)),
+                ("texelSize", texel_size.to_string()),
+            ],
+            LightKind::Spot {
+                position,
+                direction,
+                fov_degrees,
+                near,
+                far,
+                resolution,
+            } => vec![
+                ("position", v3(*position)),
+                ("direction", v3(*direction)),
+                ("fov", fov_degrees.to_string()),
+                ("near", near.to_string()),
+                ("far", far.to_string()),
+                ("resolution", resolution.to_string()),
+            ],
+            LightKind::Point {
+                position,
+                near,
+                far,
+                resolution,
+            } => vec![
+                ("position", v3(*position)),
+                ("near", near.to_string()),
+                ("far", far.to_string()),
+                ("resolution", resolution.to_string()),
+            ],
+        };
+        lines.extend(values.into_iter().map(|(name, value)| (key(name), value)));
+    }
+    lines
 }

@@ -134,25 +134,55 @@ pub fn trace_tiles(
     known: &CasterSet,
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
-    let light = Light::new(world, setup, rays, config);
-    let sources = light.sources_by_tile();
-    tiles
-        .into_par_iter()
-        .fold(
-            || CasterSet::new(world.casters.len()),
-            |mut useful, tile| {
-                light.tile(
-                    tile,
-                    sources.get(&tile).map_or(&[][..], Vec::as_slice),
-                    known,
-                    &mut useful,
-                );
-                let (_, x0, y0, x1, y1) = tile_rect(&setup.grid, tile);
-                rays_done.add(((x1 - x0) * (y1 - y0)) as u64);
-                useful
-            },
-        )
-        .reduce(|| CasterSet::new(world.casters.len()), |a, b| a.union(&b))
+    Beams::new(world, setup, rays, config).trace_tiles(tiles, known, rays_done)
+}
+
+/// One light's conservative pass, its parts and blocks binned into tiles
+/// once, for any number of tile sets (the bake cache's cells).
+pub struct Beams<'w, 'a> {
+    light: Light<'w, 'a>,
+    sources: HashMap<u64, Vec<(usize, Source)>>,
+}
+
+impl<'w, 'a> Beams<'w, 'a> {
+    pub fn new(
+        world: &'w BakeWorld<'a>,
+        setup: &'w LightSetup,
+        rays: &'w LightRays<'w>,
+        config: &BakeConfig,
+    ) -> Self {
+        let light = Light::new(world, setup, rays, config);
+        let sources = light.sources_by_tile();
+        Beams { light, sources }
+    }
+
+    /// [`trace_tiles`] over `tiles`.
+    pub fn trace_tiles(
+        &self,
+        tiles: impl IntoParallelIterator<Item = u64>,
+        known: &CasterSet,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        let light = &self.light;
+        let casters = light.world.casters.len();
+        tiles
+            .into_par_iter()
+            .fold(
+                || CasterSet::new(casters),
+                |mut useful, tile| {
+                    light.tile(
+                        tile,
+                        self.sources.get(&tile).map_or(&[][..], Vec::as_slice),
+                        known,
+                        &mut useful,
+                    );
+                    let (_, x0, y0, x1, y1) = tile_rect(light.grid, tile);
+                    rays_done.add(((x1 - x0) * (y1 - y0)) as u64);
+                    useful
+                },
+            )
+            .reduce(|| CasterSet::new(casters), |a, b| a.union(&b))
+    }
 }
 
 /// Something that puts triangles into the light: a placed part's groups or

@@ -15,6 +15,7 @@
 //! level and the tracing threads' working sets, plus the masks and every
 //! chunk file's old and new bytes held for the write.
 
+use super::cached::{BakeCache, PlannedCells};
 use super::config::{BakeConfig, GridMode};
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
@@ -78,6 +79,12 @@ pub struct LightPlan {
     /// Why the light traces nothing, when it does not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub nothing_to_trace: Option<String>,
+    /// With a cache: the cells of its grid with something in reach, and
+    /// how many of them the cache held before the plan.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cells: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cells_stored: Option<u64>,
     /// The calibration's tiles and what they proved, for the bake.
     #[serde(skip)]
     pub sample: Option<TracedSample>,
@@ -208,12 +215,27 @@ pub fn plan(
     baseline: Baseline,
     progress: &dyn Progress,
 ) -> Result<Plan, BakeError> {
+    plan_with(world, config, baseline, progress, None)
+}
+
+/// [`plan`] of a bake with `cache` when given: per light, how many of its
+/// cells the cache holds, and a calibration on cells it does not (traced
+/// and stored, so the bake reuses them); the bake takes the kept setup
+/// from the cache.
+pub fn plan_with(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    baseline: Baseline,
+    progress: &dyn Progress,
+    cache: Option<&BakeCache>,
+) -> Result<Plan, BakeError> {
     let started = Instant::now();
     let mut lights = Vec::new();
     let mut kept = None;
     // Last light first: the first light's setup, built last, is kept.
     for index in (0..config.lights.len()).rev() {
-        let (light, setup) = plan_light(world, config, index, baseline.threads, progress)?;
+        let planned = plan_light(world, config, index, baseline.threads, progress, cache)?;
+        let (light, setup) = planned;
         lights.push(light);
         kept = setup;
     }
@@ -236,6 +258,9 @@ pub fn plan(
         + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
         - kept_setup_seconds
         + output as f64 / WRITE_BYTES_PER_SECOND;
+    if let Some(cache) = cache {
+        cache.keep_setup(kept.take());
+    }
     Ok(Plan {
         lights,
         casters,
@@ -256,6 +281,7 @@ fn plan_light(
     index: usize,
     threads: usize,
     progress: &dyn Progress,
+    cache: Option<&BakeCache>,
 ) -> Result<(LightPlan, Option<LightSetup>), BakeError> {
     let mut plan = LightPlan::before_setup(config, index);
     let setup = match LightSetup::new_with_progress(world, config, index, progress) {
@@ -273,6 +299,14 @@ fn plan_light(
         plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
         return Ok((plan, None));
     }
+    if let Some(cache) = cache {
+        plan.plan_cells(
+            cache.plan_light(world, &setup, config, progress),
+            grid_rays,
+            &setup,
+        );
+        return Ok((plan, Some(setup)));
+    }
     let calibration = calibrate(world, config, &setup, grid_rays, progress);
     plan.sample_seconds = calibration.seconds;
     plan.sample_rays = calibration.sample.rays;
@@ -286,6 +320,25 @@ fn plan_light(
 }
 
 impl LightPlan {
+    /// A cached bake's estimate: the rays of the cells the cache does not
+    /// hold (less those the calibration `cells` traced) and that share of
+    /// the refinement rays, at the calibration's rate.
+    fn plan_cells(&mut self, cells: PlannedCells, grid_rays: u64, setup: &LightSetup) {
+        self.cells = Some(cells.cells);
+        self.cells_stored = Some(cells.stored);
+        self.sample_rays = cells.sample_rays;
+        self.sample_seconds = cells.sample_seconds;
+        self.estimated_seconds = setup.reach_seconds + setup.top_seconds;
+        if cells.sample_rays == 0 {
+            return;
+        }
+        self.rays_per_second = cells.sample_rays as f64 / cells.sample_seconds.max(1e-6);
+        let missing = cells.rays_to_trace as f64 / grid_rays.max(1) as f64;
+        let refine_rays = self.rays.saturating_sub(grid_rays) as f64 * missing;
+        let left = cells.rays_to_trace.saturating_sub(cells.sample_rays) as f64 + refine_rays;
+        self.estimated_seconds += left / self.rays_per_second;
+    }
+
     /// Light `index`'s plan before its setup: what it is, nothing sized.
     fn before_setup(config: &BakeConfig, index: usize) -> LightPlan {
         let light = &config.lights[index];
@@ -308,6 +361,8 @@ impl LightPlan {
             estimated_seconds: 0.0,
             estimated_bytes: 0,
             nothing_to_trace: None,
+            cells: None,
+            cells_stored: None,
             sample: None,
         }
     }

@@ -23,23 +23,59 @@ pub fn trace_tiles(
     known: Option<&CasterSet>,
     rays_done: &dyn RayCounter,
 ) -> CasterSet {
-    let samples = config.supersample.max(1);
-    let centres = |tiles: Vec<u64>| {
-        if config.filter_radius > 0 {
-            filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
-        } else {
-            rays.trace_tiles(tiles, samples, PacketSkip::Settled { known }, rays_done)
+    GridPass::new(world, setup, rays, config).trace(tiles, known, rays_done)
+}
+
+/// One light's grid pass as the config asks, prepared once for any number
+/// of tile sets (the bake cache traces it cell by cell).
+pub struct GridPass<'p, 'a> {
+    rays: &'p LightRays<'p>,
+    config: &'p BakeConfig,
+    /// `--conservative`: the light's beams, its geometry binned by tile.
+    beams: Option<conservative::Beams<'p, 'a>>,
+}
+
+impl<'p, 'a> GridPass<'p, 'a> {
+    pub fn new(
+        world: &'p BakeWorld<'a>,
+        setup: &'p LightSetup,
+        rays: &'p LightRays<'p>,
+        config: &'p BakeConfig,
+    ) -> Self {
+        let beams = (config.grid_mode == GridMode::Conservative)
+            .then(|| conservative::Beams::new(world, setup, rays, config));
+        GridPass {
+            rays,
+            config,
+            beams,
         }
-    };
-    let tiles: Vec<u64> = tiles.into_par_iter().collect();
-    match config.grid_mode {
-        GridMode::Centres => centres(tiles),
-        GridMode::Conservative => {
-            // The beams run over the same tiles after the centres.
-            let known = centres(tiles.clone());
-            let beams =
-                conservative::trace_tiles(world, setup, rays, config, tiles, &known, &NoCount);
-            known.union(&beams)
+    }
+
+    /// [`trace_tiles`] over `tiles`.
+    pub fn trace(
+        &self,
+        tiles: impl IntoParallelIterator<Item = u64>,
+        known: Option<&CasterSet>,
+        rays_done: &dyn RayCounter,
+    ) -> CasterSet {
+        let (rays, config) = (self.rays, self.config);
+        let samples = config.supersample.max(1);
+        let centres = |tiles: Vec<u64>| {
+            if config.filter_radius > 0 {
+                filter_margin::trace_tiles(rays, tiles, samples, config.filter_radius, rays_done)
+            } else {
+                rays.trace_tiles(tiles, samples, PacketSkip::Settled { known }, rays_done)
+            }
+        };
+        let tiles: Vec<u64> = tiles.into_par_iter().collect();
+        match &self.beams {
+            None => centres(tiles),
+            Some(beams) => {
+                // The beams run over the same tiles after the centres.
+                let known = centres(tiles.clone());
+                let found = beams.trace_tiles(tiles, &known, &NoCount);
+                known.union(&found)
+            }
         }
     }
 }

@@ -3,7 +3,10 @@
 //! per group, instance and terrain block. Orchestration only: the rules are
 //! in `classify`, the rays in `light`, the traversal in `trace`.
 
+pub mod cache_keys;
+pub mod cached;
 pub mod casters;
+pub mod cells;
 pub mod config;
 pub mod conservative;
 pub mod estimate;
@@ -11,6 +14,7 @@ pub mod filter_margin;
 pub mod geometry;
 pub mod grid_pass;
 pub mod ground;
+pub mod manifest;
 pub mod memory;
 pub mod occlusion;
 pub mod output;
@@ -132,6 +136,8 @@ pub struct BakeResult {
     pub baked_bits: u32,
     pub lights: Vec<LightReport>,
     pub skipped: Vec<Skipped>,
+    /// What a bake with a cache reused and computed (`None`: no cache).
+    pub cache: Option<cached::CacheReport>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -278,6 +284,30 @@ pub fn bake_from(
     progress: &dyn Progress,
     source: &dyn GridSource,
 ) -> Result<BakeResult, BakeError> {
+    bake_with(world, config, progress, source, None)
+}
+
+/// [`bake_world`] with a cache: every grid answer the union of its cells'
+/// (reused or traced and stored), refinement reused or refined per chunk
+/// and stored. The masks are [`bake_world`]'s (see [`cached`]).
+pub fn bake_cached(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    cache: &cached::BakeCache,
+) -> Result<BakeResult, BakeError> {
+    bake_with(world, config, progress, cache, Some(cache))
+}
+
+/// [`bake_from`], with refinement through `cache` when given (a merge's:
+/// its grid answers are the shards').
+pub fn bake_with(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+    source: &dyn GridSource,
+    cache: Option<&cached::BakeCache>,
+) -> Result<BakeResult, BakeError> {
     check_light_count(config)?;
     let mut masks = try_zeroed::<u32>(world.casters.len(), "making the caster masks")?;
     let mut skipped = world_skipped(world);
@@ -298,7 +328,7 @@ pub fn bake_from(
             Err(NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
         };
         let (useful, report) =
-            bake_light_from(world, &setup, config, progress, &mut skipped, source);
+            bake_light_from(world, &setup, config, progress, &mut skipped, source, cache);
         let bit = 1u32.wrapping_shl(config.bit(index));
         for (id, mask) in masks.iter_mut().enumerate() {
             if useful.contains(id as u32) {
@@ -320,6 +350,7 @@ pub fn bake_from(
         baked_bits: config.baked_bits(),
         lights,
         skipped,
+        cache: cache.map(cached::BakeCache::report),
     })
 }
 
@@ -403,7 +434,7 @@ pub fn bake_light(
     progress: &dyn Progress,
     skipped: &mut Vec<Skipped>,
 ) -> (CasterSet, LightReport) {
-    bake_light_from(world, setup, config, progress, skipped, &TraceGrid)
+    bake_light_from(world, setup, config, progress, skipped, &TraceGrid, None)
 }
 
 /// [`bake_light`] with the grid answer from `source`.
@@ -414,6 +445,7 @@ fn bake_light_from(
     progress: &dyn Progress,
     skipped: &mut Vec<Skipped>,
     source: &dyn GridSource,
+    cache: Option<&cached::BakeCache>,
 ) -> (CasterSet, LightReport) {
     let started = Instant::now();
     let index = setup.index;
@@ -428,7 +460,7 @@ fn bake_light_from(
         ));
         Traced::nothing(world.casters.len())
     } else {
-        trace_grid_and_refine(world, setup, config, progress, source)
+        trace_grid_and_refine(world, setup, config, progress, source, cache)
     };
     let trace_seconds = trace_started.elapsed().as_secs_f64() + source.seconds_before(index);
     let kept = without_receivers(world, &traced.useful);
@@ -523,6 +555,7 @@ fn trace_grid_and_refine(
     config: &BakeConfig,
     progress: &dyn Progress,
     source: &dyn GridSource,
+    cache: Option<&cached::BakeCache>,
 ) -> Traced {
     let light = &config.lights[setup.index];
     let supersample = config.supersample.max(1);
@@ -531,6 +564,10 @@ fn trace_grid_and_refine(
     let counter = Counter::begin(progress, Phase::Tracing, Some(&light.name), grid_rays);
     let useful = source.grid(world, setup, &rays_of_light, config, &counter);
     counter.finish();
+    if let Some(report) = cache.and_then(|c| c.light_report(setup.index)) {
+        let fields = serde_json::to_value(&report).unwrap_or_default();
+        progress.note("cache_cells", &report.cells_line(), &fields);
+    }
     let mut traced = Traced {
         useful,
         rays: grid_rays,
@@ -539,14 +576,24 @@ fn trace_grid_and_refine(
     };
     if config.refine_samples > 0 || config.refine_density > 0 {
         let refine_started = Instant::now();
-        let (refined, refine_rays) = refine::refine(
-            world,
-            setup,
-            &rays_of_light,
-            &traced.useful,
-            config,
-            progress,
-        );
+        let (refined, refine_rays) = match cache {
+            Some(cache) => cache.refine(
+                world,
+                setup,
+                &rays_of_light,
+                &traced.useful,
+                config,
+                progress,
+            ),
+            None => refine::refine(
+                world,
+                setup,
+                &rays_of_light,
+                &traced.useful,
+                config,
+                progress,
+            ),
+        };
         traced.refine_seconds = refine_started.elapsed().as_secs_f64();
         traced.useful = traced.useful.union(&refined);
         traced.refine_rays = refine_rays;

@@ -1,8 +1,11 @@
 //! From masks to results: the `<shadow>` content of every chunk (docs/contract.md §5)
 //! and the JSON report (docs/contract.md §8).
 
+use super::cached::{CacheReport, PhaseCounts};
 use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
+use crate::cache::codec::{Decoder, Encoder};
+use crate::cache::{content_key, Cache, Fetched, Kind};
 use crate::files::{self, ResPaths};
 use crate::formats::chunk::InstanceKind;
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
@@ -114,6 +117,17 @@ fn old_masks(
 ) -> Result<Vec<(u32, u32)>> {
     let old =
         shadow_write::read_chunk_shadows(root).map_err(|e| e.in_source(&chunk.file, bytes))?;
+    Ok(masks_held(scene, casters, chunk, &old))
+}
+
+/// The masks `old` (a chunk's `<shadow>`s, read back or as last written)
+/// holds, as (caster id, mask) pairs; see [`masks_from_chunks`].
+fn masks_held(
+    scene: &Scene,
+    casters: &CasterTable,
+    chunk: &crate::scene::Chunk,
+    old: &ChunkShadows,
+) -> Vec<(u32, u32)> {
     let mut masks = Vec::new();
     for index in chunk.instances.clone() {
         let instance = &scene.instances[index];
@@ -141,7 +155,7 @@ fn old_masks(
     if let (Some(block), Some(mask)) = (chunk.terrain, old.terrain) {
         masks.push((casters.of_block[block], mask));
     }
-    Ok(masks)
+    masks
 }
 
 /// One chunk file's new content and where it goes (or, under `--out`,
@@ -172,9 +186,35 @@ pub fn chunk_outputs(
     out_dir: Option<&Path>,
     progress: &dyn Progress,
 ) -> Result<Vec<ChunkOutput>> {
+    let (outputs, _) = chunk_outputs_cached(scene, result, res_paths, out_dir, progress, None)?;
+    Ok(outputs)
+}
+
+/// [`chunk_outputs`] with a cache: a chunk file whose bytes the cache
+/// knows as written with `<shadow>`s (a [`Kind::Output`] entry) keeps
+/// those bytes without being parsed when its new `<shadow>`s are the same
+/// (writing a chunk's masks into bytes that hold them gives the same
+/// bytes, docs/contract.md §5); every chunk prepared stores its new bytes'
+/// entry. Returns the outputs and how many chunks were kept so (`reused`)
+/// or prepared (`computed`).
+pub fn chunk_outputs_cached(
+    scene: &Scene,
+    result: &mut BakeResult,
+    res_paths: &ResPaths,
+    out_dir: Option<&Path>,
+    progress: &dyn Progress,
+    cache: Option<&Cache>,
+) -> Result<(Vec<ChunkOutput>, PhaseCounts)> {
     let counter = Counter::begin(progress, Phase::Output, None, scene.chunks.len() as u64);
-    let made: Vec<(ChunkOutput, Vec<(u32, u32)>)> = {
+    let made: Vec<Made> = {
         let result = &*result;
+        let output = ChunkOutputs {
+            scene,
+            result,
+            res_paths,
+            out_dir,
+            cache,
+        };
         // Chunks are independent; collecting keeps their order, and the
         // first error in chunk order is the one reported, as a loop would.
         scene
@@ -182,7 +222,7 @@ pub fn chunk_outputs(
             .par_iter()
             .enumerate()
             .map(|(index, chunk)| {
-                let made = chunk_output(scene, result, res_paths, out_dir, index, chunk);
+                let made = output.chunk(index, chunk);
                 counter.add(1);
                 made
             })
@@ -190,71 +230,256 @@ pub fn chunk_outputs(
     };
     counter.finish();
     let mut outputs = Vec::with_capacity(made.len());
-    for (output, kept) in made {
-        for (id, mask) in kept {
+    let mut counts = PhaseCounts::default();
+    for made in made {
+        for (id, mask) in made.kept {
             result.masks[id as usize] = mask;
         }
-        outputs.push(output);
+        match made.parsed {
+            true => counts.computed += 1,
+            false => counts.reused += 1,
+        }
+        counts.damaged += u64::from(made.damaged);
+        outputs.push(made.output);
     }
-    Ok(outputs)
+    Ok((outputs, counts))
 }
 
-/// One chunk's output, and the masks it holds where they differ from
-/// `result`'s (bits kept from the file).
-fn chunk_output(
-    scene: &Scene,
-    result: &BakeResult,
-    res_paths: &ResPaths,
-    out_dir: Option<&Path>,
-    index: usize,
-    chunk: &crate::scene::Chunk,
-) -> Result<(ChunkOutput, Vec<(u32, u32)>)> {
-    let original = files::read_file(&chunk.file)?;
-    let root = crate::formats::parse_data_section(&original)
-        .map_err(|e| e.in_source(&chunk.file, &original))?;
-    let keep = !result.baked_bits;
-    let mut kept: Vec<(u32, u32)> = Vec::new();
-    if keep != 0 {
-        for (id, old) in old_masks(scene, &result.casters, chunk, &original, &root)? {
-            let mask = result.masks[id as usize] | (old & keep);
-            if mask != result.masks[id as usize] {
-                kept.push((id, mask));
+/// One chunk's output, the masks it holds where they differ from the
+/// bake's (bits kept from the file), and whether it was parsed.
+struct Made {
+    output: ChunkOutput,
+    kept: Vec<(u32, u32)>,
+    parsed: bool,
+    /// Its cache entry failed its check.
+    damaged: bool,
+}
+
+/// What every chunk's output is made from.
+struct ChunkOutputs<'o> {
+    scene: &'o Scene,
+    result: &'o BakeResult,
+    res_paths: &'o ResPaths,
+    out_dir: Option<&'o Path>,
+    cache: Option<&'o Cache>,
+}
+
+impl ChunkOutputs<'_> {
+    fn chunk(&self, index: usize, chunk: &crate::scene::Chunk) -> Result<Made> {
+        let original = files::read_file(&chunk.file)?;
+        let mut damaged = false;
+        if let Some(cache) = self.cache {
+            let key = output_key(cache, &original);
+            match cache.fetch(Kind::Output, &key) {
+                Fetched::Value(value) => match decode_shadows(&value) {
+                    Some(written) => {
+                        if let Some(made) = self.unchanged(index, chunk, &original, &written)? {
+                            return Ok(made);
+                        }
+                    }
+                    None => {
+                        cache.reject(Kind::Output, &key);
+                        damaged = true;
+                    }
+                },
+                Fetched::Damaged => damaged = true,
+                Fetched::Absent => {}
+            }
+        }
+        let root = crate::formats::parse_data_section(&original)
+            .map_err(|e| e.in_source(&chunk.file, &original))?;
+        let old = || old_masks(self.scene, &self.result.casters, chunk, &original, &root);
+        let (kept, shadows) = self.shadows(index, old)?;
+        let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
+            .map_err(|e| e.in_file(&chunk.file))?;
+        if let Some(cache) = self.cache {
+            cache.put(
+                Kind::Output,
+                &output_key(cache, &bytes),
+                &encode_shadows(&shadows),
+            );
+        }
+        let output = self.output(chunk, &original, bytes)?;
+        Ok(Made {
+            output,
+            kept,
+            parsed: true,
+            damaged,
+        })
+    }
+
+    /// The chunk's output when its bytes `original` were written with
+    /// `written` and its new `<shadow>`s are the same: those bytes, not
+    /// parsed; `None` when they differ.
+    fn unchanged(
+        &self,
+        index: usize,
+        chunk: &crate::scene::Chunk,
+        original: &[u8],
+        written: &ChunkShadows,
+    ) -> Result<Option<Made>> {
+        let old = || Ok(masks_held(self.scene, &self.result.casters, chunk, written));
+        let (kept, shadows) = self.shadows(index, old)?;
+        if shadows != *written {
+            return Ok(None);
+        }
+        let output = self.output(chunk, original, original.to_vec())?;
+        Ok(Some(Made {
+            output,
+            kept,
+            parsed: false,
+            damaged: false,
+        }))
+    }
+
+    /// The chunk's new `<shadow>`s: the bake's bits, the others of each
+    /// mask from `old` (the masks the file holds).
+    fn shadows(
+        &self,
+        index: usize,
+        old: impl FnOnce() -> Result<Vec<(u32, u32)>>,
+    ) -> Result<(Vec<(u32, u32)>, ChunkShadows)> {
+        let result = self.result;
+        let keep = !result.baked_bits;
+        let mut kept: Vec<(u32, u32)> = Vec::new();
+        if keep != 0 {
+            for (id, old) in old()? {
+                let mask = result.masks[id as usize] | (old & keep);
+                if mask != result.masks[id as usize] {
+                    kept.push((id, mask));
+                }
+            }
+        }
+        kept.sort_unstable();
+        let mask_of = |id: usize| match kept.binary_search_by_key(&(id as u32), |k| k.0) {
+            Ok(at) => kept[at].1,
+            Err(_) => result.masks[id],
+        };
+        let shadows = chunk_shadows_of(self.scene, &result.casters, index, mask_of);
+        Ok((kept, shadows))
+    }
+
+    /// Where `bytes` (the chunk's new content; `original` its file's) go,
+    /// and whether they change the target.
+    fn output(
+        &self,
+        chunk: &crate::scene::Chunk,
+        original: &[u8],
+        bytes: Vec<u8>,
+    ) -> Result<ChunkOutput> {
+        let target = match self.out_dir {
+            None => chunk.file.clone(),
+            Some(dir) => {
+                let (_, relative) = self.res_paths.relative(&chunk.file).ok_or_else(|| {
+                    Error::invalid(
+                        &chunk.file,
+                        "is not under any res path, so it has no place under --out",
+                    )
+                })?;
+                dir.join(relative)
+            }
+        };
+        let changed = match self.out_dir {
+            None => bytes != original,
+            Some(_) => files::read_file(&target)
+                .map(|old| old != bytes)
+                .unwrap_or(true),
+        };
+        Ok(ChunkOutput {
+            source: chunk.file.clone(),
+            target,
+            bytes,
+            changed,
+        })
+    }
+}
+
+/// The key of the [`Kind::Output`] entry of chunk bytes `bytes`.
+fn output_key(cache: &Cache, bytes: &[u8]) -> crate::cache::Key {
+    cache.hasher(Kind::Output).key(&content_key(bytes)).finish()
+}
+
+fn encode_shadows(shadows: &ChunkShadows) -> Vec<u8> {
+    let mut e = Encoder::new();
+    for items in [&shadows.instances, &shadows.speedtrees] {
+        encode_instances(&mut e, items);
+    }
+    match shadows.terrain {
+        Some(mask) => e.u8(1).var(u64::from(mask)),
+        None => e.u8(0),
+    };
+    e.into_bytes()
+}
+
+fn decode_shadows(bytes: &[u8]) -> Option<ChunkShadows> {
+    let mut d = Decoder::new(bytes);
+    let instances = decode_instances(&mut d)?;
+    let speedtrees = decode_instances(&mut d)?;
+    let terrain = match d.u8().ok()? {
+        0 => None,
+        1 => Some(var_mask(&mut d)?),
+        _ => return None,
+    };
+    d.is_done().then_some(ChunkShadows {
+        instances,
+        speedtrees,
+        terrain,
+    })
+}
+
+/// One list of items' `<shadow>`s (`None`: left as it is), as
+/// [`encode_shadows`] writes it.
+fn encode_instances(e: &mut Encoder, items: &[Option<InstanceShadow>]) {
+    e.var(items.len() as u64);
+    for instance in items {
+        let Some(instance) = instance else {
+            e.u8(0);
+            continue;
+        };
+        e.u8(1)
+            .var(u64::from(instance.mask))
+            .var(instance.render_sets.len() as u64);
+        for geometries in &instance.render_sets {
+            e.var(geometries.len() as u64);
+            for groups in geometries {
+                e.var(groups.len() as u64);
+                for &mask in groups {
+                    e.var(u64::from(mask));
+                }
             }
         }
     }
-    kept.sort_unstable();
-    let mask_of = |id: usize| match kept.binary_search_by_key(&(id as u32), |k| k.0) {
-        Ok(at) => kept[at].1,
-        Err(_) => result.masks[id],
-    };
-    let shadows = chunk_shadows_of(scene, &result.casters, index, mask_of);
-    let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
-        .map_err(|e| e.in_file(&chunk.file))?;
-    let target = match out_dir {
-        None => chunk.file.clone(),
-        Some(dir) => {
-            let (_, relative) = res_paths.relative(&chunk.file).ok_or_else(|| {
-                Error::invalid(
-                    &chunk.file,
-                    "is not under any res path, so it has no place under --out",
-                )
-            })?;
-            dir.join(relative)
-        }
-    };
-    let changed = match out_dir {
-        None => bytes != original,
-        Some(_) => files::read_file(&target)
-            .map(|old| old != bytes)
-            .unwrap_or(true),
-    };
-    let output = ChunkOutput {
-        source: chunk.file.clone(),
-        target,
-        bytes,
-        changed,
-    };
-    Ok((output, kept))
+}
+
+fn decode_instances(d: &mut Decoder) -> Option<Vec<Option<InstanceShadow>>> {
+    let mut items = Vec::new();
+    for _ in 0..d.len(1).ok()? {
+        items.push(match d.u8().ok()? {
+            0 => None,
+            1 => {
+                let mask = var_mask(d)?;
+                let mut render_sets = Vec::new();
+                for _ in 0..d.len(1).ok()? {
+                    let mut geometries = Vec::new();
+                    for _ in 0..d.len(1).ok()? {
+                        let groups = (0..d.len(1).ok()?)
+                            .map(|_| var_mask(d))
+                            .collect::<Option<Vec<u32>>>()?;
+                        geometries.push(groups);
+                    }
+                    render_sets.push(geometries);
+                }
+                Some(InstanceShadow { mask, render_sets })
+            }
+            _ => return None,
+        });
+    }
+    Some(items)
+}
+
+/// A mask as [`encode_shadows`] writes it (LEB128).
+fn var_mask(d: &mut Decoder) -> Option<u32> {
+    u32::try_from(d.var().ok()?).ok()
 }
 
 /// The space's `space.settings` copied under `out_dir` beside the chunks
@@ -326,6 +551,9 @@ pub struct Report {
     pub lights: Vec<LightReport>,
     pub casters: Vec<CasterEntry>,
     pub skipped: Vec<Skipped>,
+    /// What a bake with a cache reused and computed, per phase and light.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cache: Option<CacheReport>,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq, Eq)]
@@ -399,6 +627,7 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
         lights: result.lights.clone(),
         casters,
         skipped: result.skipped.clone(),
+        cache: result.cache.clone(),
     }
 }
 
@@ -446,5 +675,40 @@ fn caster_entry(
         groups: proxy.as_ref().and(entry.groups.clone()),
         proxy,
         ..entry
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn written_shadows_read_back_from_their_entry() {
+        let shadows = ChunkShadows {
+            instances: vec![
+                None,
+                Some(InstanceShadow::from_groups(vec![
+                    vec![vec![3, 0, 1 << 31]],
+                    vec![],
+                ])),
+                Some(InstanceShadow::from_groups(Vec::new())),
+            ],
+            speedtrees: vec![
+                Some(InstanceShadow {
+                    mask: 7,
+                    render_sets: Vec::new(),
+                }),
+                None,
+                Some(InstanceShadow::from_groups(vec![vec![vec![1, 2]]])),
+            ],
+            terrain: Some(5),
+        };
+        let bytes = encode_shadows(&shadows);
+        assert_eq!(decode_shadows(&bytes), Some(shadows.clone()));
+        for cut in 0..bytes.len() {
+            assert_eq!(decode_shadows(&bytes[..cut]), None, "cut at {cut}");
+        }
+        let none = ChunkShadows::default();
+        assert_eq!(decode_shadows(&encode_shadows(&none)), Some(none));
     }
 }

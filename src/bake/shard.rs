@@ -20,7 +20,9 @@
 //! whole grid's answer, so it runs in `merge` (through
 //! [`super::bake_from`]), never in a shard.
 
-use super::config::{BakeConfig, GridMode};
+use super::cached::{BakeCache, PhaseCounts};
+pub use super::config::settings_lines;
+use super::config::BakeConfig;
 use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{
     tile_count, tile_rect, CasterSet, LightRays, RayCounter, TileReach, TILE,
@@ -28,8 +30,7 @@ use super::trace_light::{
 use super::{grid_pass, BakeError, GridSource};
 use crate::digest::Digest;
 use crate::files::ResPaths;
-use crate::formats::bake_settings::LightKind;
-use crate::formats::partial::{self, Fingerprint, Partial, PartialUnit};
+use crate::formats::partial::{Fingerprint, Partial, PartialUnit};
 use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;
@@ -464,84 +465,6 @@ fn tile_costs(world: &BakeWorld, config: &BakeConfig, grid: &TexelGrid) -> Vec<u
         .collect()
 }
 
-/// The settings a shard's answer depends on, one (key, value) each: keys
-/// are the settings file's element paths (`lights/light[0]/texelSize`) or
-/// the flags (`--supersample`), values as written, so a difference reads as
-/// the element and its two values.
-pub fn settings_lines(config: &BakeConfig) -> Vec<(String, String)> {
-    let v3 = |v: glam::DVec3| format!("{} {} {}", v.x, v.y, v.z);
-    let mut lines = vec![
-        (
-            "shadowcull".to_string(),
-            format!(
-                "{} (partial format {})",
-                env!("CARGO_PKG_VERSION"),
-                partial::VERSION
-            ),
-        ),
-        ("faceCulling".into(), config.face_culling.name().into()),
-        ("heightBias".into(), config.height_bias.to_string()),
-        ("tieEpsilon".into(), config.tie_epsilon.to_string()),
-        (
-            "--supersample".into(),
-            config.supersample.max(1).to_string(),
-        ),
-        ("--brute-force".into(), config.brute_force.to_string()),
-        (
-            "--conservative".into(),
-            (config.grid_mode == GridMode::Conservative).to_string(),
-        ),
-        ("--filter-radius".into(), config.filter_radius.to_string()),
-        (
-            "grid offset".into(),
-            format!("{} {}", config.grid_offset.0, config.grid_offset.1),
-        ),
-        ("lights".into(), config.lights.len().to_string()),
-    ];
-    for (index, light) in config.lights.iter().enumerate() {
-        let key = |name: &str| format!("lights/light[{index}]/{name}");
-        lines.push((key("name"), light.name.clone()));
-        lines.push((key("type"), light.kind.type_name().into()));
-        let values: Vec<(&str, String)> = match &light.kind {
-            LightKind::Directional {
-                direction,
-                texel_size,
-            } => vec![
-                ("direction", v3(*direction)),
-                ("texelSize", texel_size.to_string()),
-            ],
-            LightKind::Spot {
-                position,
-                direction,
-                fov_degrees,
-                near,
-                far,
-                resolution,
-            } => vec![
-                ("position", v3(*position)),
-                ("direction", v3(*direction)),
-                ("fov", fov_degrees.to_string()),
-                ("near", near.to_string()),
-                ("far", far.to_string()),
-                ("resolution", resolution.to_string()),
-            ],
-            LightKind::Point {
-                position,
-                near,
-                far,
-                resolution,
-            } => vec![
-                ("position", v3(*position)),
-                ("near", near.to_string()),
-                ("far", far.to_string()),
-                ("resolution", resolution.to_string()),
-            ],
-        };
-        lines.extend(values.into_iter().map(|(name, value)| (key(name), value)));
-    }
-    lines
-}
-
 /// The inputs of a bake, to compare between shards and the merge: the
 /// settings that decide the grid's answer (supersampling, grid mode, filter
 /// radius; refinement runs in the merge and is not among them) and every file the load read, by its name relative to
@@ -603,6 +526,20 @@ pub fn bake_shard(
     shard: u32,
     progress: &dyn Progress,
 ) -> Result<Vec<PartialUnit>, BakeError> {
+    bake_shard_cached(world, config, plan, shard, progress, None).map(|(units, _)| units)
+}
+
+/// [`bake_shard`] with a cache when given (`BakeCache::trace_units`: each
+/// unit's answer is the same); returns what the cache did too.
+pub fn bake_shard_cached(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    plan: &Plan,
+    shard: u32,
+    progress: &dyn Progress,
+    cache: Option<&BakeCache>,
+) -> Result<(Vec<PartialUnit>, PhaseCounts), BakeError> {
+    let mut counts = PhaseCounts::default();
     let units = plan.units.get(shard as usize).cloned().unwrap_or_default();
     let samples = config.supersample.max(1);
     let mut out = Vec::with_capacity(units.len());
@@ -639,10 +576,19 @@ pub fn bake_shard(
             Some(&config.lights[index].name),
             total,
         );
+        let mut cached: Vec<CasterSet> = Vec::new();
+        if let (Some(cache), Some(setup), Some(rays)) = (cache, &setup, &rays_of_light) {
+            let ranges: Vec<Range<u64>> = units.iter().map(|u| u.tiles.clone()).collect();
+            let (answers, done) = cache.trace_units(world, setup, rays, config, &ranges, &counter);
+            counts.add(done);
+            cached = answers;
+        }
+        let mut cached = cached.into_iter();
         for unit in units {
             let unit_started = Instant::now();
-            let useful = match (&setup, &rays_of_light) {
-                (Some(setup), Some(rays)) => grid_pass::trace_tiles(
+            let useful = match (&setup, &rays_of_light, cached.next()) {
+                (_, _, Some(answer)) => answer,
+                (Some(setup), Some(rays), None) => grid_pass::trace_tiles(
                     world,
                     setup,
                     rays,
@@ -668,7 +614,7 @@ pub fn bake_shard(
         }
         counter.finish();
     }
-    Ok(out)
+    Ok((out, counts))
 }
 
 /// The grid answers of every light, OR-ed from checked partials.

@@ -118,9 +118,9 @@ impl TileReach {
     /// largest light-relative coordinate is the third value (for the
     /// rounding margin); `None`: nothing in reach.
     pub fn of_box(grid: &TexelGrid, bounds: Option<(DVec3, DVec3, f64)>) -> TileReach {
-        let Some(texel) = grid.texel_size() else {
+        if grid.texel_size().is_none() {
             return TileReach::default();
-        };
+        }
         let Some((min, max, magnitude)) = bounds else {
             // Nothing in reach: an empty hull, no tile can hit anything.
             return TileReach {
@@ -139,12 +139,9 @@ impl TileReach {
         else {
             return TileReach::default();
         };
-        // The grid's own rays start within this of the reference point.
-        let origins = (grid.width().max(grid.height()) as f64 + 2.0) * texel;
-        let rounding = 1024.0 * f64::from(f32::EPSILON) * (magnitude + origins) / texel;
         TileReach {
             hull: Some(texel_beam::convex_hull(corners)),
-            margin: 1.0 + rounding,
+            margin: 1.0 + grid.image_rounding(magnitude),
         }
     }
 
@@ -199,6 +196,13 @@ impl CasterSet {
 
     pub fn contains(&self, caster: u32) -> bool {
         self.0[caster as usize / 64] & (1 << (caster % 64)) != 0
+    }
+
+    /// Takes each of `casters` out of the set.
+    pub fn remove_all(&mut self, casters: &[u32]) {
+        for &c in casters {
+            self.0[c as usize / 64] &= !(1 << (c % 64));
+        }
     }
 
     pub fn union(mut self, other: &CasterSet) -> Self {
@@ -291,10 +295,11 @@ struct Settled {
 
 impl Settled {
     fn new(casters: &CasterTable, known: Option<&CasterSet>, by_corners: bool) -> Settled {
-        let mut words = known.map_or_else(|| vec![0; casters.len().div_ceil(64)], |k| k.0.clone());
-        for (id, caster) in casters.casters.iter().enumerate() {
-            if caster.receiver_only {
-                words[id / 64] |= 1 << (id % 64);
+        let mut words = casters.receiver_only.clone();
+        words.resize(casters.len().div_ceil(64), 0);
+        if let Some(known) = known {
+            for (word, k) in words.iter_mut().zip(&known.0) {
+                *word |= k;
             }
         }
         Settled {

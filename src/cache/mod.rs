@@ -41,18 +41,27 @@ pub enum Kind {
     /// A terrain block's decoded heights and holes.
     Terrain,
     /// The casters one cell of a light's grid proves useful.
-    Tile,
-    /// The casters one caster's refinement rays prove useful.
+    Cell,
+    /// The casters refinement's rays prove useful, for the casters of one
+    /// chunk it refines under one light.
     Refine,
+    /// A light's record of its cells' inputs at its last bake, to say
+    /// which input changed when a cell is traced again.
+    Manifest,
+    /// The `<shadow>`s a chunk file's bytes were written with, so a later
+    /// bake whose masks are the same keeps the file without parsing it.
+    Output,
 }
 
 impl Kind {
-    pub const ALL: [Kind; 5] = [
+    pub const ALL: [Kind; 7] = [
         Kind::Chunk,
         Kind::Model,
         Kind::Terrain,
-        Kind::Tile,
+        Kind::Cell,
         Kind::Refine,
+        Kind::Manifest,
+        Kind::Output,
     ];
 
     pub fn name(self) -> &'static str {
@@ -60,8 +69,10 @@ impl Kind {
             Kind::Chunk => "chunk",
             Kind::Model => "model",
             Kind::Terrain => "terrain",
-            Kind::Tile => "tile",
+            Kind::Cell => "cell",
             Kind::Refine => "refine",
+            Kind::Manifest => "manifest",
+            Kind::Output => "output",
         }
     }
 
@@ -71,33 +82,99 @@ impl Kind {
 }
 
 /// An entry's key: the BLAKE3 hash of everything that decides its value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct Key(pub [u8; 32]);
 
 impl Key {
     fn hex(&self) -> String {
         self.0.iter().map(|b| format!("{b:02x}")).collect()
     }
+
+    /// The first 8 bytes as a number: a short digest for records that
+    /// only compare inputs (a manifest), never for an entry's address.
+    pub fn short(&self) -> u64 {
+        u64::from_le_bytes(self.0[..8].try_into().unwrap_or_default())
+    }
 }
 
 /// Builds a [`Key`] from typed values; every value is framed (lengths
-/// prefixed) so two different sequences cannot hash alike.
+/// prefixed) so two different sequences cannot hash alike. Small values
+/// gather in a buffer before they reach the hash: a part's key is a few
+/// dozen of them, and the hash's cost per call would outweigh them.
 #[derive(Debug, Clone)]
-pub struct KeyHasher(blake3::Hasher);
+pub struct KeyHasher {
+    hasher: blake3::Hasher,
+    buffer: [u8; KeyHasher::BUFFER],
+    held: usize,
+}
 
 impl KeyHasher {
+    const BUFFER: usize = 1024;
+
+    fn empty() -> KeyHasher {
+        KeyHasher {
+            hasher: blake3::Hasher::new(),
+            buffer: [0; KeyHasher::BUFFER],
+            held: 0,
+        }
+    }
+
+    fn update(&mut self, bytes: &[u8]) {
+        if self.held + bytes.len() > KeyHasher::BUFFER {
+            self.hasher.update(&self.buffer[..self.held]);
+            self.held = 0;
+            if bytes.len() > KeyHasher::BUFFER {
+                self.hasher.update(bytes);
+                return;
+            }
+        }
+        self.buffer[self.held..self.held + bytes.len()].copy_from_slice(bytes);
+        self.held += bytes.len();
+    }
+
     /// A hasher for keys of `kind`, under the cache's build identity.
     pub fn new(kind: Kind, build: &Key) -> KeyHasher {
-        let mut hasher = blake3::Hasher::new();
+        let mut hasher = KeyHasher::across_builds(kind);
+        hasher.update(&build.0);
+        hasher
+    }
+
+    /// A hasher for keys of `kind` that every build shares: an entry only
+    /// a build's own code reads back for what it says about an earlier
+    /// bake (a light's manifest, which records the build that wrote it).
+    pub fn across_builds(kind: Kind) -> KeyHasher {
+        let mut hasher = KeyHasher::empty();
         hasher.update(MAGIC);
         hasher.update(&FORMAT_VERSION.to_le_bytes());
         hasher.update(&[kind.code()]);
-        hasher.update(&build.0);
-        KeyHasher(hasher)
+        hasher
+    }
+
+    /// A hasher of content (a model's geometry, a terrain block's samples)
+    /// for keys that other keys are built from; `domain` keeps the
+    /// content keys of different things apart.
+    pub fn content(domain: &str) -> KeyHasher {
+        let mut hasher = KeyHasher::empty();
+        hasher.str("shadowcull content").str(domain);
+        hasher
+    }
+
+    pub fn u32(&mut self, v: u32) -> &mut Self {
+        self.update(&v.to_le_bytes());
+        self
+    }
+
+    pub fn f32(&mut self, v: f32) -> &mut Self {
+        self.u32(v.to_bits())
+    }
+
+    pub fn bool(&mut self, v: bool) -> &mut Self {
+        self.update(&[u8::from(v)]);
+        self
     }
 
     pub fn u64(&mut self, v: u64) -> &mut Self {
-        self.0.update(&v.to_le_bytes());
+        self.update(&v.to_le_bytes());
         self
     }
 
@@ -107,7 +184,7 @@ impl KeyHasher {
 
     pub fn bytes(&mut self, v: &[u8]) -> &mut Self {
         self.u64(v.len() as u64);
-        self.0.update(v);
+        self.update(v);
         self
     }
 
@@ -116,18 +193,81 @@ impl KeyHasher {
     }
 
     pub fn key(&mut self, v: &Key) -> &mut Self {
-        self.0.update(&v.0);
+        self.update(&v.0);
         self
     }
 
     pub fn finish(&self) -> Key {
-        Key(*self.0.finalize().as_bytes())
+        let mut hasher = self.hasher.clone();
+        hasher.update(&self.buffer[..self.held]);
+        Key(*hasher.finalize().as_bytes())
     }
 }
 
 /// The hash of `bytes` (a file's content), as a key to build others from.
 pub fn content_key(bytes: &[u8]) -> Key {
     Key(*blake3::hash(bytes).as_bytes())
+}
+
+/// What [`Cache::fetch`] found.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Fetched {
+    /// The entry's value, checked.
+    Value(Vec<u8>),
+    /// No entry.
+    Absent,
+    /// An entry that failed its check (removed and warned about).
+    Damaged,
+}
+
+/// The build identity of the running program: the hash of its own
+/// executable's bytes, so a new build never reuses an old build's results.
+pub fn executable_build() -> crate::Result<Key> {
+    let mut hasher = blake3::Hasher::new();
+    files::read_own_executable(&mut |bytes| {
+        hasher.update(bytes);
+    })?;
+    Ok(Key(*hasher.finalize().as_bytes()))
+}
+
+/// A file this old or older than its hash's record is trusted by its
+/// stamp: one written since, within the file system's time resolution,
+/// could carry the same times (git's rule for racily clean entries).
+const RACY_NANOSECONDS: u64 = 2_000_000_000;
+
+/// [`executable_build`] with a stat shortcut kept in the cache folder
+/// `dir`: the hash is read again only when the executable's length, inode,
+/// device, or modification or status-change time differ from the record,
+/// or when it was modified less than two seconds before the record was
+/// made (it could have changed since within the same time stamp).
+pub fn executable_build_in(dir: &Path) -> crate::Result<Key> {
+    let Some(stamp) = files::own_executable_stamp() else {
+        return executable_build();
+    };
+    let mut key = KeyHasher::across_builds(Kind::Manifest);
+    key.str("the running executable");
+    for v in stamp {
+        key.u64(v);
+    }
+    let key = key.finish();
+    let record = Cache::open(dir, u64::MAX, Key::default());
+    let modified = stamp[3];
+    let recorded = record.get(Kind::Manifest, &key).and_then(|value| {
+        let at = u64::from_le_bytes(value.get(..8)?.try_into().ok()?);
+        let build = Key(value.get(8..40)?.try_into().ok()?);
+        (value.len() == 40 && modified.saturating_add(RACY_NANOSECONDS) < at).then_some(build)
+    });
+    if let Some(build) = recorded {
+        return Ok(build);
+    }
+    let build = executable_build()?;
+    let now = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let mut value = now.to_le_bytes().to_vec();
+    value.extend_from_slice(&build.0);
+    record.put(Kind::Manifest, &key, &value);
+    Ok(build)
 }
 
 /// What one bake did with the cache, per kind.
@@ -197,29 +337,52 @@ impl Cache {
     /// check; `None` (counted as computed) otherwise. A damaged entry is
     /// removed and warned about.
     pub fn get(&self, kind: Kind, key: &Key) -> Option<Vec<u8>> {
+        match self.fetch(kind, key) {
+            Fetched::Value(value) => Some(value),
+            Fetched::Absent | Fetched::Damaged => None,
+        }
+    }
+
+    /// [`Self::get`], saying whether a missing value was absent or
+    /// damaged.
+    pub fn fetch(&self, kind: Kind, key: &Key) -> Fetched {
         let path = self.path(kind, key);
         let bytes = match files::read_cache_entry(&path) {
             Ok(Some(bytes)) => bytes,
             Ok(None) => {
                 self.count(kind, |c| c.computed += 1);
-                return None;
+                return Fetched::Absent;
             }
             Err(err) => {
                 self.damaged(kind, &path, &err.to_string());
-                return None;
+                return Fetched::Damaged;
             }
         };
         match check_entry(&bytes, kind, key) {
             Ok(payload) => {
                 self.count(kind, |c| c.reused += 1);
                 files::touch_cache_entry(&path);
-                Some(payload.to_vec())
+                Fetched::Value(payload.to_vec())
             }
             Err(why) => {
                 self.damaged(kind, &path, why);
-                None
+                Fetched::Damaged
             }
         }
+    }
+
+    /// Whether an entry exists under `key` (not read nor checked): what a
+    /// plan counts as reusable.
+    pub fn contains(&self, kind: Kind, key: &Key) -> bool {
+        files::cache_entry_exists(&self.path(kind, key))
+    }
+
+    /// The value got under `key` does not decode as its kind's value: the
+    /// entry is removed, counted as damaged and warned about (its caller
+    /// computes the value again).
+    pub fn reject(&self, kind: Kind, key: &Key) {
+        self.count(kind, |c| c.reused = c.reused.saturating_sub(1));
+        self.damaged(kind, &self.path(kind, key), "does not decode");
     }
 
     fn damaged(&self, kind: Kind, path: &Path, why: &str) {
@@ -252,7 +415,7 @@ impl Cache {
             if let Some(value) = decode(&bytes) {
                 return value;
             }
-            self.damaged(kind, &self.path(kind, key), "does not decode");
+            self.reject(kind, key);
         }
         let value = compute();
         self.put(kind, key, &encode(&value));
@@ -407,7 +570,7 @@ mod tests {
     }
 
     fn key(cache: &Cache, n: u64) -> Key {
-        cache.hasher(Kind::Tile).u64(n).finish()
+        cache.hasher(Kind::Cell).u64(n).finish()
     }
 
     #[test]
@@ -415,11 +578,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let cache = cache(dir.path(), DEFAULT_MAX_BYTES);
         let k = key(&cache, 1);
-        assert_eq!(cache.get(Kind::Tile, &k), None);
-        cache.put(Kind::Tile, &k, b"value");
-        assert_eq!(cache.get(Kind::Tile, &k).unwrap(), b"value");
+        assert_eq!(cache.get(Kind::Cell, &k), None);
+        cache.put(Kind::Cell, &k, b"value");
+        assert_eq!(cache.get(Kind::Cell, &k).unwrap(), b"value");
         assert_eq!(cache.get(Kind::Refine, &k), None, "kinds are apart");
-        let tile = cache.counts()[Kind::Tile as usize].1;
+        let tile = cache.counts()[Kind::Cell as usize].1;
         assert_eq!((tile.reused, tile.computed, tile.written), (1, 1, 1));
         assert!(cache.take_warnings().is_empty());
     }
@@ -429,9 +592,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let cache = cache(dir.path(), DEFAULT_MAX_BYTES);
         let (a, b) = (key(&cache, 1), key(&cache, 2));
-        cache.put(Kind::Tile, &a, b"the value of a");
-        cache.put(Kind::Tile, &b, b"the value of b");
-        let path_a = cache.path(Kind::Tile, &a);
+        cache.put(Kind::Cell, &a, b"the value of a");
+        cache.put(Kind::Cell, &b, b"the value of b");
+        let path_a = cache.path(Kind::Cell, &a);
         let good = std::fs::read(&path_a).unwrap();
         type Damage = Box<dyn Fn(&mut Vec<u8>)>;
         let damage: Vec<(&str, Damage)> = vec![
@@ -450,13 +613,13 @@ mod tests {
             let mut bytes = good.clone();
             change(&mut bytes);
             std::fs::write(&path_a, &bytes).unwrap();
-            assert_eq!(cache.get(Kind::Tile, &a), None, "{what}");
+            assert_eq!(cache.get(Kind::Cell, &a), None, "{what}");
             assert!(!path_a.exists(), "{what}: the damaged entry is removed");
             assert_eq!(cache.take_warnings().len(), 1, "{what}");
         }
         // Swapped: b's entry under a's name passes its checksum, not its key.
-        std::fs::copy(cache.path(Kind::Tile, &b), &path_a).unwrap();
-        assert_eq!(cache.get(Kind::Tile, &a), None);
+        std::fs::copy(cache.path(Kind::Cell, &b), &path_a).unwrap();
+        assert_eq!(cache.get(Kind::Cell, &a), None);
         assert!(cache.take_warnings()[0].contains("another entry"));
         // Another format version.
         let mut other = good.clone();
@@ -465,17 +628,17 @@ mod tests {
         let n = other.len();
         other[n - 32..].copy_from_slice(checksum.as_bytes());
         std::fs::write(&path_a, &other).unwrap();
-        assert_eq!(cache.get(Kind::Tile, &a), None);
+        assert_eq!(cache.get(Kind::Cell, &a), None);
         assert!(cache.take_warnings()[0].contains("format"));
         let computed = cache.get_or_compute(
-            Kind::Tile,
+            Kind::Cell,
             &a,
             |v| Some(v.to_vec()),
             || b"recomputed".to_vec(),
             |v| v.clone(),
         );
         assert_eq!(computed, b"recomputed");
-        assert_eq!(cache.get(Kind::Tile, &a).unwrap(), b"recomputed");
+        assert_eq!(cache.get(Kind::Cell, &a).unwrap(), b"recomputed");
     }
 
     #[test]
@@ -483,11 +646,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let one = Cache::open(dir.path(), DEFAULT_MAX_BYTES, content_key(b"one"));
         let two = Cache::open(dir.path(), DEFAULT_MAX_BYTES, content_key(b"two"));
-        let k = one.hasher(Kind::Tile).u64(5).finish();
-        one.put(Kind::Tile, &k, b"v");
-        let k2 = two.hasher(Kind::Tile).u64(5).finish();
+        let k = one.hasher(Kind::Cell).u64(5).finish();
+        one.put(Kind::Cell, &k, b"v");
+        let k2 = two.hasher(Kind::Cell).u64(5).finish();
         assert_ne!(k, k2);
-        assert_eq!(two.get(Kind::Tile, &k2), None);
+        assert_eq!(two.get(Kind::Cell, &k2), None);
     }
 
     #[test]
@@ -496,8 +659,8 @@ mod tests {
         let cache = cache(dir.path(), 1000);
         let keys: Vec<Key> = (0..10).map(|n| key(&cache, n)).collect();
         for (n, k) in keys.iter().enumerate() {
-            cache.put(Kind::Tile, k, &[n as u8; 200]);
-            let path = cache.path(Kind::Tile, k);
+            cache.put(Kind::Cell, k, &[n as u8; 200]);
+            let path = cache.path(Kind::Cell, k);
             let when = SystemTime::UNIX_EPOCH + Duration::from_secs(1_000_000 + n as u64);
             std::fs::File::options()
                 .append(true)
@@ -511,10 +674,10 @@ mod tests {
         assert!(stats.bytes <= 1000, "{stats:?}");
         assert_eq!(stats.entries as usize + removed, 10);
         assert!(
-            cache.get(Kind::Tile, &keys[9]).is_some(),
+            cache.get(Kind::Cell, &keys[9]).is_some(),
             "the newest stays"
         );
-        assert!(cache.get(Kind::Tile, &keys[0]).is_none(), "the oldest goes");
+        assert!(cache.get(Kind::Cell, &keys[0]).is_none(), "the oldest goes");
         assert_eq!(clear_folder(dir.path()).unwrap(), stats.entries as usize);
         assert_eq!(folder_stats(dir.path()).unwrap().entries, 0);
     }

@@ -11,9 +11,11 @@ use super::messages::StderrForm;
 use super::progress::Reporter;
 use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
+use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::formats::bake_settings::BakeSettings;
+use shadowcull::scene::SceneKeys;
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
@@ -39,9 +41,10 @@ pub fn run(args: BakeArgs) -> Result<()> {
     let settings = load_settings_with(&args.settings, unknown)?;
     let config = args.options.config(&settings, &args.settings.settings)?;
     if args.shard.is_set() {
-        return args
-            .options
-            .in_pool(|| super::shard::run(&args.shard, &args.options, &settings, &config));
+        return args.options.in_pool(|| {
+            let file = &args.settings.settings;
+            super::shard::run(&args.shard, &args.options, file, &settings, &config)
+        });
     }
     args.options
         .in_pool(|| bake_with(&args, &config, &settings))
@@ -50,24 +53,49 @@ pub fn run(args: BakeArgs) -> Result<()> {
 fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> Result<()> {
     let file = &args.settings.settings;
     let started = Instant::now();
+    let cache = args.options.cache.open(file)?;
     let reporter = Reporter::new(&args.options.progress);
     let scene = load_scene_told(settings, &args.options, &reporter)?;
     warn_locked_chunks(&scene, &args.output, &args.options);
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
-    let plan = super::plan::make_plan(&scene, &world, config, started, &reporter)?;
-    super::plan::say_plan(&plan, &reporter);
-    super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
-    // The plan's calibration tiles are not traced twice.
-    let result = bake::bake_from(&world, config, &reporter, &plan)
-        .with_context(|| file.display().to_string())?;
+    let result = match &cache {
+        None => {
+            let plan = super::plan::make_plan(&scene, &world, config, started, &reporter, None)?;
+            super::plan::say_plan(&plan, &reporter);
+            super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
+            // The plan's calibration tiles are not traced twice.
+            bake::bake_from(&world, config, &reporter, &plan)
+        }
+        Some(cache) => {
+            let bake_cache = BakeCache::new(cache, &world, SceneKeys::of(&scene), None);
+            let plan = super::plan::make_plan(
+                &scene,
+                &world,
+                config,
+                started,
+                &reporter,
+                Some(&bake_cache),
+            )?;
+            super::plan::say_plan(&plan, &reporter);
+            super::plan::check_memory(&plan, args.options.pipeline.max_memory)?;
+            // The plan's calibration cells are stored: the bake reuses them.
+            bake::bake_cached(&world, config, &reporter, &bake_cache)
+        }
+    };
+    let result = result.with_context(|| file.display().to_string())?;
     // The output needs the scene and the masks only: the trees go first.
-    drop((plan, world));
+    drop(world);
     let results = Results {
         scene: &scene,
         res_paths: &settings.res_paths,
         config,
         started,
+        cache: cache.as_ref(),
     };
-    write_results(&args.output, &args.options, &results, result, &reporter)
+    write_results(&args.output, &args.options, &results, result, &reporter)?;
+    if let Some(cache) = &cache {
+        super::cache::finish(cache, &reporter);
+    }
+    Ok(())
 }

@@ -2,12 +2,15 @@
 //! a bake's answer, loading the scene (with the refusal of broken input),
 //! and writing the chunks, the report and the per-light table.
 
+use super::cache::{self, CacheArgs};
 use super::load_config;
 use super::messages;
 use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
 use anyhow::{Context, Result};
+use shadowcull::bake::cached::CacheReport;
 use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
+use shadowcull::cache::Cache;
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::scene::{self, Scene};
@@ -79,6 +82,8 @@ pub struct BakeOptions {
     pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub progress: ProgressArgs,
+    #[command(flatten)]
+    pub cache: CacheArgs,
 }
 
 impl BakeOptions {
@@ -229,6 +234,9 @@ pub struct Results<'a> {
     pub res_paths: &'a [PathBuf],
     pub config: &'a BakeConfig,
     pub started: Instant,
+    /// The bake's cache: chunks whose `<shadow>`s it knows are kept
+    /// without being parsed.
+    pub cache: Option<&'a Cache>,
 }
 
 /// Keeps the bits of lights not baked, writes the chunks (unless
@@ -243,13 +251,32 @@ pub fn write_results(
 ) -> Result<()> {
     let scene = results.scene;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
-    let outputs = output::chunk_outputs(
+    let (outputs, kept) = output::chunk_outputs_cached(
         scene,
         &mut result,
         &res_paths,
         output_args.out.as_deref(),
         reporter,
+        results.cache,
     )?;
+    if let Some(cache) = results.cache {
+        let report = result.cache.get_or_insert_with(|| CacheReport {
+            dir: cache.dir().display().to_string(),
+            ..CacheReport::default()
+        });
+        report.output = kept;
+        reporter.say(
+            "cache_output",
+            &format!(
+                "cache: output: {} of {} chunk files kept without parsing, {} prepared",
+                kept.reused,
+                outputs.len(),
+                kept.computed
+            ),
+            serde_json::json!({ "output": kept }),
+        );
+        cache::warn_damaged(cache);
+    }
     let changed: Vec<&output::ChunkOutput> = outputs.iter().filter(|o| o.changed).collect();
     // A copy under --out holds the space's settings too, so that it is a
     // res root of the space (`--res-path DIR` then reads the baked chunks).

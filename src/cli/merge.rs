@@ -11,10 +11,12 @@ use super::messages::{self, StderrForm};
 use super::progress::{GridAnswers, Reporter};
 use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::Result;
+use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, shard};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::{self, Section};
+use shadowcull::scene::SceneKeys;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -55,6 +57,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
         if !damaged.is_empty() {
             return Err(shard::ShardError::Refused(damaged).into());
         }
+        let cache = args.options.cache.open(&args.settings.settings)?;
         let reporter = Reporter::with_grid(&args.options.progress, GridAnswers::Merged);
         let scene = load_scene_told(&settings, &args.options, &reporter)?;
         warn_locked_chunks(&scene, &args.output, &args.options);
@@ -87,15 +90,25 @@ pub fn run(args: MergeArgs) -> Result<()> {
                 "refine": args.options.refine,
             }),
         );
-        let result = bake::bake_from(&world, &config, &reporter, &merged)?;
-        drop((merged, world));
+        // With a cache, refinement is reused or refined per chunk and
+        // stored; the grid answers are the shards'.
+        let bake_cache = cache
+            .as_ref()
+            .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
+        let result = bake::bake_with(&world, &config, &reporter, &merged, bake_cache.as_ref())?;
+        drop((bake_cache, merged, world));
         let results = Results {
             scene: &scene,
             res_paths: &settings.res_paths,
             config: &config,
             started,
+            cache: cache.as_ref(),
         };
-        write_results(&args.output, &args.options, &results, result, &reporter)
+        write_results(&args.output, &args.options, &results, result, &reporter)?;
+        if let Some(cache) = &cache {
+            super::cache::finish(cache, &reporter);
+        }
+        Ok(())
     })
 }
 

@@ -4,6 +4,7 @@
 
 mod bake;
 mod bake_shared;
+mod cache;
 pub mod memory;
 mod merge;
 mod messages;
@@ -75,6 +76,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Compare the ray-cast bake with the rasterized method (cargo feature `raster`).
     Xcheck(xcheck::XcheckArgs),
+    /// What a bake cache folder holds (stats), or empty it (clear).
+    Cache(cache::CacheCommand),
     /// Write a synthetic world (BigWorld formats) and its settings file bake.xml.
     Gen {
         /// Output folder (created; existing files of the same names are replaced).
@@ -134,9 +137,11 @@ impl Command {
             Command::Merge(args) => args.stderr_form(),
             Command::Plan(args) => args.stderr_form(),
             Command::Inspect { progress, .. } => progress.stderr_form(),
-            Command::Sweep(_) | Command::Render(_) | Command::Xcheck(_) | Command::Gen { .. } => {
-                StderrForm::Text
-            }
+            Command::Sweep(_)
+            | Command::Render(_)
+            | Command::Xcheck(_)
+            | Command::Cache(_)
+            | Command::Gen { .. } => StderrForm::Text,
         }
     }
 }
@@ -149,6 +154,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Sweep(args) => sweep::run(args),
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),
+        Command::Cache(args) => cache::run(args),
         Command::Inspect {
             settings,
             json,

@@ -6,12 +6,13 @@ use super::pipeline;
 use super::progress::{ProgressArgs, Reporter};
 use super::{load_config, load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
+use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::estimate::{self, human_bytes, Baseline, LightPlan, Plan};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files;
 use shadowcull::formats::bake_settings::UnmodelledCasters;
-use shadowcull::scene::{self, Scene};
+use shadowcull::scene::{self, Scene, SceneKeys};
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
@@ -35,6 +36,8 @@ pub struct PlanArgs {
     json: bool,
     #[command(flatten)]
     progress: ProgressArgs,
+    #[command(flatten)]
+    cache: super::cache::CacheArgs,
 }
 
 impl PlanArgs {
@@ -62,7 +65,21 @@ pub fn run(args: PlanArgs) -> Result<()> {
         }
         bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
         let world = BakeWorld::build(&scene, &reporter);
-        let plan = make_plan(&scene, &world, &config, started, &reporter)?;
+        let cache = args.cache.open(&file)?;
+        let bake_cache = cache
+            .as_ref()
+            .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
+        let plan = make_plan(
+            &scene,
+            &world,
+            &config,
+            started,
+            &reporter,
+            bake_cache.as_ref(),
+        )?;
+        if let Some(cache) = &cache {
+            super::cache::warn_damaged(cache);
+        }
         if args.json {
             println!("{}", serde_json::to_string_pretty(&plan)?);
         } else {
@@ -97,6 +114,7 @@ pub fn make_plan(
     config: &BakeConfig,
     started: Instant,
     progress: &dyn shadowcull::progress::Progress,
+    cache: Option<&BakeCache>,
 ) -> Result<Plan> {
     let memory = files::resident_memory();
     let baseline = Baseline {
@@ -106,7 +124,9 @@ pub fn make_plan(
         chunk_file_bytes: files::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
         threads: rayon::current_num_threads(),
     };
-    Ok(estimate::plan(world, config, baseline, progress)?)
+    Ok(estimate::plan_with(
+        world, config, baseline, progress, cache,
+    )?)
 }
 
 /// `--max-memory`: refuse cleanly, before tracing, above the estimate.
@@ -176,6 +196,12 @@ fn light_line(light: &LightPlan) -> String {
                 light.rays_per_second / 1e6,
                 human_bytes(light.estimated_bytes)
             );
+            if let (Some(cells), Some(stored)) = (light.cells, light.cells_stored) {
+                line += &format!(
+                    "; cache: {stored} of {cells} cells stored, a cached bake traces {}",
+                    cells - stored
+                );
+            }
         }
     }
     line
@@ -183,6 +209,20 @@ fn light_line(light: &LightPlan) -> String {
 
 /// The whole bake's estimate and how it was made.
 fn total_line(plan: &Plan) -> String {
+    if plan.lights.iter().any(|l| l.cells.is_some()) {
+        return format!(
+            "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
+             Time is a calibration: up to {} cells per light that the cache does not hold, traced on this \
+             machine in {:.2} s and stored (the bake reuses them); memory is what this process holds now \
+             plus the largest light's top level and tracing, the masks and the chunk files",
+            plan.estimated_seconds,
+            human_bytes(plan.estimated_peak_bytes),
+            plan.casters,
+            human_bytes(plan.bottom_level_bytes as u64),
+            shadowcull::bake::cached::CALIBRATION_CELLS,
+            plan.calibration_seconds
+        );
+    }
     format!(
         "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
          Time is a calibration: {} tiles of 32×32 texels per light and their neighbours traced on this machine in {:.2} s; \

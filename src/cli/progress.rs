@@ -288,6 +288,10 @@ impl Progress for Reporter {
         }
     }
 
+    fn note(&self, event: &str, text: &str, fields: &serde_json::Value) {
+        self.say(event, text, fields.clone());
+    }
+
     fn end(&self) {
         let Some(open) = self.shared.open.lock().ok().and_then(|mut o| o.take()) else {
             return;

@@ -6,12 +6,14 @@ use super::bake_shared::{load_scene_told, BakeOptions};
 use super::messages;
 use super::progress::Reporter;
 use anyhow::{Context, Result};
+use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::shard::{self, Plan, ShardIndex};
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::formats::partial::Partial;
+use shadowcull::scene::SceneKeys;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -69,6 +71,7 @@ fn partial_path(template: &Path, shard: ShardIndex) -> PathBuf {
 pub fn run(
     args: &ShardArgs,
     options: &BakeOptions,
+    settings_file: &Path,
     settings: &BakeSettings,
     config: &BakeConfig,
 ) -> Result<()> {
@@ -80,6 +83,7 @@ pub fn run(
     );
     let path = partial_path(args.partial.as_deref().unwrap_or(Path::new("")), shard);
     let started = Instant::now();
+    let cache = options.cache.open(settings_file)?;
     let reporter = Reporter::new(&options.progress);
     let scene = load_scene_told(settings, options, &reporter)?;
     bake::validate_lights(&scene, config)?;
@@ -100,7 +104,33 @@ pub fn run(
     );
     messages::say("shard_plan", &said, serde_json::json!({ "units": own }));
     let cpu_before = cpu_seconds();
-    let units = shard::bake_shard(&world, config, &plan, shard.index, &reporter)?;
+    let bake_cache = cache
+        .as_ref()
+        .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));
+    let (units, cached) = shard::bake_shard_cached(
+        &world,
+        config,
+        &plan,
+        shard.index,
+        &reporter,
+        bake_cache.as_ref(),
+    )?;
+    if let Some(cache) = &cache {
+        reporter.say(
+            "cache_cells",
+            &format!(
+                "cache: {} cells or parts of cells reused, {} traced{}",
+                cached.reused,
+                cached.computed,
+                match cached.damaged {
+                    0 => String::new(),
+                    n => format!(" ({n} damaged)"),
+                }
+            ),
+            serde_json::json!({ "cells": cached }),
+        );
+        super::cache::finish(cache, &reporter);
+    }
     let cpu = cpu_seconds() - cpu_before;
     let rays: u64 = units.iter().map(|u| u.rays).sum();
     let trace: f64 = units.iter().map(|u| u.seconds).sum();

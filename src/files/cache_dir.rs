@@ -74,6 +74,11 @@ pub fn write_cache_entry(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// Whether entry `path` exists (a regular file; not read).
+pub fn cache_entry_exists(path: &Path) -> bool {
+    fs::symlink_metadata(path).is_ok_and(|m| m.is_file())
+}
+
 /// Marks entry `path` as used now (eviction removes the least recently
 /// used first). A vanished entry is not an error.
 pub fn touch_cache_entry(path: &Path) {

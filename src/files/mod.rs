@@ -15,10 +15,13 @@ mod walk;
 mod write;
 
 pub use cache_dir::{
-    list_cache_files, read_cache_entry, remove_cache_file, remove_empty_cache_folders,
-    touch_cache_entry, write_cache_entry, CacheFile, CACHE_ENTRY_CAP,
+    cache_entry_exists, list_cache_files, read_cache_entry, remove_cache_file,
+    remove_empty_cache_folders, touch_cache_entry, write_cache_entry, CacheFile, CACHE_ENTRY_CAP,
 };
-pub use process::{host_name, resident_memory, Invocation, ResidentMemory};
+pub use process::{
+    host_name, own_executable_stamp, read_own_executable, resident_memory, Invocation,
+    ResidentMemory,
+};
 pub use read::{read_file, size_cap, total_size, DEFAULT_SIZE_CAP, SIZE_CAPS};
 pub use replaceable::check_replaceable;
 pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};

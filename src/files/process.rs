@@ -1,8 +1,11 @@
 //! What the system says about processes: this host's name, whether a
-//! process still runs, this process's resident memory, and how a shell
-//! runs this program again.
+//! process still runs, this process's resident memory, how a shell runs
+//! this program again, and its executable's bytes and stamp (what
+//! identifies a build to the bake cache).
 
+use crate::error::{Error, Result};
 use std::ffi::OsStr;
+use std::io::Read as _;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -140,6 +143,56 @@ impl Invocation {
                 }
             }
         }
+    }
+}
+
+/// Hands the bytes of this process's own executable to `each`, a piece at
+/// a time (what identifies the build: the bake cache keys its results
+/// under its hash, so another build never reuses them).
+pub fn read_own_executable(each: &mut dyn FnMut(&[u8])) -> Result<()> {
+    let path = std::env::current_exe()
+        .map_err(|e| Error::io(Path::new("shadowcull"), "find the running executable", e))?;
+    let mut file = std::fs::File::open(&path)
+        .map_err(|e| Error::io(&path, "read the running executable", e))?;
+    let mut buffer = vec![0u8; 1 << 20];
+    loop {
+        let n = file
+            .read(&mut buffer)
+            .map_err(|e| Error::io(&path, "read the running executable", e))?;
+        if n == 0 {
+            return Ok(());
+        }
+        each(&buffer[..n]);
+    }
+}
+
+/// What the file system says of this process's executable, to tell
+/// whether it changed since its hash was recorded: its length, inode and
+/// device, and its modification and status-change times (nanoseconds
+/// since the epoch); `None` where those cannot be read.
+pub fn own_executable_stamp() -> Option<[u64; 5]> {
+    let path = std::env::current_exe().ok()?;
+    let meta = std::fs::metadata(path).ok()?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let ns = |s: i64, n: i64| {
+            (s as u64)
+                .wrapping_mul(1_000_000_000)
+                .wrapping_add(n as u64)
+        };
+        Some([
+            meta.len(),
+            meta.ino(),
+            meta.dev(),
+            ns(meta.mtime(), meta.mtime_nsec()),
+            ns(meta.ctime(), meta.ctime_nsec()),
+        ])
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = meta;
+        None
     }
 }
 

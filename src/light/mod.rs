@@ -187,6 +187,17 @@ impl std::ops::Deref for FacePolygon {
     }
 }
 
+/// Where a box projects on one face of a grid ([`TexelGrid::box_image`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BoxImage {
+    /// No ray of the face can reach it (or it is not a finite box).
+    Nowhere,
+    /// It reaches behind the face's plane: anywhere on the face.
+    WholeFace,
+    /// Within `(x0, y0, x1, y1)` (texel units, not clipped to the face).
+    Rect(f64, f64, f64, f64),
+}
+
 /// A light's shadow map: `faces × height × width` texels, each with one ray
 /// through its centre.
 #[derive(Debug, Clone)]
@@ -826,11 +837,32 @@ impl TexelGrid {
     /// clipped to the grid, that the projection of the box `min..max`
     /// covers; `None` when it covers none of the face. Conservative (a box
     /// reaching behind a perspective face's plane covers the whole face):
-    /// it feeds the cost estimate of a distributed bake's plan, never a
-    /// decision about what a ray hits.
+    /// it feeds the cost estimate of a distributed bake's plan and the
+    /// conservative pass's bins ([`Self::box_image`] unclipped).
     pub fn footprint(&self, face: usize, min: DVec3, max: DVec3) -> Option<(f64, f64, f64, f64)> {
+        let (w, h) = (self.width as f64, self.height as f64);
+        let (lo, hi) = match self.box_image(face, min, max) {
+            BoxImage::Nowhere => return None,
+            BoxImage::WholeFace => return Some((0.0, 0.0, w, h)),
+            BoxImage::Rect(x0, y0, x1, y1) => ((x0, y0), (x1, y1)),
+        };
+        let (x0, y0) = (lo.0.max(0.0), lo.1.max(0.0));
+        let (x1, y1) = (hi.0.min(w), hi.1.min(h));
+        (x0 < x1 && y0 < y1).then_some((x0, y0, x1, y1))
+    }
+
+    /// Where on `face` (texel units, not clipped to the face) every point
+    /// of the box `min..max` projects: the rectangle around its corners'
+    /// images (a perspective projection keeps a box wholly in front of the
+    /// face's plane inside the hull of its corners' images), the whole
+    /// face when the box reaches behind that plane and the light reaches
+    /// it, nowhere for a box that is not finite or empty. A ray's hit on
+    /// something in the box projects to the ray's position up to
+    /// [`Self::image_rounding`]: the bake cache's cells use it to find what
+    /// a cell's rays can meet.
+    pub fn box_image(&self, face: usize, min: DVec3, max: DVec3) -> BoxImage {
         if !(min.is_finite() && max.is_finite() && min.cmple(max).all()) {
-            return None;
+            return BoxImage::Nowhere;
         }
         let (w, h) = (self.width as f64, self.height as f64);
         let mut lo = (f64::INFINITY, f64::INFINITY);
@@ -859,7 +891,10 @@ impl TexelGrid {
                     let rel = corner - *position;
                     let depth = rel.dot(forward);
                     if depth <= 1e-9 * (1.0 + rel.length()) {
-                        return self.reaches(min, max).then_some((0.0, 0.0, w, h));
+                        return match self.reaches(min, max) {
+                            true => BoxImage::WholeFace,
+                            false => BoxImage::Nowhere,
+                        };
                     }
                     let image = |axis: DVec3, side: f64| {
                         (rel.dot(axis) / depth / half_extent + 1.0) * 0.5 * side
@@ -870,9 +905,31 @@ impl TexelGrid {
             lo = (lo.0.min(x), lo.1.min(y));
             hi = (hi.0.max(x), hi.1.max(y));
         }
-        let (x0, y0) = (lo.0.max(0.0), lo.1.max(0.0));
-        let (x1, y1) = (hi.0.min(w), hi.1.min(h));
-        (x0 < x1 && y0 < y1).then_some((x0, y0, x1, y1))
+        BoxImage::Rect(lo.0, lo.1, hi.0, hi.1)
+    }
+
+    /// Texels by which the image of a ray's hit may stray from the ray's
+    /// own position on the grid through the `f32` rounding of the traced
+    /// rays and triangles, far more than that rounding: for a directional
+    /// light whose reach lies within `magnitude` metres of the reference
+    /// point, 1024 ulps of its rays' light-relative origins; for a spot or
+    /// point light, 64 ulps of a direction's angle in texels at the edge
+    /// of the face.
+    pub fn image_rounding(&self, magnitude: f64) -> f64 {
+        let epsilon = f64::from(f32::EPSILON);
+        match &self.projection {
+            Projection::Orthographic { texel_size, .. } => {
+                // The grid's own rays start within this of the reference point.
+                let origins = (self.width.max(self.height) as f64 + 2.0) * texel_size;
+                1024.0 * epsilon * (magnitude + origins) / texel_size
+            }
+            Projection::Perspective { half_extent, .. } => {
+                let per_radian = self.width.max(self.height) as f64
+                    * (1.0 + half_extent * half_extent)
+                    / (2.0 * half_extent);
+                64.0 * epsilon * per_radian
+            }
+        }
     }
 
     /// A good origin for light-relative f32 coordinates: the centre of the

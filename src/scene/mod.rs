@@ -5,6 +5,7 @@
 //! plain data.
 
 pub mod items;
+pub mod keys;
 pub mod load;
 pub mod speedtree;
 pub mod terrain;
@@ -16,6 +17,7 @@ use std::ops::Range;
 use std::path::PathBuf;
 
 pub use items::{ItemCount, ItemEntry, Treatment, UnproxiedTrees};
+pub use keys::SceneKeys;
 pub use load::{load_scene, load_scene_with, LoadConfig};
 pub use terrain::TerrainBlock;
 

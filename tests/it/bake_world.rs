@@ -320,6 +320,7 @@ fn bake_in_place_is_idempotent_and_deterministic_across_threads() {
         out.path().to_str().unwrap(),
         "--threads",
         "3",
+        "--no-cache",
     ]);
     assert!(
         to_out.status.success(),
@@ -348,6 +349,7 @@ fn report_follows_the_schema() {
         "--dry-run",
         "--report",
         report.to_str().unwrap(),
+        "--no-cache",
     ]);
     assert!(
         out.status.success(),

@@ -80,7 +80,8 @@ fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
-/// Every file under `dir` (not following links to folders): bytes and
+/// Every file of the world under `dir` (not following links to folders;
+/// not the bake cache a bake keeps beside its settings file): bytes and
 /// modification time, by path; links as their target path.
 fn snapshot(dir: &Path) -> BTreeMap<PathBuf, (Vec<u8>, Option<SystemTime>)> {
     let mut files = BTreeMap::new();
@@ -90,6 +91,9 @@ fn snapshot(dir: &Path) -> BTreeMap<PathBuf, (Vec<u8>, Option<SystemTime>)> {
             let entry = entry.unwrap();
             let path = entry.path();
             let kind = entry.file_type().unwrap();
+            if kind.is_dir() && entry.file_name() == ".shadowcull-cache" {
+                continue;
+            }
             if kind.is_dir() {
                 pending.push(path);
             } else if kind.is_symlink() {

@@ -3,6 +3,7 @@
 mod bad_input;
 mod bake_rules;
 mod bake_world;
+mod cache;
 mod cli;
 mod fuzz;
 mod generated;

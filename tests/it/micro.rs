@@ -10,7 +10,7 @@ use shadowcull::bake::{self, BakeConfig, BakeResult, Silent};
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
 use shadowcull::formats::chunk::InstanceKind;
 use shadowcull::formats::space_settings::SpaceSettings;
-use shadowcull::formats::terrain::{HeightMap, TerrainData, TerrainVersion};
+use shadowcull::formats::terrain::{HeightMap, HoleMap, TerrainData, TerrainVersion};
 use shadowcull::scene::{Chunk, Group, Instance, Model, Scene, TerrainBlock};
 
 /// Chunk size of micro worlds (metres).
@@ -238,6 +238,18 @@ impl World {
 
     /// Terrain for chunk `grid` with `cells` × `cells` cells.
     pub fn terrain_of(&mut self, grid: (i32, i32), cells: usize, h: impl Fn(f64, f64) -> f64) {
+        self.terrain_with_holes(grid, cells, h, |_, _| false);
+    }
+
+    /// [`World::terrain_of`] with a hole in every cell whose centre (chunk
+    /// local) `hole` names.
+    pub fn terrain_with_holes(
+        &mut self,
+        grid: (i32, i32),
+        cells: usize,
+        h: impl Fn(f64, f64) -> f64,
+        hole: impl Fn(f64, f64) -> bool,
+    ) {
         let chunk = self.chunk_index(grid);
         let width = cells + 5;
         let spacing = CHUNK / cells as f64;
@@ -258,6 +270,24 @@ impl World {
             },
             border: 2,
             holes: None,
+        };
+        let spacing_holes = CHUNK / cells as f64;
+        let holes: Vec<bool> = (0..cells * cells)
+            .map(|i| {
+                let (cx, cz) = (i % cells, i / cells);
+                hole(
+                    (cx as f64 + 0.5) * spacing_holes,
+                    (cz as f64 + 0.5) * spacing_holes,
+                )
+            })
+            .collect();
+        let data = TerrainData {
+            holes: holes.contains(&true).then_some(HoleMap {
+                width: cells,
+                height: cells,
+                holes,
+            }),
+            ..data
         };
         let origin = self.scene.chunks[chunk].transform.w_axis.truncate();
         // Heights are chunk-local; the chunk's own y lifts the block.

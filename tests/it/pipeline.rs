@@ -49,12 +49,17 @@ fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
+/// Every file of the world under `dir` (not the bake cache beside its
+/// settings file, which `--check` and `--dry-run` keep too).
 fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     let mut out = BTreeMap::new();
     let mut pending = vec![dir.to_path_buf()];
     while let Some(dir) = pending.pop() {
         for entry in std::fs::read_dir(&dir).unwrap() {
             let path = entry.unwrap().path();
+            if path.ends_with(".shadowcull-cache") {
+                continue;
+            }
             if path.is_dir() {
                 pending.push(path);
             } else {

@@ -80,7 +80,7 @@ use crate::light::TexelRay;
 use crate::progress::{Counter, Phase, Progress};
 use footprint::footprint_lattice;
 use rayon::prelude::*;
-use sampler::{Sampler, SamplerBuffers, BATCH};
+use sampler::{Known, Proven, Sampler, SamplerBuffers, BATCH};
 use std::sync::Mutex;
 use surface::surface_points;
 
@@ -108,7 +108,7 @@ pub fn refine(
         config,
         occlusion: occlusion.as_ref(),
     };
-    let scratches = Scratches::new(world.casters.len());
+    let scratches = Scratches::new(world.casters.len(), false);
     let chunk = (DEFERRED_RAYS / config.refine_samples.max(1) as usize).max(1);
     for candidates in candidates.chunks(chunk) {
         refining.own_rays(candidates, already_useful, &scratches, &counter);
@@ -123,11 +123,77 @@ pub fn refine(
     scratches.answer()
 }
 
+/// What one caster's refinement rays prove (ids, ascending) and how many
+/// rays they count: the unit the bake cache keeps.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct OwnRefinement {
+    pub proven: Vec<u32>,
+    pub rays: u64,
+}
+
+/// [`refine`] of `casters` (candidates: neither useful after the grid nor
+/// receiver-only), each on its own, for the bake cache: its own rays as
+/// [`refine`] traces them, then its deferred surface points gated by
+/// `known(caster)` (sorted lists: its cells' answers) and its own proofs
+/// instead of by every caster proven so far. What a caster's own rays
+/// prove, and the rays counted, do not depend on other casters in either
+/// (its deferred points are counted whether left out or not, and which
+/// are deferred its own rays decide); its deferred points prove, beyond
+/// the gate, what they prove with any other gate that the bake's answer
+/// holds, so the union over casters, with the grid's answer, is
+/// [`refine`]'s. Each finished caster is counted on `counter`.
+pub fn refine_each(
+    world: &BakeWorld,
+    setup: &LightSetup,
+    rays_of_light: &LightRays<'_>,
+    config: &BakeConfig,
+    casters: &[u32],
+    known: &(dyn Fn(u32) -> Vec<Vec<u32>> + Sync),
+    counter: &Counter,
+) -> Vec<OwnRefinement> {
+    let occlusion = Occlusion::new(world, setup, rays_of_light, config);
+    let scratches = Scratches::new(world.casters.len(), true);
+    let samples = config.refine_samples;
+    casters
+        .par_iter()
+        .with_max_len(MOST_CASTERS_A_TASK)
+        .map(|&caster| {
+            let run = setup.caster_triangles(world, caster);
+            let is_terrain = world.casters.casters[caster as usize].is_terrain();
+            let hidden = occlusion.as_ref().filter(|_| !is_terrain);
+            let mut lists = known(caster);
+            let refined = scratches.with(|scratch| {
+                let mut sampler = scratch.sampler(rays_of_light, Known::Lists(&[]), caster, hidden);
+                let (proven, deferred) = surface_points(&mut sampler, &run, setup.index, samples);
+                if config.refine_density > 0 && !proven {
+                    footprint_lattice(&mut sampler, &run, config);
+                }
+                let mut rays = sampler.traced;
+                if !deferred.is_empty() {
+                    lists.push(scratch.useful.logged());
+                    let mut sampler =
+                        scratch.sampler(rays_of_light, Known::Lists(&lists), caster, None);
+                    for batch in deferred.chunks(BATCH) {
+                        sampler.trace_batch_for_others(batch);
+                    }
+                    rays += sampler.traced;
+                }
+                OwnRefinement {
+                    proven: scratch.useful.take_logged(),
+                    rays,
+                }
+            });
+            counter.add(1);
+            refined
+        })
+        .collect()
+}
+
 /// The casters in the light's reach neither useful yet nor receiver-only,
 /// terrain blocks first: the costliest to refine (each as large as a
 /// chunk), so the threads share them out early instead of waiting on them
 /// at the end.
-fn candidates(world: &BakeWorld, setup: &LightSetup, already_useful: &CasterSet) -> Vec<u32> {
+pub fn candidates(world: &BakeWorld, setup: &LightSetup, already_useful: &CasterSet) -> Vec<u32> {
     let casters = &world.casters;
     let mut candidates: Vec<u32> = setup
         .reach
@@ -180,7 +246,7 @@ impl Refining<'_, '_> {
                 let is_terrain = casters.casters[caster as usize].is_terrain();
                 let hidden = self.occlusion.filter(|_| !is_terrain);
                 scratches.with(|scratch| {
-                    let mut sampler = scratch.sampler(self.rays, known, caster, hidden);
+                    let mut sampler = scratch.sampler(self.rays, Known::Set(known), caster, hidden);
                     let samples = self.config.refine_samples;
                     let (proven, deferred) =
                         surface_points(&mut sampler, &run, self.setup.index, samples);
@@ -209,7 +275,8 @@ impl Refining<'_, '_> {
             .with_max_len(MOST_CASTERS_A_TASK)
             .for_each(|(caster, rays)| {
                 scratches.with(|scratch| {
-                    let mut sampler = scratch.sampler(self.rays, settled, *caster, None);
+                    let mut sampler =
+                        scratch.sampler(self.rays, Known::Set(settled), *caster, None);
                     for batch in rays.chunks(BATCH) {
                         sampler.trace_batch_for_others(batch);
                     }
@@ -231,15 +298,18 @@ const MOST_CASTERS_A_TASK: usize = 16;
 struct Scratches {
     slots: Vec<Mutex<Option<Scratch>>>,
     casters: usize,
+    /// Each scratch logs what it proves (casters refined one by one).
+    logged: bool,
 }
 
 impl Scratches {
-    fn new(casters: usize) -> Scratches {
+    fn new(casters: usize, logged: bool) -> Scratches {
         // One more, for a caller outside the pool.
         let threads = rayon::current_num_threads() + 1;
         Scratches {
             slots: (0..threads).map(|_| Mutex::new(None)).collect(),
             casters,
+            logged,
         }
     }
 
@@ -257,7 +327,7 @@ impl Scratches {
         let last = self.slots.len() - 1;
         let index = rayon::current_thread_index().map_or(last, |i| i.min(last));
         let taken = self.slot(index).take();
-        let mut scratch = taken.unwrap_or_else(|| Scratch::new(self.casters));
+        let mut scratch = taken.unwrap_or_else(|| Scratch::new(self.casters, self.logged));
         let answer = work(&mut scratch);
         let mut slot = self.slot(index);
         *slot = Some(match slot.take() {
@@ -275,7 +345,7 @@ impl Scratches {
         for index in 0..self.slots.len() {
             if let Some(scratch) = self.slot(index).as_mut() {
                 deferred.append(&mut scratch.deferred);
-                proven = proven.union(&scratch.useful);
+                proven = proven.union(&scratch.useful.set);
             }
         }
         deferred.sort_unstable_by_key(|&(caster, _)| caster);
@@ -299,7 +369,7 @@ const DEFERRED_RAYS: usize = 1 << 16;
 
 /// One refining thread's answer so far and its reused buffers.
 struct Scratch {
-    useful: CasterSet,
+    useful: Proven,
     /// Surface points deferred by their caster ([`surface_points`]).
     deferred: Vec<(u32, Vec<TexelRay>)>,
     buffers: SamplerBuffers,
@@ -307,9 +377,9 @@ struct Scratch {
 }
 
 impl Scratch {
-    fn new(casters: usize) -> Scratch {
+    fn new(casters: usize, logged: bool) -> Scratch {
         Scratch {
-            useful: CasterSet::new(casters),
+            useful: Proven::new(casters, logged),
             deferred: Vec::new(),
             buffers: SamplerBuffers::default(),
             rays: 0,
@@ -319,8 +389,8 @@ impl Scratch {
     /// Two threads' answers as one (the buffers of `self` kept).
     fn merge(mut self, mut other: Scratch) -> Scratch {
         self.deferred.append(&mut other.deferred);
+        self.useful.merge(other.useful);
         Scratch {
-            useful: self.useful.union(&other.useful),
             rays: self.rays + other.rays,
             ..self
         }
@@ -334,7 +404,7 @@ impl Scratch {
     fn sampler<'r, 'a>(
         &'r mut self,
         rays: &'r LightRays<'a>,
-        known: &'r CasterSet,
+        known: Known<'r>,
         caster: u32,
         occlusion: Option<&'r Occlusion<'r, 'r>>,
     ) -> Sampler<'r, 'a> {

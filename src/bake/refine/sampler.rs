@@ -45,6 +45,77 @@ enum Aim {
     Others,
 }
 
+/// The casters already proven, which a sampler's rays for others need not
+/// prove again ([`Sampler::trace_batch_for_others`]).
+#[derive(Clone, Copy)]
+pub(super) enum Known<'r> {
+    /// A set: the grid's answer, and what refinement proved before.
+    Set(&'r CasterSet),
+    /// Sorted lists of ids (a caster refined on its own for the bake
+    /// cache: its cells' answers and its own proofs).
+    Lists(&'r [Vec<u32>]),
+}
+
+impl Known<'_> {
+    fn contains(&self, caster: u32) -> bool {
+        match self {
+            Known::Set(set) => set.contains(caster),
+            Known::Lists(lists) => lists.iter().any(|l| l.binary_search(&caster).is_ok()),
+        }
+    }
+}
+
+/// The casters a refining thread's rays proved; with a log, also each one
+/// in the order first proven, so one caster's proofs can be taken out
+/// (the bake cache refines each caster on its own).
+#[derive(Debug, Clone)]
+pub(super) struct Proven {
+    pub(super) set: CasterSet,
+    log: Option<Vec<u32>>,
+}
+
+impl Proven {
+    pub(super) fn new(casters: usize, logged: bool) -> Proven {
+        Proven {
+            set: CasterSet::new(casters),
+            log: logged.then(Vec::new),
+        }
+    }
+
+    pub(super) fn insert(&mut self, caster: u32) {
+        if let Some(log) = &mut self.log {
+            if !self.set.contains(caster) {
+                log.push(caster);
+            }
+        }
+        self.set.insert(caster);
+    }
+
+    /// The casters logged since the last take, ascending, taken out of the
+    /// set too (empty without a log).
+    pub(super) fn take_logged(&mut self) -> Vec<u32> {
+        let mut taken = self.log.as_mut().map(std::mem::take).unwrap_or_default();
+        taken.sort_unstable();
+        self.set.remove_all(&taken);
+        taken
+    }
+
+    /// Both threads' proofs in `self`.
+    pub(super) fn merge(&mut self, other: Proven) {
+        for c in other.log.into_iter().flatten() {
+            self.insert(c);
+        }
+        self.set = std::mem::replace(&mut self.set, CasterSet::new(0)).union(&other.set);
+    }
+
+    /// The casters logged so far, ascending (left in the set).
+    pub(super) fn logged(&self) -> Vec<u32> {
+        let mut logged = self.log.clone().unwrap_or_default();
+        logged.sort_unstable();
+        logged
+    }
+}
+
 /// A refining thread's buffers, reused by each sampler it makes (the
 /// occluders' images stay warm from caster to caster).
 #[derive(Default)]
@@ -64,8 +135,8 @@ impl SamplerBuffers {
     pub(super) fn sampler<'r, 'a>(
         &'r mut self,
         rays: &'r LightRays<'a>,
-        known: &'r CasterSet,
-        useful: &'r mut CasterSet,
+        known: Known<'r>,
+        useful: &'r mut Proven,
         caster: u32,
         occlusion: Option<&'r Occlusion<'r, 'r>>,
     ) -> Sampler<'r, 'a> {
@@ -96,9 +167,9 @@ pub(super) struct Sampler<'r, 'a> {
     pub(super) rays: &'r LightRays<'a>,
     /// The casters already proven useful: the grid's, and for deferred
     /// surface points also those refinement proved before they go.
-    known: &'r CasterSet,
+    known: Known<'r>,
     pub(super) caster: u32,
-    useful: &'r mut CasterSet,
+    useful: &'r mut Proven,
     hits: &'r mut Vec<RayHit>,
     packet: &'r mut PacketState,
     /// Under a directional light, for a model: how rays its occluders
