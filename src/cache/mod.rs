@@ -246,12 +246,12 @@ pub fn executable_build_in(dir: &Path) -> crate::Result<Key> {
     };
     let mut key = KeyHasher::across_builds(Kind::Manifest);
     key.str("the running executable");
-    for v in stamp {
+    for v in stamp.to_array() {
         key.u64(v);
     }
     let key = key.finish();
     let record = Cache::open(dir, u64::MAX, Key::default());
-    let modified = stamp[3];
+    let modified = stamp.modified_ns;
     let recorded = record.get(Kind::Manifest, &key).and_then(|value| {
         let at = u64::from_le_bytes(value.get(..8)?.try_into().ok()?);
         let build = Key(value.get(8..40)?.try_into().ok()?);

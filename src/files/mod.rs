@@ -9,6 +9,7 @@ mod process;
 mod read;
 mod replaceable;
 mod res_paths;
+mod stamp;
 mod temporaries;
 mod typed;
 mod walk;
@@ -25,6 +26,7 @@ pub use process::{
 pub use read::{read_file, size_cap, total_size, DEFAULT_SIZE_CAP, SIZE_CAPS};
 pub use replaceable::check_replaceable;
 pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};
+pub use stamp::{exists, folder_names, stamp, Stamp};
 pub use temporaries::STALE_TEMPORARY_AGE;
 pub use typed::{read_bake_settings, read_partial, write_partial, write_png};
 pub use walk::{find_files, find_files_in, walk, Walk};

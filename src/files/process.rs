@@ -167,33 +167,10 @@ pub fn read_own_executable(each: &mut dyn FnMut(&[u8])) -> Result<()> {
 }
 
 /// What the file system says of this process's executable, to tell
-/// whether it changed since its hash was recorded: its length, inode and
-/// device, and its modification and status-change times (nanoseconds
-/// since the epoch); `None` where those cannot be read.
-pub fn own_executable_stamp() -> Option<[u64; 5]> {
-    let path = std::env::current_exe().ok()?;
-    let meta = std::fs::metadata(path).ok()?;
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::MetadataExt;
-        let ns = |s: i64, n: i64| {
-            (s as u64)
-                .wrapping_mul(1_000_000_000)
-                .wrapping_add(n as u64)
-        };
-        Some([
-            meta.len(),
-            meta.ino(),
-            meta.dev(),
-            ns(meta.mtime(), meta.mtime_nsec()),
-            ns(meta.ctime(), meta.ctime_nsec()),
-        ])
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = meta;
-        None
-    }
+/// whether it changed since its hash was recorded; `None` where that
+/// cannot be read.
+pub fn own_executable_stamp() -> Option<super::Stamp> {
+    super::stamp(&std::env::current_exe().ok()?)
 }
 
 #[cfg(test)]
