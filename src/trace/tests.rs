@@ -1235,6 +1235,125 @@ mod two_level {
         assert!(with_hits > 200, "{with_hits}");
     }
 
+    /// A part's model-space triangle in the light-relative frame, as a
+    /// flat list of the placed world holds it.
+    fn placed(part: &PlacedPart, tri: &TraceTriangle, reference: DVec3) -> TraceTriangle {
+        let mut vertices = tri
+            .vertices
+            .map(|p| (part.world.transform_point3(p.as_dvec3()) - reference).as_vec3());
+        if part.world.determinant() < 0.0 {
+            vertices.swap(1, 2);
+        }
+        TraceTriangle {
+            vertices,
+            caster: part.first_caster + tri.caster,
+        }
+    }
+
+    #[test]
+    fn placed_hits_are_those_of_the_flat_placed_world() {
+        let mut rng = Rng::new(29);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
+        let block = PlacedBlock {
+            block: 0,
+            caster: 1,
+        };
+        let top = TopLevel::build(
+            &bottom,
+            &world.parts[..],
+            std::iter::once(block),
+            world.reference,
+        );
+        let reference = world.reference;
+        let mut flat: Vec<TraceTriangle> = Vec::new();
+        for part in &world.parts {
+            flat.extend(
+                world.models[part.model as usize]
+                    .iter()
+                    .map(|t| placed(part, t, reference)),
+            );
+        }
+        let (grid, _) = &bottom.terrain[0];
+        for cz in 0..8 {
+            for cx in 0..8 {
+                let pair = grid.cell_trace_triangles((cx, cz), reference, 1);
+                flat.extend(pair.into_iter().flatten().map(|(t, _)| t));
+            }
+        }
+        let part_of = |first_caster: u32| {
+            world
+                .parts
+                .iter()
+                .find(|p| p.first_caster == first_caster)
+                .unwrap()
+        };
+        let key = |h: &Hit, t: &TraceTriangle| {
+            (
+                h.t.to_bits(),
+                h.caster,
+                h.back_facing,
+                t.vertices.map(|v| v.to_array().map(f32::to_bits)),
+            )
+        };
+        let (mut with_hits, mut through_vertices) = (0, 0);
+        for k in 0..4000 {
+            let origin = Vec3::new(
+                rng.range(-80.0, 80.0) as f32,
+                40.0,
+                rng.range(-80.0, 80.0) as f32,
+            );
+            // Half the rays aim exactly at a vertex or an edge's midpoint
+            // of a placed triangle, where the model-space and the flat
+            // tests round differently.
+            let target = if k % 2 == 0 {
+                let t = flat[rng.below(flat.len())];
+                let [a, b, c] = t.vertices;
+                [a, (a + b) * 0.5, (b + c) * 0.5, c][rng.below(4)]
+            } else {
+                Vec3::new(
+                    rng.range(-50.0, 50.0) as f32,
+                    0.0,
+                    rng.range(-50.0, 50.0) as f32,
+                )
+            };
+            let ray = TraceRay {
+                origin,
+                direction: (target - origin).normalize(),
+                t_min: 0.0,
+                t_max: f32::INFINITY,
+            };
+            let mut ours = Vec::new();
+            top.for_each_placed_hit(
+                &bottom,
+                &ray,
+                |first, t| placed(part_of(first), t, reference),
+                |h, t| {
+                    ours.push(key(&h, t));
+                    f32::INFINITY
+                },
+            );
+            let mut expected = Vec::new();
+            brute_force_hits(&flat, &ray, |h| {
+                expected.push(key(&h, &flat[h.triangle as usize]));
+                f32::INFINITY
+            });
+            ours.sort();
+            expected.sort();
+            assert_eq!(ours, expected, "ray {ray:?}");
+            with_hits += usize::from(ours.len() > 1);
+            through_vertices += usize::from(k % 2 == 0 && !ours.is_empty());
+        }
+        assert!(
+            with_hits > 500 && through_vertices > 1000,
+            "{with_hits} {through_vertices}"
+        );
+    }
+
     // -----------------------------------------------------------------------
     // Packets: the tile traversal against the single-ray traversal, ray by
     // ray, hit lists (not only masks).

@@ -13,7 +13,8 @@ use super::boxtree::BoxRay;
 use super::boxtree::BoxTree;
 use super::heightfield::{HeightField, HeightGrid};
 use super::instance::ToModel;
-use super::{Hit, TraceRay, MAX_COORDINATE};
+use super::triangle::{report_hit, PreparedRay};
+use super::{Hit, TraceRay, TraceTriangle, MAX_COORDINATE};
 use glam::{DMat4, DVec3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 
@@ -258,6 +259,58 @@ impl TopLevel {
                 self.entry_hits(bottom, entry, ray, t_max, Some(node_test), &mut on_hit)
             });
         }
+    }
+
+    /// Every hit of `ray` on the triangles a flat list of the placed world
+    /// would hold, tested where that list holds them, without holding it:
+    /// `place(first_caster, triangle)` puts a part's model-space triangle
+    /// (its `caster` the group) into the light-relative frame as that list
+    /// would (its `caster` the id); terrain is tested where it always is.
+    /// The trees only choose the triangles to test, padded for the distance
+    /// between the frames, so the hits are those of a BVH over the placed
+    /// triangles (unusable ones left out). `on_hit` gets each hit with its
+    /// triangle and returns the new t_max. For pictures, whose pixels must
+    /// not depend on how the world is instanced.
+    pub fn for_each_placed_hit(
+        &self,
+        bottom: &BottomLevels,
+        ray: &TraceRay,
+        place: impl Fn(u32, &TraceTriangle) -> TraceTriangle,
+        mut on_hit: impl FnMut(Hit, &TraceTriangle) -> f32,
+    ) {
+        let prepared = PreparedRay::new(ray);
+        if !prepared.is_valid() {
+            return;
+        }
+        let reference = self.reference;
+        self.tree
+            .visit(ray, |slot, t_max, node_test| match self.entries[slot] {
+                Entry::Part {
+                    model,
+                    first_caster,
+                    to_model,
+                } => {
+                    let bvh = &bottom.models[model as usize];
+                    bvh.visit_triangles(&to_model.ray(ray), t_max, |triangle, index, t_max| {
+                        let placed = place(first_caster, triangle);
+                        if !placed.is_usable() {
+                            return t_max;
+                        }
+                        report_hit(&prepared, &placed, index, t_max, &mut |hit| {
+                            on_hit(hit, &placed)
+                        })
+                    })
+                }
+                Entry::Block { block, caster } => {
+                    let (grid, field) = &bottom.terrain[block as usize];
+                    let mut relay =
+                        |hit: Hit| match grid.hit_triangle(hit.triangle, reference, caster) {
+                            Some(triangle) => on_hit(hit, &triangle),
+                            None => t_max,
+                        };
+                    field.hits(grid, reference, node_test, ray, caster, t_max, &mut relay)
+                }
+            });
     }
 
     #[inline]
