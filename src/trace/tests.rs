@@ -1522,14 +1522,14 @@ mod two_level {
                 }
                 nearest.first().map_or(f32::INFINITY, |&(t, _)| t)
             });
-            nearest.sort_by(|a, b| a.1.cmp(&b.1));
+            nearest.sort_by_key(|a| a.1);
             let t = expected.first().map(|h| f32::from_bits(h.0));
             let mut want: Vec<(f32, u32)> = expected
                 .iter()
                 .filter(|h| Some(f32::from_bits(h.0)) == t)
                 .map(|h| (f32::from_bits(h.0), h.1))
                 .collect();
-            want.sort_by(|a, b| a.1.cmp(&b.1));
+            want.sort_by_key(|a| a.1);
             want.dedup();
             nearest.dedup();
             assert_eq!(nearest, want, "ray {ray:?}");
@@ -1588,7 +1588,7 @@ mod two_level {
         }
         let anchors_of = |c: u32| later.iter().find(|(id, _)| *id == c).map(|(_, a)| *a);
         let all = |_: u32, _: [u32; 2]| true;
-        let even = |c: u32, _: [u32; 2]| c % 2 == 0;
+        let even = |c: u32, _: [u32; 2]| c.is_multiple_of(2);
         let mut left_out = 0;
         for (k, drops) in [&all as &DropsRepeat, &even].into_iter().enumerate() {
             let cull = FaceCull {
