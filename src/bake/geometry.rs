@@ -1,13 +1,14 @@
 //! Flat world geometry for the consumers that want triangles rather than a
 //! traversal: the world bounds that size a directional grid, refinement's
-//! per-caster sample surfaces, and the flat triangle lists of the raster
-//! reference and the camera view (never the bake's hot path). Triangles are
+//! per-caster sample surfaces, and the flat triangle list of the raster
+//! reference (never the bake's hot path); [`placed_triangle`], how a
+//! placed triangle is flattened, is shared with the camera view. Triangles are
 //! light-relative f32 (computed in f64 first, so a world far from the
 //! origin loses nothing), wound so the geometric normal points to the front
 //! face even for mirrored instances.
 
 use super::casters::{CasterTable, Owner, PartCasters};
-use crate::scene::Scene;
+use crate::scene::{Instance, Scene};
 use crate::trace::{transform_box, TraceTriangle, MAX_COORDINATE};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
@@ -107,21 +108,14 @@ fn push_group(
     let triangles = model.triangles.get(group.triangles.clone()).unwrap_or(&[]);
     out.triangles.reserve(triangles.len());
     for triangle in triangles {
-        let mut vertices = [Vec3::ZERO; 3];
-        for (v, &i) in vertices.iter_mut().zip(triangle) {
-            let p = model
+        let vertices = triangle.map(|i| {
+            model
                 .positions
                 .get(i as usize)
                 .copied()
-                .unwrap_or(Vec3::NAN);
-            *v = (instance.world.transform_point3(p.as_dvec3()) - reference).as_vec3();
-        }
-        if instance.mirrored {
-            // The engine flips the cull mode of mirrored models; flipping
-            // the winding is the same.
-            vertices.swap(1, 2);
-        }
-        let tri = TraceTriangle { vertices, caster };
+                .unwrap_or(Vec3::NAN)
+        });
+        let tri = placed_triangle(instance, vertices, caster, reference);
         if degenerate(&tri) {
             out.degenerate_triangles += 1;
         } else {
@@ -129,6 +123,26 @@ fn push_group(
             out.triangles.push(tri);
         }
     }
+}
+
+/// A model-space triangle of `instance`, relative to `reference`: each
+/// vertex through the f64 world transform, then rounded to f32; two
+/// vertices swapped for a mirrored instance, whose cull mode the engine
+/// flips. The one way a placed triangle is flattened, so every flat view
+/// of the world (and the camera, which places triangles as it meets them)
+/// holds the same values.
+pub fn placed_triangle(
+    instance: &Instance,
+    model_space: [Vec3; 3],
+    caster: u32,
+    reference: DVec3,
+) -> TraceTriangle {
+    let mut vertices =
+        model_space.map(|p| (instance.world.transform_point3(p.as_dvec3()) - reference).as_vec3());
+    if instance.mirrored {
+        vertices.swap(1, 2);
+    }
+    TraceTriangle { vertices, caster }
 }
 
 fn push_block(scene: &Scene, block: usize, caster: u32, reference: DVec3, out: &mut FlatGeometry) {
@@ -217,49 +231,4 @@ fn merge(parts: impl Iterator<Item = FlatGeometry>) -> FlatGeometry {
         all.reaches_alpha_tested |= part.reaches_alpha_tested;
     }
     all
-}
-
-/// Every caster's triangles, with nothing left out for reach (a camera that
-/// looks at the world, not a light), relative to `reference`.
-pub fn all_geometry(scene: &Scene, casters: &CasterTable, reference: DVec3) -> FlatGeometry {
-    flat_geometry(scene, casters, reference, |_, _| true)
-}
-
-fn flat_geometry(
-    scene: &Scene,
-    casters: &CasterTable,
-    reference: DVec3,
-    reaches: impl Fn(DVec3, DVec3) -> bool + Sync,
-) -> FlatGeometry {
-    let parts: Vec<_> = casters.parts(scene).collect();
-    // In parallel, collected in id order so the list is the same whatever
-    // the thread count.
-    let per_part: Vec<FlatGeometry> = parts
-        .par_iter()
-        .map(|part| {
-            let mut out = FlatGeometry::default();
-            let model = &scene.models[part.model];
-            let in_reach = model.bounds().is_some_and(|(min, max)| {
-                let world = &scene.instances[part.instance].world;
-                let (min, max) = transform_box(world, min.as_dvec3(), max.as_dvec3());
-                reaches(min, max)
-            });
-            if in_reach {
-                push_part(scene, part, reference, &mut out);
-            }
-            out
-        })
-        .collect();
-    let per_block: Vec<FlatGeometry> = (0..scene.terrain.len())
-        .into_par_iter()
-        .map(|block| {
-            let mut out = FlatGeometry::default();
-            let (min, max) = scene.terrain[block].bounds();
-            if reaches(min, max) {
-                push_block(scene, block, casters.of_block[block], reference, &mut out);
-            }
-            out
-        })
-        .collect();
-    merge(per_part.into_iter().chain(per_block))
 }

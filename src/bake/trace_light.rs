@@ -11,7 +11,7 @@ use super::texel_beam::{self, Rect};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::bake_settings::FaceCulling;
 use crate::light::{TexelGrid, TexelRay};
-use crate::trace::{FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
+use crate::trace::{DropsRepeat, FaceCull, Hit, PacketRays, PacketScratch, TraceRay, Tracer};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -470,7 +470,9 @@ impl LightRays<'_> {
                     ..
                 } = state;
                 for (ray, relative) in rays.iter().zip(traced.iter()) {
-                    self.trace_relative(ray, relative, single, |c| prove(c, settled, useful));
+                    self.trace_relative(ray, relative, single, settled, |c| {
+                        prove(c, settled, useful)
+                    });
                 }
             }
         }
@@ -497,7 +499,7 @@ impl LightRays<'_> {
         };
         self.texel_rays_into(state, face, texels, samples);
         self.prepare_packet(state);
-        self.trace_prepared(state, which, |c| prove(c, settled, useful));
+        self.trace_prepared(state, which, settled, |c| prove(c, settled, useful));
     }
 
     /// With `settled`, when its pass asks corner rays first,
@@ -639,21 +641,28 @@ impl LightRays<'_> {
     /// to `on_useful` (a caster useful in both passes is handed twice).
     /// `hits` is scratch space reused across rays.
     pub fn trace(&self, ray: &TexelRay, hits: &mut Vec<RayHit>, on_useful: impl FnMut(u32)) {
-        self.trace_relative(ray, &self.light_relative(ray), hits, on_useful);
+        self.trace_relative(ray, &self.light_relative(ray), hits, None, on_useful);
     }
 
-    /// [`Self::trace`] of `ray` whose light-relative form `traced` is made.
+    /// [`Self::trace`] of `ray` whose light-relative form `traced` is made;
+    /// with `settled`, the casters it need not prove, whose repeated hits
+    /// on a stack of coincident copies the tracer may leave out
+    /// ([`Self::repeat_is_moot`]).
     fn trace_relative(
         &self,
         ray: &TexelRay,
         traced: &TraceRay,
         hits: &mut Vec<RayHit>,
+        settled: Option<&Settled>,
         mut on_useful: impl FnMut(u32),
     ) {
         hits.clear();
         let mut limit = traced.t_max;
-        self.tracer
-            .for_each_hit(traced, |hit| self.offer(&hit, ray, hits, &mut limit));
+        let repeats = |c: u32, anchors: [u32; 2]| self.repeat_is_moot_given(settled, c, anchors);
+        let repeats = settled.map(|_| &repeats as &DropsRepeat);
+        self.tracer.for_each_hit_dropping(traced, repeats, |hit| {
+            self.offer(&hit, ray, hits, &mut limit)
+        });
         self.conclude(hits, limit, &mut on_useful);
     }
 
@@ -661,7 +670,7 @@ impl LightRays<'_> {
     /// rays), traced as packets: every ray gets the answer it gets alone.
     pub fn trace_packet(&self, state: &mut PacketState, on_useful: impl FnMut(u32)) {
         self.prepare_packet(state);
-        self.trace_prepared(state, PacketRays::All, on_useful);
+        self.trace_prepared(state, PacketRays::All, None, on_useful);
     }
 
     /// [`Self::trace_packet`] of only the rays that may meet a caster
@@ -674,7 +683,8 @@ impl LightRays<'_> {
         on_useful: impl FnMut(u32),
     ) {
         self.prepare_packet(state);
-        self.trace_prepared(state, PacketRays::MeetingUnsettled(unsettled), on_useful);
+        let which = PacketRays::MeetingUnsettled(unsettled);
+        self.trace_prepared(state, which, None, on_useful);
     }
 
     /// The light-relative rays of `state.rays`, into `state.traced`.
@@ -685,11 +695,15 @@ impl LightRays<'_> {
     }
 
     /// [`Self::trace_packet`] of rays [`Self::prepare_packet`] made, less
-    /// those `which` leaves out (they prove nothing).
+    /// those `which` leaves out (they prove nothing); with `settled`, the
+    /// casters they need not prove, whose repeated hits on a stack of
+    /// coincident copies the tracer may leave out
+    /// ([`Self::repeat_is_moot`]).
     fn trace_prepared(
         &self,
         state: &mut PacketState,
         which: PacketRays,
+        settled: Option<&Settled>,
         mut on_useful: impl FnMut(u32),
     ) {
         let PacketState {
@@ -708,13 +722,15 @@ impl LightRays<'_> {
         for list in hits.iter_mut() {
             list.clear();
         }
-        self.tracer.for_each_packet_hit_culled(
-            traced,
-            scratch,
-            &self.face_cull(),
-            which,
-            |lane, hit| self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane]),
-        );
+        let repeats = |c: u32, anchors: [u32; 2]| self.repeat_is_moot_given(settled, c, anchors);
+        let mut cull = self.face_cull();
+        if settled.is_some() {
+            cull.repeats = Some(&repeats);
+        }
+        self.tracer
+            .for_each_packet_hit_culled(traced, scratch, &cull, which, |lane, hit| {
+                self.offer(&hit, &rays[lane], &mut hits[lane], &mut limits[lane])
+            });
         for (list, &limit) in hits.iter_mut().zip(limits.iter()) {
             self.conclude(list, limit, &mut on_useful);
         }
@@ -749,7 +765,37 @@ impl LightRays<'_> {
                 FaceCulling::None => None,
             },
             either_face: &self.casters.double_sided,
+            repeats: None,
         }
+    }
+
+    /// [`Self::repeat_is_moot`] for a caster of `settled` (none without).
+    fn repeat_is_moot_given(&self, settled: Option<&Settled>, c: u32, anchors: [u32; 2]) -> bool {
+        settled.is_some_and(|s| s.contains(c)) && self.repeat_is_moot(c, anchors)
+    }
+
+    /// Whether a hit of caster `c` where kept hits of the distinct casters
+    /// `a` and `b` lie, at one distance with the same alpha-testing (the
+    /// copies of a stack of coincident placements), changes no other
+    /// caster's answer (docs/contract.md §4): the crossing count, which
+    /// stops at two, has two crossings there at the latest; and the
+    /// nearest caster's distance is no farther without it, since `c` is
+    /// receiver-only or `a` or `b` is a caster. Only `c`'s own membership
+    /// of the front set depends on it: moot once `c` is settled.
+    fn repeat_is_moot(&self, c: u32, [a, b]: [u32; 2]) -> bool {
+        let flags = |id: u32| {
+            let caster = self.casters.casters.get(id as usize);
+            caster.map(|x| (x.receiver_only, x.alpha_tested))
+        };
+        let (Some((c_receives, c_alpha)), Some((a_receives, a_alpha)), Some((b_receives, b_alpha))) =
+            (flags(c), flags(a), flags(b))
+        else {
+            return false;
+        };
+        a != b
+            && c_alpha == a_alpha
+            && c_alpha == b_alpha
+            && (c_receives || !a_receives || !b_receives)
     }
 
     /// A traced ray's kept hits up to its cut-off, classified.

@@ -1,21 +1,27 @@
 //! The camera view: the whole world in perspective, each surface coloured
 //! by its caster's verdict for one light and lit by that light, so an
 //! artist sees which objects the light would skip. One primary ray per
-//! pixel centre through a BVH of every caster (a camera reaches
-//! everything); the nearest triangle wins whatever its facing (a picture of
-//! the world, not of the light's filter), equal distances to the lowest
-//! triangle index. Shade: `AMBIENT + (1 − AMBIENT)·max(0, n·l)` with `n`
+//! pixel centre through the bake's own bottom levels under a top level
+//! over every placed part and terrain block (a camera reaches everything),
+//! so the view holds a box and an inverse transform per placement, never
+//! the placed world's triangles. A part's triangles are placed in world
+//! space as the ray meets them and tested there, so each pixel is what a
+//! flat list of the world's triangles gives it. The nearest triangle wins
+//! whatever its facing (a picture of the world, not of the light's
+//! filter), equal distances to the lowest caster id, then the lowest
+//! triangle number (the order of that flat list). Shade: `AMBIENT + (1 − AMBIENT)·max(0, n·l)` with `n`
 //! the triangle's normal turned towards the camera and `l` towards the
 //! light (directional: against its direction; spot and point: from the
 //! point to the light); no shadows. Sky: dark blue.
 
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
-use crate::bake::geometry::{all_geometry, world_bounds};
+use crate::bake::casters::Owner;
+use crate::bake::geometry::{placed_triangle, world_bounds};
 use crate::bake::setup::BakeWorld;
 use crate::bake::BakeConfig;
 use crate::formats::bake_settings::LightKind;
 use crate::scene::Scene;
-use crate::trace::{Bvh, TraceRay, TraceTriangle};
+use crate::trace::{Hit, PartsFrom, PlacedBlock, PlacedPart, TopLevel, TraceRay, TraceTriangle};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 
@@ -182,13 +188,11 @@ pub fn camera_view_from(
         )));
     }
     let reference = (bounds.0 + bounds.1) * 0.5;
-    let geometry = all_geometry(scene, &world.casters, reference);
     let view = View {
         frame: Frame::new(forward, camera.fov_degrees, camera.width, camera.height),
         position,
         origin: (position - reference).as_vec3(),
-        bvh: Bvh::build(&geometry.triangles),
-        triangles: &geometry.triangles,
+        world: CameraWorld::new(&world, reference),
         classes: &verdicts.classes,
         light_kind: &config.lights[light].kind,
     };
@@ -222,42 +226,118 @@ fn check_camera(camera: &CameraSpec) -> Result<(), RenderError> {
     Ok(())
 }
 
-/// What one pixel's ray needs: the camera, every triangle (relative to the
-/// world's centre, as `origin` is) and the verdicts and light that colour
-/// them.
+/// What the camera traces: a top level over every placed part and
+/// terrain block on the bake's bottom levels, relative to `reference`.
+struct CameraWorld<'w> {
+    world: &'w BakeWorld<'w>,
+    top: TopLevel,
+    reference: DVec3,
+}
+
+impl<'w> CameraWorld<'w> {
+    fn new(world: &'w BakeWorld<'w>, reference: DVec3) -> CameraWorld<'w> {
+        let scene = world.scene;
+        let parts = PartsFrom {
+            count: world.parts.len(),
+            part: |i| {
+                let part = &world.parts[i];
+                PlacedPart {
+                    model: part.model as u32,
+                    world: scene.instances[part.instance].world,
+                    first_caster: part.first_caster,
+                }
+            },
+        };
+        let blocks = (0..scene.terrain.len()).map(|block| PlacedBlock {
+            block: block as u32,
+            caster: world.casters.of_block[block],
+        });
+        CameraWorld {
+            world,
+            top: TopLevel::build(&world.bottom, &parts, blocks, reference),
+            reference,
+        }
+    }
+
+    /// Heap bytes the view adds to the bake's world: its top level.
+    #[cfg(test)]
+    fn heap_bytes(&self) -> usize {
+        self.top.heap_bytes()
+    }
+
+    /// The nearest hit along `ray` and its triangle (relative to
+    /// `reference`); equal t: the lowest (caster, triangle).
+    fn nearest(&self, ray: &TraceRay) -> Option<(Hit, TraceTriangle)> {
+        let mut best: Option<(Hit, TraceTriangle)> = None;
+        let place =
+            |first_caster: u32, triangle: &TraceTriangle| self.place(first_caster, triangle);
+        self.top
+            .for_each_placed_hit(&self.world.bottom, ray, place, |hit, triangle| {
+                let key = |h: &Hit| (h.t, h.caster, h.triangle);
+                if best.is_none_or(|(b, _)| key(&hit) < key(&b)) {
+                    best = Some((hit, *triangle));
+                }
+                best.map_or(hit.t, |(b, _)| b.t)
+            });
+        best
+    }
+
+    /// A model-space triangle of the part whose group 0 is `first_caster`,
+    /// placed as the raster's flat list places it (NaN, never hit, if the
+    /// id names no part).
+    fn place(&self, first_caster: u32, triangle: &TraceTriangle) -> TraceTriangle {
+        let casters = &self.world.casters.casters;
+        let caster = first_caster + triangle.caster;
+        match casters.get(first_caster as usize).map(|c| c.owner) {
+            Some(Owner::Group { instance, .. }) => placed_triangle(
+                &self.world.scene.instances[instance as usize],
+                triangle.vertices,
+                caster,
+                self.reference,
+            ),
+            _ => TraceTriangle {
+                vertices: [Vec3::NAN; 3],
+                caster,
+            },
+        }
+    }
+}
+
+/// What one pixel's ray needs: the camera, the world it traces (relative
+/// to a reference point, as `origin` is) and the verdicts and light that
+/// colour it.
 struct View<'a> {
     frame: Frame,
     /// The camera in world coordinates, for the light's direction at a hit.
     position: DVec3,
-    /// The camera relative to the triangles' reference point.
+    /// The camera relative to the world's reference point.
     origin: Vec3,
-    bvh: Bvh,
-    triangles: &'a [TraceTriangle],
+    world: CameraWorld<'a>,
     classes: &'a [Class],
     light_kind: &'a LightKind,
 }
 
 impl View<'_> {
-    /// Every pixel's class and colour, row by row from the top.
+    /// Every pixel's class and colour, row by row from the top, written
+    /// in place (the picture is the largest thing the view holds).
     fn draw(&self, width: u32, height: u32) -> (Vec<Class>, Vec<u8>) {
-        let rows: Vec<Vec<(Class, [u8; 3])>> = (0..height)
-            .into_par_iter()
-            .map(|row| {
+        let pixels = width as usize * height as usize;
+        let mut rgb = vec![0u8; pixels * 3];
+        let mut classes = vec![Class::Nothing; pixels];
+        rgb.par_chunks_mut(width as usize * 3)
+            .zip(classes.par_chunks_mut(width as usize))
+            .enumerate()
+            .for_each(|(row, (rgb, classes))| {
                 let sy = 1.0 - (row as f64 + 0.5) / height as f64 * 2.0;
-                (0..width)
-                    .map(|column| {
-                        let sx = (column as f64 + 0.5) / width as f64 * 2.0 - 1.0;
-                        self.pixel(self.frame.direction(sx, sy))
-                    })
-                    .collect()
-            })
-            .collect();
-        let mut rgb = Vec::with_capacity(width as usize * height as usize * 3);
-        let mut classes = Vec::with_capacity(width as usize * height as usize);
-        for (class, colour) in rows.into_iter().flatten() {
-            classes.push(class);
-            rgb.extend(colour);
-        }
+                for (column, (colour, class)) in
+                    rgb.chunks_exact_mut(3).zip(classes.iter_mut()).enumerate()
+                {
+                    let sx = (column as f64 + 0.5) / width as f64 * 2.0 - 1.0;
+                    let (pixel_class, pixel_colour) = self.pixel(self.frame.direction(sx, sy));
+                    *class = pixel_class;
+                    colour.copy_from_slice(&pixel_colour);
+                }
+            });
         (classes, rgb)
     }
 
@@ -270,10 +350,7 @@ impl View<'_> {
             t_min: 0.0,
             t_max: f32::INFINITY,
         };
-        let Some(hit) = self.bvh.closest_hit(&ray) else {
-            return (Class::Nothing, SKY);
-        };
-        let Some(triangle) = self.triangles.get(hit.triangle as usize) else {
+        let Some((hit, triangle)) = self.world.nearest(&ray) else {
             return (Class::Nothing, SKY);
         };
         let class = self
@@ -317,6 +394,113 @@ fn notes(position: DVec3, target: DVec3, fov_degrees: f64) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bake::geometry::parts_geometry;
+    use crate::files::ResPaths;
+    use crate::scene::{load_scene, LoadConfig};
+    use crate::trace::Bvh;
+
+    /// Heap bytes the view may hold per placed part or terrain block: a
+    /// top-level entry (an f64 inverse transform and ids) and its share of
+    /// the box tree, whatever the part's or the block's triangle count.
+    const MOST_BYTES_PER_PLACEMENT: usize = 192;
+
+    fn village() -> Scene {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
+        load_scene(&LoadConfig {
+            res_paths: ResPaths::new(vec![root]),
+            space: "spaces/village".into(),
+            speedtrees: Default::default(),
+        })
+        .expect("the village fixture loads")
+    }
+
+    #[test]
+    fn the_view_holds_placements_not_placed_triangles() {
+        let scene = village();
+        let world = BakeWorld::new(&scene);
+        let (min, max) = world.bounds.unwrap();
+        let view = CameraWorld::new(&world, (min + max) * 0.5);
+        let placements = world.parts.len() + scene.terrain.len();
+        let bytes = view.heap_bytes();
+        assert!(
+            bytes <= MOST_BYTES_PER_PLACEMENT * placements,
+            "{bytes} bytes for {placements} parts and blocks"
+        );
+        // What a flat list of the placed world would hold: every placed
+        // triangle and two a terrain cell, far more than the bound.
+        let placed: usize = world
+            .parts
+            .iter()
+            .map(|p| world.bottom.model_triangles(p.model))
+            .sum();
+        let cells: usize = scene
+            .terrain
+            .iter()
+            .map(|b| b.cells().0 * b.cells().1)
+            .sum();
+        let flat = (placed + 2 * cells) * std::mem::size_of::<TraceTriangle>();
+        assert!(flat > 20 * MOST_BYTES_PER_PLACEMENT * placements, "{flat}");
+    }
+
+    #[test]
+    fn each_pixel_is_the_flat_placed_worlds_nearest_triangle() {
+        // The reference the view replaces: a BVH over every placed
+        // triangle and terrain cell in caster id order, the nearest hit and
+        // on equal t the lowest index.
+        let scene = village();
+        let world = BakeWorld::new(&scene);
+        let (min, max) = world.bounds.unwrap();
+        let reference = (min + max) * 0.5;
+        let parts: Vec<u32> = (0..world.parts.len() as u32).collect();
+        let blocks: Vec<u32> = (0..scene.terrain.len() as u32).collect();
+        let flat = parts_geometry(
+            &scene,
+            &world.casters,
+            &world.parts,
+            &parts,
+            &blocks,
+            reference,
+        );
+        let bvh = Bvh::build(&flat.triangles);
+        let view = CameraWorld::new(&world, reference);
+        let spec = CameraSpec {
+            width: 160,
+            height: 120,
+            ..CameraSpec::default()
+        };
+        let mut hit_pixels = 0;
+        for (position, target) in [
+            spec.resolve((min, max)),
+            (min + DVec3::new(-5.0, 12.0, -5.0), reference),
+            (reference + DVec3::new(3.0, 2.5, 1.0), max),
+        ] {
+            let frame = Frame::new(
+                (target - position).normalize(),
+                60.0,
+                spec.width,
+                spec.height,
+            );
+            for row in 0..spec.height {
+                for column in 0..spec.width {
+                    let sx = (column as f64 + 0.5) / spec.width as f64 * 2.0 - 1.0;
+                    let sy = 1.0 - (row as f64 + 0.5) / spec.height as f64 * 2.0;
+                    let ray = TraceRay {
+                        origin: (position - reference).as_vec3(),
+                        direction: frame.direction(sx, sy).as_vec3(),
+                        t_min: 0.0,
+                        t_max: f32::INFINITY,
+                    };
+                    let ours = view.nearest(&ray).map(|(h, t)| (h.t, h.caster, t.vertices));
+                    let expected = bvh
+                        .closest_hit(&ray)
+                        .map(|h| (h.t, h.caster, flat.triangles[h.triangle as usize].vertices));
+                    assert_eq!(ours, expected, "pixel ({column}, {row}) from {position}");
+                    hit_pixels += usize::from(ours.is_some());
+                }
+            }
+        }
+        assert!(hit_pixels > 20_000, "{hit_pixels}");
+    }
 
     #[test]
     fn overview_frames_the_bounds() {

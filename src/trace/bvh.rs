@@ -1,7 +1,6 @@
 //! A triangle BVH: a [`BoxTree`] over triangles' boxes with the triangles
 //! laid out in tree order. The bake builds one per distinct model, in model
-//! space (a bottom level, shared by every light and every placement); the
-//! camera view builds one over a flat list of world triangles.
+//! space (a bottom level, shared by every light and every placement).
 
 use super::boxtree::BoxTree;
 use super::triangle::{report_hit, PreparedRay};
@@ -107,11 +106,32 @@ impl Bvh {
         if !prepared.is_valid() {
             return t_max;
         }
+        self.visit_triangles(ray, t_max, |tri, index, t_max| {
+            report_hit(&prepared, tri, index, t_max, on_hit)
+        })
+    }
+
+    /// Calls `visit(triangle, index, t_max)` for every triangle whose leaf
+    /// box (padded) the segment `[ray.t_min, t_max]` touches, with the
+    /// running t_max; `visit` returns the new one (a larger or NaN value is
+    /// ignored), and the t_max it ends with is returned. Whether a triangle
+    /// is hit is `visit`'s business: a caller may test it in another frame,
+    /// where the same point lies within the padding.
+    #[inline]
+    pub(crate) fn visit_triangles(
+        &self,
+        ray: &TraceRay,
+        t_max: f32,
+        mut visit: impl FnMut(&TraceTriangle, u32, f32) -> f32,
+    ) -> f32 {
         let mut t_max = t_max;
         let segment = TraceRay { t_max, ..*ray };
         self.tree.visit(&segment, |slot, _, _| {
             let entry = &self.triangles[slot];
-            t_max = report_hit(&prepared, &entry.tri, entry.index, t_max, on_hit);
+            let next = visit(&entry.tri, entry.index, t_max);
+            if next < t_max {
+                t_max = next;
+            }
             t_max
         });
         t_max

@@ -115,6 +115,23 @@ impl HeightGrid<'_> {
         Some([(traced(a), first), (traced(b), first + 1)])
     }
 
+    /// The light-relative triangle a hit of this block reports as
+    /// `index` (2 × cell + 0 or 1); `None` for a hole or past the block.
+    pub(crate) fn hit_triangle(
+        &self,
+        index: u32,
+        reference: DVec3,
+        caster: u32,
+    ) -> Option<TraceTriangle> {
+        let cell = index as usize / 2;
+        let (cx, cz) = (cell % self.cells_x.max(1), cell / self.cells_x.max(1));
+        if cz >= self.cells_z {
+            return None;
+        }
+        let pair = self.cell_trace_triangles((cx, cz), reference, caster)?;
+        Some(pair[index as usize % 2].0)
+    }
+
     /// Calls `on_hit` for each of cell (cx, cz)'s triangles the ray crosses
     /// within `[t_min, t_max]` (a hole: none); returns the new t_max.
     #[inline]

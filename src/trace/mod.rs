@@ -94,8 +94,9 @@ impl TraceTriangle {
 /// a packet traversal so that a packet of parallel rays can skip a
 /// triangle every one of whose hits would be dropped: one sign of facing
 /// holds for all parallel rays, except for a triangle within rounding of
-/// edge-on, which is tested as usual.
-#[derive(Clone, Copy, Debug, Default)]
+/// edge-on, which is tested as usual. And the hits of a stack of
+/// coincident placements a caller drops as repeats ([`DropsRepeat`]).
+#[derive(Clone, Copy, Default)]
 pub struct FaceCull<'a> {
     /// `Some(true)`: back-facing hits are dropped, `Some(false)`: front
     /// facing ones; `None`: none.
@@ -103,7 +104,16 @@ pub struct FaceCull<'a> {
     /// Casters (bits of their ids, 64 a word) whose hits count on either
     /// face (double-sided groups).
     pub either_face: &'a [u64],
+    pub repeats: Option<&'a DropsRepeat<'a>>,
 }
+
+/// `drops(caster, [a, b])`: whether a caller drops a hit of `caster` that
+/// lies where hits of the casters `a` and `b` it was given before lie
+/// (the same group of three placements of one model at one transform:
+/// the same triangle, distance and facing). A packet traversal then
+/// reports such hits of a stack's third and later placements not at all,
+/// so a stack of coincident copies costs a ray about what two do.
+pub type DropsRepeat<'a> = dyn Fn(u32, [u32; 2]) -> bool + Sync + 'a;
 
 impl FaceCull<'_> {
     /// Whether a hit of `caster` facing as `back_facing` is dropped.
@@ -148,6 +158,24 @@ impl Tracer<'_> {
     pub fn for_each_hit(&self, ray: &TraceRay, on_hit: impl FnMut(Hit) -> f32) {
         self.top
             .for_each_hit(self.bottom, ray, self.mode == TraceMode::BruteForce, on_hit);
+    }
+
+    /// [`Self::for_each_hit`] for a caller that drops the repeats `repeats`
+    /// says ([`DropsRepeat`]): through the trees those are not reported
+    /// (every other hit is); the oracle reports them all.
+    pub fn for_each_hit_dropping(
+        &self,
+        ray: &TraceRay,
+        repeats: Option<&DropsRepeat>,
+        on_hit: impl FnMut(Hit) -> f32,
+    ) {
+        match self.mode {
+            TraceMode::BruteForce => self.for_each_hit(ray, on_hit),
+            TraceMode::Trees | TraceMode::RayByRay => {
+                self.top
+                    .for_each_hit_dropping(self.bottom, ray, repeats, on_hit)
+            }
+        }
     }
 
     /// [`Self::for_each_hit`] for each ray of `rays`, which should be
@@ -232,7 +260,7 @@ impl Tracer<'_> {
     ) {
         if self.mode != TraceMode::Trees {
             for (lane, ray) in rays.iter().enumerate() {
-                self.for_each_hit(ray, |hit| on_hit(lane, hit));
+                self.for_each_hit_dropping(ray, cull.repeats, |hit| on_hit(lane, hit));
             }
             return;
         }
@@ -244,7 +272,7 @@ impl Tracer<'_> {
         };
         if (rays.len() <= LONE_RAYS || lone_parallel) && matches!(which, PacketRays::All) {
             for (lane, ray) in rays.iter().enumerate() {
-                self.for_each_hit(ray, |hit| on_hit(lane, hit));
+                self.for_each_hit_dropping(ray, cull.repeats, |hit| on_hit(lane, hit));
             }
             return;
         }

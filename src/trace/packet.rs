@@ -18,11 +18,11 @@
 //! found, the box test the single-ray traversal gives it there.
 
 use super::beam::Beam;
-use super::blas::BottomLevels;
+use super::blas::{BottomLevels, ModelGroup};
 use super::boxtree::BoxRay;
 use super::heightfield::Step;
 use super::instance::row_sum_norm;
-use super::tlas::{block_box, Entry, TopLevel};
+use super::tlas::{block_box, repeated_groups, Entry, Placements, TopLevel};
 use super::triangle::{report_hit, Lanes, PreparedRay, ALL_GROUPS, LANES};
 use super::{Bvh, FaceCull, Hit, PacketRays, ToModel, TraceRay, TraceTriangle};
 use glam::Vec3;
@@ -475,7 +475,7 @@ enum OpenEntries {
 #[derive(Default)]
 pub struct PacketScratch {
     light: Frame,
-    model: Frame,
+    model: ModelScratch,
     t_max: Vec<f32>,
     /// The entries with an unsettled caster a packet's beam reaches
     /// ([`PacketRays::MeetingUnsettled`], [`TopLevel::rays_reaching`]).
@@ -483,6 +483,15 @@ pub struct PacketScratch {
     /// What the latest [`TopLevel::gate_packet`] found, for
     /// [`PacketRays::Gated`]: `open` holds the entries when few.
     gate: Option<(OpenEntries, Beam)>,
+}
+
+/// A packet's scratch inside one placed part: its rays in model space,
+/// and the hits of the part's first placement when it has coincident
+/// copies (`Placements::replay`), with their lanes.
+#[derive(Default)]
+struct ModelScratch {
+    frame: Frame,
+    found: Vec<(usize, Hit)>,
 }
 
 impl PacketScratch {
@@ -560,7 +569,7 @@ impl TopLevel {
         }
         let beam = open_beam.or_else(|| light.beam(t_max, magnitude));
         let Some(mut beam) = beam else {
-            return self.ray_by_ray(bottom, rays, on_hit);
+            return self.ray_by_ray(bottom, rays, cull, on_hit);
         };
         let direction = light.direction();
         let mut widest = reach_of(light, t_max);
@@ -711,10 +720,14 @@ impl TopLevel {
                 Entry::Part {
                     model,
                     first_caster,
+                    copies,
                     ..
-                } => bottom.model_groups[model as usize]
-                    .iter()
-                    .any(|g| unsettled(first_caster + g.group)),
+                } => {
+                    let placements = self.placements(first_caster, copies);
+                    bottom.model_groups[model as usize]
+                        .iter()
+                        .any(|g| placements.iter().any(|first| unsettled(first + g.group)))
+                }
                 Entry::Block { caster, .. } => unsettled(caster),
             };
             if reaches {
@@ -759,14 +772,16 @@ impl TopLevel {
                 model,
                 first_caster,
                 to_model,
+                copies,
             } => {
                 let bvh = &bottom.models[model as usize];
                 let model_ray = to_model.ray(ray);
                 let test = BoxRay::new(&model_ray, bvh.tree.magnitude);
                 let t_max = test.node_t_max(model_ray.t_max);
+                let placements = self.placements(first_caster, copies);
                 bottom.model_groups[model as usize].iter().any(|g| {
-                    unsettled(first_caster + g.group)
-                        && test.touches(g.lo, g.hi, model_ray.t_min, t_max)
+                    test.touches(g.lo, g.hi, model_ray.t_min, t_max)
+                        && placements.iter().any(|first| unsettled(first + g.group))
                 })
             }
             Entry::Block { block, .. } => {
@@ -780,15 +795,17 @@ impl TopLevel {
         }
     }
 
-    /// The packet's rays one at a time through the single-ray traversal.
+    /// The packet's rays one at a time through the single-ray traversal,
+    /// which leaves out the repeats `cull` drops as the packet's would.
     fn ray_by_ray(
         &self,
         bottom: &BottomLevels,
         rays: &[TraceRay],
+        cull: &FaceCull,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
         for (lane, ray) in rays.iter().enumerate() {
-            self.for_each_hit(bottom, ray, false, |hit| on_hit(lane, hit));
+            self.for_each_hit_dropping(bottom, ray, cull.repeats, |hit| on_hit(lane, hit));
         }
     }
 
@@ -801,7 +818,7 @@ impl TopLevel {
         entry: &Entry,
         beam: &Beam,
         light: &mut Frame,
-        model: &mut Frame,
+        model: &mut ModelScratch,
         t_max: &mut [f32],
         cull: &FaceCull,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
@@ -811,11 +828,21 @@ impl TopLevel {
                 model: index,
                 first_caster,
                 to_model,
+                copies,
             } => {
+                let placements = self.placements(first_caster, copies);
+                let groups = &bottom.model_groups[index as usize];
                 let part = PlacedPart {
                     bvh: &bottom.models[index as usize],
-                    first_caster,
+                    groups,
+                    placements,
                     to_model,
+                };
+                let none = FaceCull::default();
+                let cull = if culled_alike(cull, &placements, groups) {
+                    cull
+                } else {
+                    &none
                 };
                 part.packet(beam, light, model, t_max, cull, on_hit);
             }
@@ -865,28 +892,49 @@ impl TopLevel {
     }
 }
 
-/// One placed part of the top level: its model's bottom level, the caster
-/// id of its first group, and the map into its model space.
+/// Whether `cull` drops the hits of each of `placements`' groups as it
+/// drops the first placement's (it drops by a caster's double-sided bit),
+/// so the packet may skip a triangle by the first placement's ids.
+fn culled_alike(cull: &FaceCull, placements: &Placements, groups: &[ModelGroup]) -> bool {
+    let first = placements.first;
+    cull.drops_back.is_none()
+        || placements.copies.iter().all(|&copy| {
+            groups.iter().all(|g| {
+                [false, true].iter().all(|&back| {
+                    cull.drops(copy + g.group, back) == cull.drops(first + g.group, back)
+                })
+            })
+        })
+}
+
+/// One placed part of the top level (and its coincident copies): its
+/// model's bottom level, the caster ids of its placements' first groups,
+/// and the map into its model space.
 struct PlacedPart<'b> {
     bvh: &'b Bvh,
-    first_caster: u32,
+    groups: &'b [ModelGroup],
+    placements: Placements<'b>,
     to_model: ToModel,
 }
 
 impl PlacedPart<'_> {
     /// The packet's rays through the part's bottom level in model space,
-    /// under the packet's beam mapped there; hits carry the part's caster
-    /// ids.
+    /// under the packet's beam mapped there; each hit is reported for
+    /// every placement, with its caster ids.
     fn packet(
         &self,
         beam: &Beam,
         light: &mut Frame,
-        model: &mut Frame,
+        model: &mut ModelScratch,
         t_max: &mut [f32],
         cull: &FaceCull,
         on_hit: &mut impl FnMut(usize, Hit) -> f32,
     ) {
-        let (bvh, first_caster, to_model) = (self.bvh, self.first_caster, self.to_model);
+        let ModelScratch {
+            frame: model,
+            found,
+        } = model;
+        let (bvh, placements, to_model) = (self.bvh, self.placements, self.to_model);
         let world = to_model.world_linear();
         let image = self.origin_image(light, t_max, world);
         // The rays enter the model's frame only once the beam reaches one
@@ -898,22 +946,28 @@ impl PlacedPart<'_> {
         let origin_bound = to_model.origin_bound(light.origin_max);
         let model_beam = beam.to_model(&to_model, world, bvh.tree.magnitude, origin_bound);
         let direction = to_model.direction(light.direction());
+        let copies = !placements.copies.is_empty();
+        found.clear();
         let mut relay = |lane: usize, hit: Hit| {
-            on_hit(
-                lane,
-                Hit {
-                    caster: first_caster + hit.caster,
-                    ..hit
-                },
-            )
+            if copies {
+                found.push((lane, hit));
+            }
+            on_hit(lane, placements.first_hit(hit))
         };
-        let cull = Culled { cull, first_caster };
+        let cull = Culled {
+            cull,
+            first_caster: placements.first,
+        };
         let lazy = LazyFrame {
             frame: model,
             fill: Some(fill),
             direction,
         };
         bvh_packet(bvh, lazy, model_beam, t_max, &cull, &mut relay);
+        if !found.is_empty() {
+            let repeated = repeated_groups(cull.cull.repeats, &placements, self.groups);
+            placements.replay(found, t_max, repeated, on_hit);
+        }
     }
 
     /// Parallel rays: only those whose origin lies in the image of the

@@ -1174,6 +1174,34 @@ mod two_level {
             world: DMat4::from_translation(reference + DVec3::new(0.0, 10.0, 0.0)),
             first_caster: 5,
         });
+        // Stacks of coincident copies (an editor's duplicate key): five of
+        // a cube part, four of a mirrored card (whose copies' ids give the
+        // culling tests' double-sided bits to some and not others), and a
+        // copy of a part placed first in the list, far from the rest of
+        // its stack.
+        let cube = parts[4];
+        parts.extend((0..5).map(|k| PlacedPart {
+            first_caster: 650 + k,
+            ..cube
+        }));
+        let card = PlacedPart {
+            model: 1,
+            world: DMat4::from_scale_rotation_translation(
+                DVec3::new(-1.5, 1.0, 2.0),
+                DQuat::from_rotation_y(0.4),
+                reference + DVec3::new(-10.0, 3.0, 6.0),
+            ),
+            first_caster: 720,
+        };
+        parts.extend((0..4).map(|k| PlacedPart {
+            first_caster: 720 + 2 * k,
+            ..card
+        }));
+        let early = PlacedPart {
+            first_caster: 660,
+            ..parts[9]
+        };
+        parts.insert(0, early);
         Instanced {
             blocks,
             models,
@@ -1233,6 +1261,380 @@ mod two_level {
             assert_eq!(a, hits(&oracle, &ray), "ray {ray:?}");
         }
         assert!(with_hits > 200, "{with_hits}");
+    }
+
+    /// A part's model-space triangle in the light-relative frame, as a
+    /// flat list of the placed world holds it.
+    fn placed(part: &PlacedPart, tri: &TraceTriangle, reference: DVec3) -> TraceTriangle {
+        let mut vertices = tri
+            .vertices
+            .map(|p| (part.world.transform_point3(p.as_dvec3()) - reference).as_vec3());
+        if part.world.determinant() < 0.0 {
+            vertices.swap(1, 2);
+        }
+        TraceTriangle {
+            vertices,
+            caster: part.first_caster + tri.caster,
+        }
+    }
+
+    #[test]
+    fn placed_hits_are_those_of_the_flat_placed_world() {
+        let mut rng = Rng::new(29);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
+        let block = PlacedBlock {
+            block: 0,
+            caster: 1,
+        };
+        let top = TopLevel::build(
+            &bottom,
+            &world.parts[..],
+            std::iter::once(block),
+            world.reference,
+        );
+        let reference = world.reference;
+        let mut flat: Vec<TraceTriangle> = Vec::new();
+        for part in &world.parts {
+            flat.extend(
+                world.models[part.model as usize]
+                    .iter()
+                    .map(|t| placed(part, t, reference)),
+            );
+        }
+        let (grid, _) = &bottom.terrain[0];
+        for cz in 0..8 {
+            for cx in 0..8 {
+                let pair = grid.cell_trace_triangles((cx, cz), reference, 1);
+                flat.extend(pair.into_iter().flatten().map(|(t, _)| t));
+            }
+        }
+        let part_of = |first_caster: u32| {
+            world
+                .parts
+                .iter()
+                .find(|p| p.first_caster == first_caster)
+                .unwrap()
+        };
+        let key = |h: &Hit, t: &TraceTriangle| {
+            (
+                h.t.to_bits(),
+                h.caster,
+                h.back_facing,
+                t.vertices.map(|v| v.to_array().map(f32::to_bits)),
+            )
+        };
+        let (mut with_hits, mut through_vertices) = (0, 0);
+        for k in 0..4000 {
+            let origin = Vec3::new(
+                rng.range(-80.0, 80.0) as f32,
+                40.0,
+                rng.range(-80.0, 80.0) as f32,
+            );
+            // Half the rays aim exactly at a vertex or an edge's midpoint
+            // of a placed triangle, where the model-space and the flat
+            // tests round differently.
+            let target = if k % 2 == 0 {
+                let t = flat[rng.below(flat.len())];
+                let [a, b, c] = t.vertices;
+                [a, (a + b) * 0.5, (b + c) * 0.5, c][rng.below(4)]
+            } else {
+                Vec3::new(
+                    rng.range(-50.0, 50.0) as f32,
+                    0.0,
+                    rng.range(-50.0, 50.0) as f32,
+                )
+            };
+            let ray = TraceRay {
+                origin,
+                direction: (target - origin).normalize(),
+                t_min: 0.0,
+                t_max: f32::INFINITY,
+            };
+            let mut ours = Vec::new();
+            top.for_each_placed_hit(
+                &bottom,
+                &ray,
+                |first, t| placed(part_of(first), t, reference),
+                |h, t| {
+                    ours.push(key(&h, t));
+                    f32::INFINITY
+                },
+            );
+            let mut expected = Vec::new();
+            brute_force_hits(&flat, &ray, |h| {
+                expected.push(key(&h, &flat[h.triangle as usize]));
+                f32::INFINITY
+            });
+            ours.sort();
+            expected.sort();
+            assert_eq!(ours, expected, "ray {ray:?}");
+            with_hits += usize::from(ours.len() > 1);
+            through_vertices += usize::from(k % 2 == 0 && !ours.is_empty());
+        }
+        assert!(
+            with_hits > 500 && through_vertices > 1000,
+            "{with_hits} {through_vertices}"
+        );
+    }
+
+    /// The stacks of coincident copies of an instanced world: per stack,
+    /// its parts' first caster ids in list order.
+    fn stacks(world: &Instanced) -> Vec<Vec<u32>> {
+        let mut stacks: Vec<(PlacedPart, Vec<u32>)> = Vec::new();
+        for part in &world.parts {
+            let same = |p: &PlacedPart| p.model == part.model && p.world == part.world;
+            match stacks.iter_mut().find(|(p, _)| same(p)) {
+                Some((_, ids)) => ids.push(part.first_caster),
+                None => stacks.push((*part, vec![part.first_caster])),
+            }
+        }
+        stacks
+            .into_iter()
+            .map(|(_, ids)| ids)
+            .filter(|ids| ids.len() > 1)
+            .collect()
+    }
+
+    /// Rays from above, half of them aimed at the stacks' parts; each run
+    /// of `per_origin` rays from one point (a spot light's packet), its
+    /// aimed rays at one part.
+    fn rays_at_stacks(
+        world: &Instanced,
+        rng: &mut Rng,
+        count: usize,
+        per_origin: usize,
+    ) -> Vec<TraceRay> {
+        let stacked: Vec<&PlacedPart> = world
+            .parts
+            .iter()
+            .filter(|p| stacks(world).iter().any(|s| s[0] == p.first_caster))
+            .collect();
+        let mut origin = Vec3::ZERO;
+        (0..count)
+            .map(|k| {
+                if k % per_origin == 0 {
+                    origin = Vec3::new(
+                        rng.range(-60.0, 60.0) as f32,
+                        30.0,
+                        rng.range(-60.0, 60.0) as f32,
+                    );
+                }
+                let target = if k % 2 == 0 {
+                    let aim = if per_origin > 1 {
+                        k / per_origin
+                    } else {
+                        k / 2
+                    };
+                    let part = stacked[aim % stacked.len()];
+                    let jitter = DVec3::new(
+                        rng.range(-1.0, 1.0),
+                        rng.range(-0.5, 0.5),
+                        rng.range(-1.0, 1.0),
+                    );
+                    (part.world.transform_point3(jitter) - world.reference).as_vec3()
+                } else {
+                    Vec3::new(
+                        rng.range(-50.0, 50.0) as f32,
+                        0.0,
+                        rng.range(-50.0, 50.0) as f32,
+                    )
+                };
+                TraceRay {
+                    origin,
+                    direction: (target - origin).normalize(),
+                    t_min: 0.0,
+                    t_max: 300.0,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn coincident_copies_are_one_entry_and_each_reports_its_own_hits() {
+        // The reference: a top level per part, so no two copies share one
+        // (the same arithmetic, none of the folding).
+        let mut rng = Rng::new(37);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
+        let block = PlacedBlock {
+            block: 0,
+            caster: 1,
+        };
+        let top = TopLevel::build(
+            &bottom,
+            &world.parts[..],
+            std::iter::once(block),
+            world.reference,
+        );
+        let copies: usize = stacks(&world).iter().map(|s| s.len() - 1).sum();
+        assert_eq!(stacks(&world).len(), 3);
+        assert_eq!(top.len(), world.parts.len() + 1);
+        assert_eq!(top.entries.len(), world.parts.len() + 1 - copies);
+        let alone: Vec<TopLevel> = world
+            .parts
+            .iter()
+            .map(|p| {
+                TopLevel::build(
+                    &bottom,
+                    std::slice::from_ref(p),
+                    std::iter::empty(),
+                    world.reference,
+                )
+            })
+            .collect();
+        let ground = TopLevel::build(&bottom, &[][..], std::iter::once(block), world.reference);
+        let stacked: Vec<u32> = stacks(&world).concat();
+        let (mut on_copies, mut with_hits) = (0, 0);
+        for ray in rays_at_stacks(&world, &mut rng, 1500, 1) {
+            let mut expected = Vec::new();
+            for top in alone.iter().chain(std::iter::once(&ground)) {
+                let tracer = Tracer {
+                    bottom: &bottom,
+                    top,
+                    mode: TraceMode::Trees,
+                };
+                expected.extend(hits(&tracer, &ray));
+            }
+            expected.sort();
+            let tracer = Tracer {
+                bottom: &bottom,
+                top: &top,
+                mode: TraceMode::Trees,
+            };
+            let got = hits(&tracer, &ray);
+            assert_eq!(got, expected, "ray {ray:?}");
+            // And with a t_max that shrinks to the nearest hit, the ties
+            // at it on every copy.
+            let mut nearest = Vec::new();
+            tracer.for_each_hit(&ray, |h| {
+                nearest.retain(|&(t, _)| t <= h.t);
+                if nearest.first().is_none_or(|&(t, _)| h.t <= t) {
+                    nearest.push((h.t, h.caster));
+                }
+                nearest.first().map_or(f32::INFINITY, |&(t, _)| t)
+            });
+            nearest.sort_by_key(|a| a.1);
+            let t = expected.first().map(|h| f32::from_bits(h.0));
+            let mut want: Vec<(f32, u32)> = expected
+                .iter()
+                .filter(|h| Some(f32::from_bits(h.0)) == t)
+                .map(|h| (f32::from_bits(h.0), h.1))
+                .collect();
+            want.sort_by_key(|a| a.1);
+            want.dedup();
+            nearest.dedup();
+            assert_eq!(nearest, want, "ray {ray:?}");
+            on_copies += usize::from(
+                got.iter()
+                    .any(|h| stacked.contains(&(h.1 & !1)) || stacked.contains(&h.1)),
+            );
+            with_hits += usize::from(!got.is_empty());
+        }
+        assert!(
+            on_copies > 300 && with_hits > 1000,
+            "{on_copies} {with_hits}"
+        );
+    }
+
+    #[test]
+    fn packets_leave_out_the_repeated_hits_a_caller_drops_and_no_other() {
+        let mut rng = Rng::new(43);
+        let world = instanced(&mut rng);
+        let bottom = BottomLevels::build(
+            2,
+            |m| world.models[m].clone(),
+            grids(&world.blocks, 8, 100.0),
+        );
+        let top = TopLevel::build(
+            &bottom,
+            &world.parts[..],
+            std::iter::empty(),
+            world.reference,
+        );
+        let tracer = Tracer {
+            bottom: &bottom,
+            top: &top,
+            mode: TraceMode::Trees,
+        };
+        // The ids of each stack's third and later placements, each with
+        // its first two's, group by group of the stack's model.
+        let mut later = Vec::new();
+        for stack in stacks(&world) {
+            let part = world
+                .parts
+                .iter()
+                .find(|p| p.first_caster == stack[0])
+                .unwrap();
+            let groups = world.models[part.model as usize]
+                .iter()
+                .map(|t| t.caster)
+                .max()
+                .unwrap()
+                + 1;
+            for &copy in &stack[2..] {
+                for g in 0..groups {
+                    later.push((copy + g, [stack[0] + g, stack[1] + g]));
+                }
+            }
+        }
+        let anchors_of = |c: u32| later.iter().find(|(id, _)| *id == c).map(|(_, a)| *a);
+        let all = |_: u32, _: [u32; 2]| true;
+        let even = |c: u32, _: [u32; 2]| c.is_multiple_of(2);
+        let mut left_out = 0;
+        for (k, drops) in [&all as &DropsRepeat, &even].into_iter().enumerate() {
+            let cull = FaceCull {
+                repeats: Some(drops),
+                ..FaceCull::default()
+            };
+            for rays in rays_at_stacks(&world, &mut rng, 64 * 40, 64).chunks(64) {
+                let mut got = vec![Vec::new(); rays.len()];
+                let mut scratch = PacketScratch::default();
+                tracer.for_each_packet_hit_culled(
+                    rays,
+                    &mut scratch,
+                    &cull,
+                    PacketRays::All,
+                    |lane, h| {
+                        got[lane].push((h.t.to_bits(), h.caster, h.back_facing, h.triangle));
+                        f32::INFINITY
+                    },
+                );
+                for (ray, mut list) in rays.iter().zip(got) {
+                    list.sort();
+                    let every = hits(&tracer, ray);
+                    // Each hit reported is a hit, and every hit is reported
+                    // but a later copy's the caller drops given its first
+                    // two's, which are reported.
+                    assert!(list.iter().all(|h| every.contains(h)), "ray {ray:?}");
+                    for h in &every {
+                        let dropped = anchors_of(h.1).is_some_and(|a| drops(h.1, a));
+                        assert!(dropped || list.contains(h), "{h:?} of ray {ray:?}");
+                        if let Some(a) = anchors_of(h.1) {
+                            for anchor in a {
+                                let twin = (h.0, anchor, h.2, h.3);
+                                assert!(list.contains(&twin), "{twin:?} of ray {ray:?}");
+                            }
+                        }
+                    }
+                    // Dropping every repeat leaves out all of them.
+                    if k == 0 {
+                        let repeats = every.iter().filter(|h| anchors_of(h.1).is_some()).count();
+                        assert_eq!(list.len(), every.len() - repeats, "ray {ray:?}");
+                        left_out += repeats;
+                    }
+                }
+            }
+        }
+        assert!(left_out > 500, "{left_out}");
     }
 
     // -----------------------------------------------------------------------
@@ -1574,6 +1976,7 @@ mod two_level {
                 let cull = FaceCull {
                     drops_back,
                     either_face: &either,
+                    repeats: None,
                 };
                 let fixed = [Vec3::NEG_Y, Vec3::new(1.0, -0.05, 0.3)];
                 let rays = random_parallel_tile(&mut rng, k, &fixed, (60.0, 10.0));
@@ -1596,6 +1999,7 @@ mod two_level {
                 let cull = FaceCull {
                     drops_back: [Some(true), Some(false)][k % 2],
                     either_face: &either,
+                    repeats: None,
                 };
                 let rays = parallel_tile(centre - d * 20.0, d, 8, 0.01, 60.0);
                 assert_culled_packets_agree(tracer, &rays, &cull);

@@ -8,12 +8,13 @@
 //! hit lies inside its instance's box up to the rounding of the mapped ray,
 //! which the node padding (hundreds of ulps of the magnitude) covers.
 
-use super::blas::BottomLevels;
+use super::blas::{BottomLevels, ModelGroup};
 use super::boxtree::BoxRay;
 use super::boxtree::BoxTree;
 use super::heightfield::{HeightField, HeightGrid};
 use super::instance::ToModel;
-use super::{Hit, TraceRay, MAX_COORDINATE};
+use super::triangle::{report_hit, PreparedRay};
+use super::{DropsRepeat, Hit, TraceRay, TraceTriangle, MAX_COORDINATE};
 use glam::{DMat4, DVec3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 
@@ -83,11 +84,91 @@ pub(crate) enum Entry {
         model: u32,
         first_caster: u32,
         to_model: ToModel,
+        /// The part's coincident copies (see [`TopLevel::placements`]).
+        copies: CopyRange,
     },
     Block {
         block: u32,
         caster: u32,
     },
+}
+
+/// Where an entry's coincident copies' first caster ids lie in
+/// [`TopLevel::copy_casters`] (none: `count` 0).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct CopyRange {
+    start: u32,
+    count: u32,
+}
+
+/// The first caster ids of a part entry and of its coincident copies:
+/// parts placed with the same model at the bit-identical transform (an
+/// editor's duplicate key leaves such stacks), which are one entry of the
+/// tree. A ray meets every copy where it meets the first, with the same
+/// arithmetic (the same inverse transform maps it to the same model-space
+/// ray), so the traversals walk the model once and report each hit for
+/// every copy: a stack costs one traversal, not one per copy.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Placements<'t> {
+    pub(crate) first: u32,
+    pub(crate) copies: &'t [u32],
+}
+
+impl Placements<'_> {
+    /// Every first caster id, the entry's own first.
+    #[inline]
+    pub(crate) fn iter(&self) -> impl Iterator<Item = u32> + '_ {
+        std::iter::once(self.first).chain(self.copies.iter().copied())
+    }
+
+    /// A hit of the first placement with its caster id (`hit.caster`:
+    /// the group within the model).
+    #[inline]
+    pub(crate) fn first_hit(&self, hit: Hit) -> Hit {
+        Hit {
+            caster: self.first + hit.caster,
+            ..hit
+        }
+    }
+
+    /// The hits `found` of the first placement (each with its ray's lane
+    /// and the group within the model as its caster) reported again for
+    /// each copy in turn, with the copy's ids, those still within their
+    /// lane's `t_max`, which takes what `on_hit` returns (a larger or NaN
+    /// value is ignored). Exact: a copy's hits are the first placement's,
+    /// and one the first placement's traversal passed over lay beyond a
+    /// t_max that has only shrunk since. Copy by copy, so the rays' t_max
+    /// shrink to what the first copies settle, and a hit beyond its ray's
+    /// t_max leaves `found` (it stays beyond): each copy after those costs
+    /// about its hits at the front.
+    ///
+    /// `repeated`: the groups (bits, groups 0 to 63) whose hits the caller
+    /// drops from the third placement on ([`super::DropsRepeat`]): once the
+    /// second is replayed, those hits leave `found`.
+    pub(crate) fn replay(
+        &self,
+        found: &mut Vec<(usize, Hit)>,
+        t_max: &mut [f32],
+        repeated: u64,
+        mut on_hit: impl FnMut(usize, Hit) -> f32,
+    ) {
+        for (k, &first) in self.copies.iter().enumerate() {
+            if k == 1 && repeated != 0 {
+                found.retain(|(_, hit)| hit.caster >= 64 || repeated & (1 << hit.caster) == 0);
+            }
+            found.retain(|&(lane, hit)| {
+                if hit.t > t_max[lane] {
+                    return false;
+                }
+                let caster = first + hit.caster;
+                let next = on_hit(lane, Hit { caster, ..hit });
+                if next < t_max[lane] {
+                    t_max[lane] = next;
+                }
+                true
+            });
+        }
+    }
 }
 
 /// One light's top level.
@@ -96,6 +177,9 @@ pub struct TopLevel {
     pub(crate) tree: BoxTree,
     /// In tree order.
     pub(crate) entries: Vec<Entry>,
+    /// The first caster ids of the entries' coincident copies, entry by
+    /// entry ([`CopyRange`]).
+    copy_casters: Vec<u32>,
     pub(crate) reference: DVec3,
     /// Triangles of parts that could not be placed (a box that is not
     /// finite or beyond [`MAX_COORDINATE`], a transform that cannot be
@@ -162,6 +246,7 @@ impl TopLevel {
     ) -> TopLevel {
         let mut boxes = Vec::with_capacity(parts.count() + blocks.len());
         let mut sources = Vec::with_capacity(parts.count() + blocks.len());
+        let mut placements = Vec::with_capacity(parts.count());
         let mut left_out_triangles = 0;
         for index in 0..parts.count() {
             let part = parts.part(index);
@@ -169,9 +254,19 @@ impl TopLevel {
                 Some(b) => {
                     boxes.push(b);
                     sources.push(Source::Part(index as u32));
+                    placements.push((placement_hash(&part), index as u32));
                 }
                 None => left_out_triangles += bottom.model_triangles(part.model as usize),
             }
+        }
+        let coincident = Coincident::find(parts, placements);
+        if !coincident.copies.is_empty() {
+            let mut kept = sources.iter().map(|s| match s {
+                Source::Part(index) => !coincident.is_copy(*index),
+                Source::Block(_) => true,
+            });
+            boxes.retain(|_| kept.next() == Some(true));
+            sources.retain(|s| !matches!(s, Source::Part(index) if coincident.is_copy(*index)));
         }
         for placed in blocks {
             let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
@@ -190,11 +285,22 @@ impl TopLevel {
         });
         let tree = BoxTree::build(&boxes, 1);
         drop(boxes);
+        let mut copy_casters = Vec::new();
         let entries = tree
             .order()
             .iter()
             .map(|&i| match sources[i as usize] {
-                Source::Part(index) => part_entry(&parts.part(index as usize), reference),
+                Source::Part(index) => {
+                    let start = copy_casters.len() as u32;
+                    let copies = coincident.copies.get(&index).map_or(&[][..], |c| &c[..]);
+                    copy_casters
+                        .extend(copies.iter().map(|&c| parts.part(c as usize).first_caster));
+                    let copies = CopyRange {
+                        start,
+                        count: copies.len() as u32,
+                    };
+                    part_entry(&parts.part(index as usize), reference, copies)
+                }
                 Source::Block(placed) => Entry::Block {
                     block: placed.block,
                     caster: placed.caster,
@@ -204,15 +310,26 @@ impl TopLevel {
         TopLevel {
             tree,
             entries,
+            copy_casters,
             reference,
             left_out_triangles,
             bounds,
         }
     }
 
-    /// Placed parts and blocks in the tree.
+    /// The first caster ids of a part entry `first_caster` with `copies`.
+    #[inline]
+    pub(crate) fn placements(&self, first_caster: u32, copies: CopyRange) -> Placements<'_> {
+        let start = copies.start as usize;
+        Placements {
+            first: first_caster,
+            copies: &self.copy_casters[start..start + copies.count as usize],
+        }
+    }
+
+    /// Placed parts (each coincident copy counted) and blocks in the tree.
     pub fn len(&self) -> usize {
-        self.entries.len()
+        self.entries.len() + self.copy_casters.len()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -231,7 +348,9 @@ impl TopLevel {
     }
 
     pub fn heap_bytes(&self) -> usize {
-        self.tree.heap_bytes() + self.entries.capacity() * std::mem::size_of::<Entry>()
+        self.tree.heap_bytes()
+            + self.entries.capacity() * std::mem::size_of::<Entry>()
+            + self.copy_casters.capacity() * 4
     }
 
     /// Every hit, through the trees (`brute_force` false) or by testing every
@@ -247,17 +366,104 @@ impl TopLevel {
         if brute_force {
             let mut t_max = ray.t_max;
             for entry in &self.entries {
-                t_max = self.entry_hits(bottom, entry, ray, t_max, None, &mut on_hit);
+                t_max = self.entry_hits(bottom, entry, ray, t_max, EntryTest::Oracle, &mut on_hit);
                 if t_max < ray.t_min {
                     return;
                 }
             }
         } else {
-            self.tree.visit(ray, |slot, t_max, node_test| {
-                let entry = &self.entries[slot];
-                self.entry_hits(bottom, entry, ray, t_max, Some(node_test), &mut on_hit)
-            });
+            self.for_each_hit_dropping(bottom, ray, None, on_hit);
         }
+    }
+
+    /// [`Self::for_each_hit`] through the trees, leaving out the hits of
+    /// a stack's third and later placements that `repeats` drops
+    /// ([`DropsRepeat`]).
+    pub(crate) fn for_each_hit_dropping(
+        &self,
+        bottom: &BottomLevels,
+        ray: &TraceRay,
+        repeats: Option<&DropsRepeat>,
+        mut on_hit: impl FnMut(Hit) -> f32,
+    ) {
+        self.tree.visit(ray, |slot, t_max, node_test| {
+            let entry = &self.entries[slot];
+            let test = EntryTest::Trees(node_test, repeats);
+            self.entry_hits(bottom, entry, ray, t_max, test, &mut on_hit)
+        });
+    }
+
+    /// Every hit of `ray` on the triangles a flat list of the placed world
+    /// would hold, tested where that list holds them, without holding it:
+    /// `place(first_caster, triangle)` puts a part's model-space triangle
+    /// (its `caster` the group) into the light-relative frame as that list
+    /// would (its `caster` the id); a coincident copy's triangles are its
+    /// first part's with the copy's ids. Terrain is tested where it always
+    /// is.
+    /// The trees only choose the triangles to test, padded for the distance
+    /// between the frames, so the hits are those of a BVH over the placed
+    /// triangles (unusable ones left out). `on_hit` gets each hit with its
+    /// triangle and returns the new t_max. For pictures, whose pixels must
+    /// not depend on how the world is instanced.
+    pub fn for_each_placed_hit(
+        &self,
+        bottom: &BottomLevels,
+        ray: &TraceRay,
+        place: impl Fn(u32, &TraceTriangle) -> TraceTriangle,
+        mut on_hit: impl FnMut(Hit, &TraceTriangle) -> f32,
+    ) {
+        let prepared = PreparedRay::new(ray);
+        if !prepared.is_valid() {
+            return;
+        }
+        let reference = self.reference;
+        self.tree
+            .visit(ray, |slot, t_max, node_test| match self.entries[slot] {
+                Entry::Part {
+                    model,
+                    first_caster,
+                    to_model,
+                    copies,
+                } => {
+                    let bvh = &bottom.models[model as usize];
+                    let placements = self.placements(first_caster, copies);
+                    let mut found = Vec::new();
+                    let model_ray = to_model.ray(ray);
+                    let t_max = bvh.visit_triangles(&model_ray, t_max, |triangle, index, t_max| {
+                        let placed = place(first_caster, triangle);
+                        if !placed.is_usable() {
+                            return t_max;
+                        }
+                        report_hit(&prepared, &placed, index, t_max, &mut |hit| {
+                            if !placements.copies.is_empty() {
+                                found.push((hit, placed, triangle.caster));
+                            }
+                            on_hit(hit, &placed)
+                        })
+                    });
+                    // A copy's triangles are the first placement's, with its ids.
+                    let mut t_max = t_max;
+                    for &copy in placements.copies {
+                        for &(hit, placed, group) in &found {
+                            if hit.t <= t_max {
+                                let caster = copy + group;
+                                let triangle = TraceTriangle { caster, ..placed };
+                                t_max = t_max.min(on_hit(Hit { caster, ..hit }, &triangle));
+                            }
+                        }
+                    }
+                    t_max
+                }
+                Entry::Block { block, caster } => {
+                    let (grid, field) = &bottom.terrain[block as usize];
+                    let mut relay =
+                        |hit: Hit| match grid.hit_triangle(hit.triangle, reference, caster) {
+                            Some(triangle) => on_hit(hit, &triangle),
+                            None => t_max,
+                        };
+                    field.hits(grid, reference, node_test, ray, caster, t_max, &mut relay)
+                }
+            });
     }
 
     #[inline]
@@ -267,7 +473,7 @@ impl TopLevel {
         entry: &Entry,
         ray: &TraceRay,
         t_max: f32,
-        node_test: Option<&BoxRay>,
+        test: EntryTest,
         on_hit: &mut impl FnMut(Hit) -> f32,
     ) -> f32 {
         match *entry {
@@ -275,31 +481,90 @@ impl TopLevel {
                 model,
                 first_caster,
                 to_model,
+                copies,
             } => {
                 let bvh = &bottom.models[model as usize];
                 let model_ray = to_model.ray(ray);
-                let mut relay = |hit: Hit| {
-                    on_hit(Hit {
-                        caster: first_caster + hit.caster,
-                        ..hit
-                    })
-                };
-                match node_test {
-                    None => super::brute::bvh_triangles_hits(bvh, &model_ray, t_max, &mut relay),
-                    Some(_) => bvh.hits_within(&model_ray, t_max, &mut relay),
+                let placements = self.placements(first_caster, copies);
+                match test {
+                    // The oracle tests each copy's triangles on their own.
+                    EntryTest::Oracle => placements.iter().fold(t_max, |t_max, first| {
+                        let mut relay = |hit: Hit| {
+                            on_hit(Hit {
+                                caster: first + hit.caster,
+                                ..hit
+                            })
+                        };
+                        super::brute::bvh_triangles_hits(bvh, &model_ray, t_max, &mut relay)
+                    }),
+                    EntryTest::Trees(..) if placements.copies.is_empty() => {
+                        let mut relay = |hit: Hit| on_hit(placements.first_hit(hit));
+                        bvh.hits_within(&model_ray, t_max, &mut relay)
+                    }
+                    EntryTest::Trees(_, repeats) => {
+                        let mut found = Vec::new();
+                        let mut relay = |hit: Hit| {
+                            found.push((0, hit));
+                            on_hit(placements.first_hit(hit))
+                        };
+                        let mut t_max = [bvh.hits_within(&model_ray, t_max, &mut relay)];
+                        if !found.is_empty() {
+                            let groups = &bottom.model_groups[model as usize];
+                            let repeated = repeated_groups(repeats, &placements, groups);
+                            placements
+                                .replay(&mut found, &mut t_max, repeated, |_, hit| on_hit(hit));
+                        }
+                        t_max[0]
+                    }
                 }
             }
             Entry::Block { block, caster } => {
                 let (grid, field) = &bottom.terrain[block as usize];
-                match node_test {
-                    None => grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit),
-                    Some(boxes) => {
+                match test {
+                    EntryTest::Oracle => {
+                        grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit)
+                    }
+                    EntryTest::Trees(boxes, _) => {
                         field.hits(grid, self.reference, boxes, ray, caster, t_max, on_hit)
                     }
                 }
             }
         }
     }
+}
+
+/// How [`TopLevel::entry_hits`] finds an entry's hits: testing every
+/// triangle and cell (the oracle), or through its trees with the node
+/// test the top level's walk made, leaving out the repeats a caller drops.
+#[derive(Clone, Copy)]
+enum EntryTest<'a> {
+    Oracle,
+    Trees(&'a BoxRay, Option<&'a DropsRepeat<'a>>),
+}
+
+/// The groups (bits, groups 0 to 63) whose hits `drops` drops on every
+/// placement from the third on, given the first two's ([`DropsRepeat`]);
+/// asked once an entry a packet or ray, not a hit.
+pub(crate) fn repeated_groups(
+    drops: Option<&DropsRepeat>,
+    placements: &Placements,
+    groups: &[ModelGroup],
+) -> u64 {
+    let (Some(drops), [second, rest @ ..]) = (drops, placements.copies) else {
+        return 0;
+    };
+    if rest.is_empty() {
+        return 0;
+    }
+    let first = placements.first;
+    groups
+        .iter()
+        .filter(|g| g.group < 64)
+        .filter(|g| {
+            let anchors = [first + g.group, second + g.group];
+            rest.iter().all(|&copy| drops(copy + g.group, anchors))
+        })
+        .fold(0, |bits, g| bits | 1 << g.group)
 }
 
 /// A part's light-relative box; `None` when the part cannot be placed (no
@@ -314,12 +579,79 @@ fn part_box(bottom: &BottomLevels, part: &PlacedPart, reference: DVec3) -> Optio
 }
 
 /// The entry of a part [`part_box`] placed.
-fn part_entry(part: &PlacedPart, reference: DVec3) -> Entry {
+fn part_entry(part: &PlacedPart, reference: DVec3, copies: CopyRange) -> Entry {
     Entry::Part {
         model: part.model,
         first_caster: part.first_caster,
         to_model: ToModel::new(&part.world, reference)
             .expect("the same inverse succeeded when the part's box was made"),
+        copies,
+    }
+}
+
+/// A hash of a part's model and transform bits (FxHash's mixing).
+fn placement_hash(part: &PlacedPart) -> u64 {
+    let bits = part.world.to_cols_array().map(f64::to_bits);
+    bits.iter().fold(u64::from(part.model), |h, &b| {
+        (h.rotate_left(5) ^ b).wrapping_mul(0x517c_c1b7_2722_0a95)
+    })
+}
+
+/// Whether two parts place one model at bit-identical transforms.
+fn same_placement(a: &PlacedPart, b: &PlacedPart) -> bool {
+    let bits = |p: &PlacedPart| p.world.to_cols_array().map(f64::to_bits);
+    a.model == b.model && bits(a) == bits(b)
+}
+
+/// The coincident copies among the parts: per part with later copies
+/// (its lowest index), the copies' indices, ascending.
+struct Coincident {
+    copies: std::collections::HashMap<u32, Vec<u32>>,
+    /// Bits of the parts that are a copy of an earlier one.
+    copy_bits: Vec<u64>,
+}
+
+impl Coincident {
+    /// From `(placement_hash, index)` of every placed part.
+    fn find(parts: &(impl PlacedParts + ?Sized), mut placements: Vec<(u64, u32)>) -> Coincident {
+        placements.sort_unstable();
+        let mut found = Coincident {
+            copies: Default::default(),
+            copy_bits: Vec::new(),
+        };
+        for run in placements
+            .chunk_by(|a, b| a.0 == b.0)
+            .filter(|r| r.len() > 1)
+        {
+            // Usually one placement a hash: compare with each distinct one
+            // of the run so far.
+            let mut firsts: Vec<(u32, PlacedPart)> = Vec::new();
+            for &(_, index) in run {
+                let part = parts.part(index as usize);
+                match firsts
+                    .iter()
+                    .find(|(_, first)| same_placement(first, &part))
+                {
+                    Some(&(first, _)) => found.add(first, index, parts.count()),
+                    None => firsts.push((index, part)),
+                }
+            }
+        }
+        found
+    }
+
+    fn add(&mut self, first: u32, copy: u32, parts: usize) {
+        self.copies.entry(first).or_default().push(copy);
+        if self.copy_bits.is_empty() {
+            self.copy_bits = vec![0; parts.div_ceil(64)];
+        }
+        self.copy_bits[copy as usize / 64] |= 1 << (copy % 64);
+    }
+
+    fn is_copy(&self, index: u32) -> bool {
+        self.copy_bits
+            .get(index as usize / 64)
+            .is_some_and(|w| w & (1 << (index % 64)) != 0)
     }
 }
 

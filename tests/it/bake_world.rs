@@ -189,6 +189,109 @@ fn bvh_equals_brute_force_on_a_generated_world() {
     assert!(fast.masks.iter().filter(|m| **m != 0).count() > 5);
 }
 
+/// A random 2×2-chunk world of stacks of coincident placements (one model
+/// list placed 2 to 40 times at one transform, each copy casting or
+/// receiver-only at random) of opaque, double-sided, alpha-tested and
+/// two-group models, rotated, scaled and mirrored, among single
+/// placements and hilly terrain: most rays through a stack tie its copies.
+fn stacked_world(seed: u64) -> World {
+    let mut rng = Rng::new(seed);
+    let mut world = World::new(2, 2);
+    for grid in [(0, 0), (1, 1)] {
+        world.terrain(grid, |x, z| 0.8 * (0.4 * x).sin() * (0.3 * z).cos());
+    }
+    let flags = [
+        OPAQUE,
+        TWO_SIDED,
+        CANOPY,
+        Flags {
+            alpha_tested: true,
+            double_sided: false,
+        },
+    ];
+    let models: Vec<usize> = (0..5)
+        .map(|k| {
+            let size = Vec3::new(
+                rng.range(0.5, 2.5) as f32,
+                rng.range(0.5, 2.5) as f32,
+                rng.range(0.5, 2.5) as f32,
+            );
+            let card = quad_up(-size.x, -size.z, size.x, size.z, size.y + 0.5);
+            let groups = match k {
+                0 => vec![(card, flags[rng.below(4)])],
+                1 => vec![(cube(-size, size), OPAQUE), (card, flags[rng.below(4)])],
+                _ => vec![(cube(-size, size), flags[rng.below(4)])],
+            };
+            world.model(Mesh { groups })
+        })
+        .collect();
+    for k in 0..12 {
+        let grid = (rng.below(2) as i32, rng.below(2) as i32);
+        let rotation = DQuat::from_euler(
+            glam::EulerRot::YXZ,
+            rng.range(0.0, 6.3),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        );
+        let mut scale = DVec3::splat(rng.range(0.6, 1.8));
+        if rng.below(3) == 0 {
+            scale.x = -scale.x;
+        }
+        let position = DVec3::new(
+            rng.range(1.0, CHUNK - 1.0),
+            rng.range(0.0, 5.0),
+            rng.range(1.0, CHUNK - 1.0),
+        );
+        let local = DMat4::from_scale_rotation_translation(scale, rotation, position);
+        let mut parts = vec![models[rng.below(models.len())]];
+        if rng.below(4) == 0 {
+            parts.push(models[rng.below(models.len())]);
+        }
+        let copies = match k % 3 {
+            0 => 1,
+            1 => 2 + rng.below(4),
+            _ => 40,
+        };
+        for _ in 0..copies {
+            world.place(grid, &parts, local, rng.below(4) != 0);
+        }
+    }
+    world
+}
+
+#[test]
+fn bvh_equals_brute_force_on_stacks_of_coincident_copies() {
+    // A light of each kind a seed, and a sun whose texels lie closer than
+    // a packet's spacing (traced as packets) and one whose lie farther
+    // (ray by ray), over the culling modes.
+    let mut useful = 0;
+    for seed in 0..6 {
+        let world = stacked_world(seed);
+        let mut rng = Rng::new(2000 + seed);
+        let centre = DVec3::new(CHUNK, 0.0, CHUNK);
+        let mut lights: Vec<LightSettings> = Vec::new();
+        while lights.len() < 3 {
+            let light = random_light(&mut rng, centre);
+            let kind = |l: &LightSettings| std::mem::discriminant(&l.kind);
+            if !lights.iter().any(|l| kind(l) == kind(&light)) {
+                lights.push(light);
+            }
+        }
+        for light in &mut lights {
+            if let LightKind::Directional { texel_size, .. } = &mut light.kind {
+                *texel_size = [0.3, 0.7][seed as usize % 2];
+            }
+        }
+        let mut settings = config(lights);
+        settings.face_culling =
+            [FaceCulling::Back, FaceCulling::Front, FaceCulling::None][seed as usize % 3];
+        // `run` bakes with the BVH and with brute force and asserts equality.
+        let result = run(&world, &settings);
+        useful += result.masks.iter().filter(|m| **m != 0).count();
+    }
+    assert!(useful > 100, "{useful}");
+}
+
 #[test]
 fn masks_are_the_same_for_any_thread_count() {
     let world = random_world(99);

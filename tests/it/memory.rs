@@ -3,6 +3,8 @@
 //! the kernel (wait4), checked loosely against the model's prediction. A
 //! bake that held ~350 bytes per *placed* triangle (flat triangle lists
 //! instead of one bottom level per model) fails this by a factor of ten.
+//! The camera view, which traces the same structure, stays within twice
+//! the bake's peak on the same world.
 //! `SHADOWCULL_SLOW=1` (set by CI) bakes a 16×16-chunk world instead of
 //! 6×6.
 
@@ -86,6 +88,50 @@ fn peak_memory_follows_the_memory_model_not_placed_triangles() {
     assert!(
         placed_triangles * 350 > 10 * predicted,
         "{placed_triangles}"
+    );
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn the_camera_view_needs_about_what_the_bake_needs() {
+    // The camera traces the bake's own bottom levels under one top level
+    // over every placement: its peak is the bake's and a top-level entry a
+    // placement, plus the picture. A view over a flat list of the placed
+    // triangles and terrain cells needs tens of times the bake's peak
+    // here.
+    let dir = tempfile::tempdir().unwrap();
+    generate_each(GenSize::BenchChunks(6), 1, |path, bytes| {
+        write_tree(dir.path(), &[(path.to_string(), bytes)])
+    })
+    .unwrap();
+    let settings = dir.path().join(SETTINGS_FILE);
+    let settings = settings.to_str().unwrap();
+    let (status, bake_peak) = run_measured(&["bake", settings, "--dry-run", "--threads", "2"]);
+    assert_eq!(status, 0);
+    let picture = dir.path().join("camera.png");
+    let (status, camera_peak) = run_measured(&[
+        "render",
+        settings,
+        "--light",
+        "sun",
+        "--view",
+        "camera",
+        "--size",
+        "320x240",
+        "--threads",
+        "2",
+        "-o",
+        picture.to_str().unwrap(),
+    ]);
+    assert_eq!(status, 0);
+    eprintln!(
+        "peak RSS: bake {:.1} MB, camera view {:.1} MB",
+        bake_peak as f64 / 1e6,
+        camera_peak as f64 / 1e6
+    );
+    assert!(
+        camera_peak <= 2 * bake_peak,
+        "camera view {camera_peak} bytes, bake {bake_peak}"
     );
 }
 
