@@ -23,6 +23,7 @@ pub mod setup;
 pub mod shard;
 pub mod texel_beam;
 pub mod trace_light;
+pub mod world_record;
 
 use crate::classify::Passes;
 use crate::formats::chunk::InstanceKind;

@@ -51,10 +51,13 @@ pub enum Kind {
     /// The `<shadow>`s a chunk file's bytes were written with, so a later
     /// bake whose masks are the same keeps the file without parsing it.
     Output,
+    /// A baked world's record: every file it read and how it found them,
+    /// so a bake of an unchanged world knows it without loading it.
+    World,
 }
 
 impl Kind {
-    pub const ALL: [Kind; 7] = [
+    pub const ALL: [Kind; 8] = [
         Kind::Chunk,
         Kind::Model,
         Kind::Terrain,
@@ -62,6 +65,7 @@ impl Kind {
         Kind::Refine,
         Kind::Manifest,
         Kind::Output,
+        Kind::World,
     ];
 
     pub fn name(self) -> &'static str {
@@ -73,6 +77,7 @@ impl Kind {
             Kind::Refine => "refine",
             Kind::Manifest => "manifest",
             Kind::Output => "output",
+            Kind::World => "world",
         }
     }
 
@@ -233,7 +238,7 @@ pub fn executable_build() -> crate::Result<Key> {
 /// A file this old or older than its hash's record is trusted by its
 /// stamp: one written since, within the file system's time resolution,
 /// could carry the same times (git's rule for racily clean entries).
-const RACY_NANOSECONDS: u64 = 2_000_000_000;
+pub const RACY_NANOSECONDS: u64 = 2_000_000_000;
 
 /// [`executable_build`] with a stat shortcut kept in the cache folder
 /// `dir`: the hash is read again only when the executable's length, inode,

@@ -13,9 +13,12 @@ use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
 use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::setup::BakeWorld;
+use shadowcull::bake::world_record::{self, Baked};
 use shadowcull::bake::{self, BakeConfig};
+use shadowcull::cache::{Cache, Key};
 use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::SceneKeys;
+use std::path::Path;
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
@@ -55,6 +58,17 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     let started = Instant::now();
     let cache = args.options.cache.open(file)?;
     let reporter = Reporter::new(&args.options.progress);
+    let record_key = cache
+        .as_ref()
+        .filter(|_| args.output.out.is_none() && args.output.report.is_none())
+        .map(|cache| world_record_key(cache, file, settings, config));
+    if let (Some(cache), Some(key)) = (&cache, &record_key) {
+        if let Some(found) = world_record::check(cache, key) {
+            super::cache::say_up_to_date(&found, &args.options, started, &reporter);
+            super::cache::finish(cache, &reporter);
+            return Ok(());
+        }
+    }
     let scene = load_scene_told(settings, &args.options, &reporter)?;
     warn_locked_chunks(&scene, &args.output, &args.options);
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
@@ -93,9 +107,43 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
         started,
         cache: cache.as_ref(),
     };
-    write_results(&args.output, &args.options, &results, result, &reporter)?;
+    let wrote = write_results(&args.output, &args.options, &results, result, &reporter)?;
+    if let (Some(cache), Some(key)) = (&cache, &record_key) {
+        // A dry run that would change files leaves a world not yet baked.
+        if !(wrote.changed && args.options.pipeline.writes_nothing()) {
+            let baked = Baked {
+                scene: &scene,
+                chunks: wrote
+                    .outputs
+                    .iter()
+                    .map(|o| (o.target.as_path(), o.bytes.as_slice()))
+                    .collect(),
+                res_roots: &settings.res_paths,
+                lights: wrote.lights,
+            };
+            super::cache::keep_record(cache, key, &baked, &reporter);
+        }
+    }
     if let Some(cache) = &cache {
         super::cache::finish(cache, &reporter);
     }
     Ok(())
+}
+
+/// The key of the world's record: everything besides the files that
+/// decides what the bake writes (the settings after every override, the
+/// options, where the settings file is).
+fn world_record_key(
+    cache: &Cache,
+    file: &Path,
+    settings: &BakeSettings,
+    config: &BakeConfig,
+) -> Key {
+    let place = std::path::absolute(file).unwrap_or_else(|_| file.to_path_buf());
+    let facts = [
+        format!("{}", place.display()),
+        format!("{settings:?}"),
+        format!("{config:?}"),
+    ];
+    world_record::record_key(cache, &facts.each_ref().map(String::as_str))
 }

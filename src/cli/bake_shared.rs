@@ -9,6 +9,7 @@ use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
 use anyhow::{Context, Result};
 use shadowcull::bake::cached::CacheReport;
+use shadowcull::bake::world_record::LightLine;
 use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
 use shadowcull::cache::Cache;
 use shadowcull::files::{self, ResPaths};
@@ -242,13 +243,21 @@ pub struct Results<'a> {
 /// Keeps the bits of lights not baked, writes the chunks (unless
 /// `--dry-run`/`--check`) and the report as `output_args` says, and prints
 /// the per-light table: the end of `bake` and of `merge`.
+/// What [`write_results`] leaves behind for a record of the world: every
+/// chunk file's new bytes, whether any changes, and the per-light table.
+pub struct Wrote {
+    pub outputs: Vec<output::ChunkOutput>,
+    pub changed: bool,
+    pub lights: Vec<LightLine>,
+}
+
 pub fn write_results(
     output_args: &OutputArgs,
     options: &BakeOptions,
     results: &Results,
     mut result: BakeResult,
     reporter: &Reporter,
-) -> Result<()> {
+) -> Result<Wrote> {
     let scene = results.scene;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
     let (outputs, kept) = output::chunk_outputs_cached(
@@ -338,7 +347,23 @@ pub fn write_results(
             count(changed.len(), "chunk file", "chunk files")
         );
     }
-    Ok(())
+    let changed = !changed.is_empty();
+    let lights = result
+        .lights
+        .iter()
+        .map(|light| LightLine {
+            bit: light.bit,
+            name: light.name.clone(),
+            kind: light.kind.to_string(),
+            useful: light.useful_casters as u64,
+            culled: light.culled_casters as u64,
+        })
+        .collect();
+    Ok(Wrote {
+        outputs,
+        changed,
+        lights,
+    })
 }
 
 /// What a bake wrote, for its closing line.

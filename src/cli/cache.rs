@@ -1,15 +1,19 @@
 //! The bake cache on the command line: `--cache DIR`, `--no-cache`,
 //! `--cache-max SIZE` (on `bake`, `bake --shard`, `merge` and `plan`), what
 //! happens to the folder after a bake (eviction, warnings about damaged
-//! entries), and `shadowcull cache DIR stats|clear`.
+//! entries), the world's record (a bake that finds it holding says so and
+//! stops), and `shadowcull cache DIR stats|clear`.
 
+use super::bake_shared::BakeOptions;
 use super::messages;
 use super::pipeline::{count, parse_size};
 use super::progress::Reporter;
 use anyhow::{Context, Result};
 use shadowcull::bake::estimate::human_bytes;
-use shadowcull::cache::{self, Cache};
+use shadowcull::bake::world_record::{self, Baked, NotRecorded, UpToDate};
+use shadowcull::cache::{self, Cache, Key};
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 /// The folder a bake keeps its cache in by default, beside its settings
 /// file.
@@ -80,6 +84,67 @@ pub fn finish(cache: &Cache, reporter: &Reporter) {
             serde_json::json!({ "removed": removed }),
         ),
         Err(err) => messages::warning(&format!("cache: {err}")),
+    }
+}
+
+/// A bake that found the world as its record left it: what it checked,
+/// the recorded table, and the closing line a bake prints.
+pub fn say_up_to_date(
+    found: &UpToDate,
+    options: &BakeOptions,
+    started: Instant,
+    reporter: &Reporter,
+) {
+    reporter.say(
+        "up_to_date",
+        &format!(
+            "cache: up to date: no file the last bake read changed ({}, {} checked, {} read again); nothing to load, trace or write",
+            count(found.files, "file", "files"),
+            count(found.folders, "folder", "folders"),
+            found.files_read
+        ),
+        serde_json::json!({
+            "files": found.files,
+            "folders": found.folders,
+            "files_read": found.files_read,
+        }),
+    );
+    let mut out = format!(
+        "{:<3} {:<16} {:<12} {:>8} {:>8}\n",
+        "bit", "light", "kind", "useful", "culled"
+    );
+    for light in &found.lights {
+        out += &format!(
+            "{:<3} {:<16} {:<12} {:>8} {:>8}\n",
+            light.bit, light.name, light.kind, light.useful, light.culled
+        );
+    }
+    let verb = if options.pipeline.writes_nothing() {
+        "would change"
+    } else {
+        "wrote"
+    };
+    out += &format!(
+        "{verb} 0 of {} chunk files in place (as the last bake left them); {:.2} s in all\n",
+        found.chunk_files,
+        started.elapsed().as_secs_f64()
+    );
+    print!("{out}");
+}
+
+/// Keeps the record of a finished bake in place, or says why not when a
+/// file changed while it ran.
+pub fn keep_record(cache: &Cache, key: &Key, baked: &Baked, reporter: &Reporter) {
+    match world_record::record(cache, key, baked) {
+        Ok(()) | Err(NotRecorded::Problems) => {}
+        Err(NotRecorded::Changed(path)) => reporter.say(
+            "cache_not_recorded",
+            &format!(
+                "cache: {} changed while the bake ran: the next bake loads the world again",
+                path.display()
+            ),
+            serde_json::json!({ "changed": path.display().to_string() }),
+        ),
     }
 }
 

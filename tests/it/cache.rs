@@ -1277,3 +1277,111 @@ fn plan_and_the_cache_command_say_what_the_cache_holds() {
     let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
     assert!(stats["bytes"].as_u64().unwrap() <= 5000, "{stats}");
 }
+
+// ---------------------------------------------------------------------------
+// The world's record: an unchanged world is not loaded again.
+
+const UP_TO_DATE: &str = "cache: up to date";
+
+/// Bakes `dir`'s settings in place (`flags` added); says whether the bake
+/// found the world as its record left it.
+fn bake_in_place(dir: &Path, flags: &[&str], what: &str) -> bool {
+    let settings = dir.join("bake.xml");
+    let mut args = vec!["bake", s(&settings)];
+    args.extend(flags);
+    let output = ok(run(&args), what);
+    String::from_utf8_lossy(&output.stderr).contains(UP_TO_DATE)
+}
+
+/// The chunk files of `dir`'s space `space`, path → bytes.
+fn chunk_files(dir: &Path, space: &str) -> Vec<(PathBuf, Vec<u8>)> {
+    world_files(&dir.join(space))
+        .into_iter()
+        .filter(|(p, _)| p.extension().is_some_and(|e| e == "chunk"))
+        .collect()
+}
+
+/// After `edit` of both twins: the cached twin's bake must not take the
+/// world for unchanged, must write what a bake without cache writes, and
+/// the bake after it finds the world as it left it.
+fn edited_and_rebaked(twins: &Twins, what: &str, edit: impl Fn(&Path)) {
+    edit(twins.cached.path());
+    edit(twins.fresh.path());
+    assert!(
+        !bake_in_place(twins.cached.path(), &[], what),
+        "{what}: taken for unchanged"
+    );
+    bake_in_place(twins.fresh.path(), &["--no-cache"], what);
+    assert!(
+        chunk_files(twins.cached.path(), SPACE) == chunk_files(twins.fresh.path(), SPACE),
+        "{what}: the chunk files differ from a bake without cache"
+    );
+    assert!(
+        bake_in_place(twins.cached.path(), &[], what),
+        "{what}: the bake after it should find the world as it left it"
+    );
+}
+
+#[test]
+fn a_world_as_its_last_bake_left_it_is_known_and_no_edit_is_missed() {
+    let twins = Twins::new();
+    // An earlier res path that holds nothing yet: a model put there later
+    // is found before the one the bake read.
+    let settings = String::from_utf8(twins.read("bake.xml")).unwrap();
+    let two_roots = replaced_once(
+        &settings,
+        "<path>\t.\t</path>",
+        "<path>\toverride\t</path>\n\t\t<path>\t.\t</path>",
+    );
+    twins.write("bake.xml", two_roots.as_bytes());
+    for dir in [twins.cached.path(), twins.fresh.path()] {
+        std::fs::create_dir_all(dir.join("override/sets")).unwrap();
+    }
+    assert!(!bake_in_place(twins.cached.path(), &[], "the first bake"));
+    bake_in_place(twins.fresh.path(), &["--no-cache"], "the first bake");
+    let baked = chunk_files(twins.cached.path(), SPACE);
+    assert!(bake_in_place(twins.cached.path(), &[], "nothing changed"));
+    assert!(
+        bake_in_place(twins.cached.path(), &["--check"], "--check"),
+        "--check on an unchanged world exits 0 without loading it"
+    );
+    assert!(baked == chunk_files(twins.cached.path(), SPACE));
+    // Other options, another record: loaded and baked.
+    assert!(!bake_in_place(
+        twins.cached.path(),
+        &["--dry-run", "--height-bias", "0.2"],
+        "other options"
+    ));
+    let chunk = format!("{SPACE}/{}.chunk", CHUNKS[0]);
+    edited_and_rebaked(&twins, "a chunk edited, its size and time kept", |dir| {
+        let path = dir.join(&chunk);
+        let modified = std::fs::metadata(&path).unwrap().modified().unwrap();
+        let text = String::from_utf8(std::fs::read(&path).unwrap()).unwrap();
+        let models = model_elements(&text);
+        let element = &text[models[0].clone()];
+        let row = element.find("<row3>\t").unwrap() + "<row3>\t".len();
+        // One digit of the translation changed: the same length.
+        let at = models[0].start + row;
+        let digit = text.as_bytes()[at];
+        let other = if digit == b'1' { b'2' } else { b'1' };
+        let mut bytes = text.into_bytes();
+        bytes[at] = other;
+        std::fs::write(&path, &bytes).unwrap();
+        let file = std::fs::File::options().write(true).open(&path).unwrap();
+        file.set_modified(modified).unwrap();
+    });
+    edited_and_rebaked(&twins, "a model put in an earlier res path", |dir| {
+        let from = dir.join("sets/gen/props/pillar.model");
+        let to = dir.join("override/sets/gen/props/crate.model");
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(from, to).unwrap();
+    });
+    edited_and_rebaked(&twins, "a chunk deleted", |dir| {
+        std::fs::remove_file(dir.join(format!("{SPACE}/{}.chunk", CHUNKS[3]))).unwrap();
+    });
+    edited_and_rebaked(&twins, "a terrain block raised", |dir| {
+        let cdata = dir.join(format!("{SPACE}/{}.cdata", CHUNKS[1]));
+        let raised = raised_terrain(&std::fs::read(&cdata).unwrap(), 1.5);
+        std::fs::write(&cdata, raised).unwrap();
+    });
+}
