@@ -537,9 +537,11 @@ pub fn write_outputs<'a>(
 /// meaning or goes away (new fields may appear without it).
 pub const REPORT_VERSION: u32 = 3;
 
-/// The `--report` JSON (docs/contract.md §8).
-#[derive(Debug, Clone, Serialize)]
-pub struct Report {
+/// The `--report` JSON (docs/contract.md §8), written as it is made: its
+/// casters come chunk by chunk ([`CasterEntries`]), so a world of
+/// millions of instances never holds its report whole.
+#[derive(Serialize)]
+pub struct Report<'a> {
     /// [`REPORT_VERSION`].
     pub report_version: u32,
     /// The shadowcull version that wrote it.
@@ -549,7 +551,7 @@ pub struct Report {
     /// Chunk files whose bytes the bake changes (or would change).
     pub files_changed: Vec<String>,
     pub lights: Vec<LightReport>,
-    pub casters: Vec<CasterEntry>,
+    pub casters: CasterEntries<'a>,
     pub skipped: Vec<Skipped>,
     /// What a bake with a cache reused and computed, per phase and light.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -588,10 +590,40 @@ pub struct CasterEntry {
     pub unmodelled: bool,
 }
 
-pub fn report(scene: &Scene, result: &BakeResult) -> Report {
-    let mut casters = Vec::new();
-    for (index, chunk) in scene.chunks.iter().enumerate() {
-        let shadows = chunk_shadows(scene, result, index);
+pub fn report<'a>(scene: &'a Scene, result: &'a BakeResult) -> Report<'a> {
+    Report {
+        report_version: REPORT_VERSION,
+        tool_version: env!("CARGO_PKG_VERSION"),
+        files_written: Vec::new(),
+        files_changed: Vec::new(),
+        lights: result.lights.clone(),
+        casters: CasterEntries { scene, result },
+        skipped: result.skipped.clone(),
+        cache: result.cache.clone(),
+    }
+}
+
+/// The report's casters, sorted by chunk, then kind, then index: made
+/// chunk by chunk in that order (chunks are sorted by name; a chunk's
+/// `<model>`/`<shell>` instances come in document order, then its
+/// speedtrees, then its terrain block).
+#[derive(Clone, Copy)]
+pub struct CasterEntries<'a> {
+    scene: &'a Scene,
+    result: &'a BakeResult,
+}
+
+impl CasterEntries<'_> {
+    /// Every entry, in report order.
+    pub fn iter(&self) -> impl Iterator<Item = CasterEntry> + '_ {
+        (0..self.scene.chunks.len()).flat_map(|index| self.of_chunk(index))
+    }
+
+    /// The entries of chunk `index`.
+    fn of_chunk(&self, index: usize) -> Vec<CasterEntry> {
+        let (scene, chunk) = (self.scene, &self.scene.chunks[index]);
+        let shadows = chunk_shadows(scene, self.result, index);
+        let mut casters = Vec::new();
         for instance in &scene.instances[chunk.instances.clone()] {
             let written = match instance.kind {
                 InstanceKind::SpeedTree => &shadows.speedtrees,
@@ -617,17 +649,13 @@ pub fn report(scene: &Scene, result: &BakeResult) -> Report {
                 unmodelled: false,
             });
         }
+        casters
     }
-    casters.sort_by(|a, b| (&a.chunk, a.kind, a.index).cmp(&(&b.chunk, b.kind, b.index)));
-    Report {
-        report_version: REPORT_VERSION,
-        tool_version: env!("CARGO_PKG_VERSION"),
-        files_written: Vec::new(),
-        files_changed: Vec::new(),
-        lights: result.lights.clone(),
-        casters,
-        skipped: result.skipped.clone(),
-        cache: result.cache.clone(),
+}
+
+impl Serialize for CasterEntries<'_> {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_seq(self.iter())
     }
 }
 

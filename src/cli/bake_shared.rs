@@ -313,13 +313,17 @@ pub fn write_results(
             .map(|o| o.target.display().to_string())
             .collect();
         report.files_written = written.clone();
-        let json = serde_json::to_vec_pretty(&report).context("report")?;
+        // Written as it is made: the casters of a large world never sit
+        // in memory whole, neither as values nor as JSON.
         if to_stdout {
-            let mut stdout = std::io::stdout().lock();
-            stdout.write_all(&json)?;
+            let mut stdout = std::io::BufWriter::new(std::io::stdout().lock());
+            serde_json::to_writer_pretty(&mut stdout, &report).context("report")?;
             writeln!(stdout)?;
+            stdout.flush()?;
         } else {
-            files::write_atomic(path, &json)?;
+            files::write_atomic_streamed(path, &mut |out| {
+                serde_json::to_writer_pretty(out, &report).map_err(std::io::Error::other)
+            })?;
         }
     }
     let summary = summary(

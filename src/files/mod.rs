@@ -30,7 +30,7 @@ pub use stamp::{exists, folder_names, stamp, Stamp};
 pub use temporaries::STALE_TEMPORARY_AGE;
 pub use typed::{read_bake_settings, read_partial, write_partial, write_png};
 pub use walk::{find_files, find_files_in, walk, Walk};
-pub use write::{write_atomic, write_files, write_files_beside, write_tree};
+pub use write::{write_atomic, write_atomic_streamed, write_files, write_files_beside, write_tree};
 
 use std::path::{Path, PathBuf};
 

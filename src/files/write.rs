@@ -16,6 +16,25 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_files(&[(path, bytes)])
 }
 
+/// [`write_atomic`] of what `fill` writes as it goes, so a large output
+/// (a report) is never held whole in memory: the same checks, a temporary
+/// beside the target renamed over it only once `fill` succeeded.
+pub fn write_atomic_streamed(
+    path: &Path,
+    fill: &mut dyn FnMut(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
+    let planned = plan_batch(&[(path, &[])])?;
+    let folders = prepare_folders(&planned, &[])?;
+    let temp = temporary_path(&planned[0].real);
+    if let Err(err) = write_temporary_with(&temp, planned[0].existing.as_ref(), fill) {
+        let _ = fs::remove_file(&temp);
+        return Err(err);
+    }
+    rename_over_targets(&planned, &[temp])?;
+    sync_folders(&folders);
+    Ok(())
+}
+
 /// Writes a tree of files (paths relative to `dir`, `/`-separated) with
 /// [`write_files`].
 pub fn write_tree(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
@@ -41,14 +60,26 @@ struct Planned<'a> {
 /// Writes one temporary file: a new file (never through an existing link),
 /// the mode and owner of the file it replaces, synced to disk.
 fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Result<()> {
+    write_temporary_with(temp, existing, &mut |out| out.write_all(bytes))
+}
+
+/// [`write_temporary`] of what `fill` writes, buffered.
+fn write_temporary_with(
+    temp: &Path,
+    existing: Option<&Metadata>,
+    fill: &mut dyn FnMut(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
     let _ = fs::remove_file(temp);
-    let mut file = fs::OpenOptions::new()
+    let file = fs::OpenOptions::new()
         .write(true)
         .create_new(true)
         .open(temp)
         .map_err(|e| Error::io(temp, "create", e))?;
-    file.write_all(bytes)
-        .map_err(|e| Error::io(temp, "write", e))?;
+    let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
+    fill(&mut out).map_err(|e| Error::io(temp, "write", e))?;
+    let file = out
+        .into_inner()
+        .map_err(|e| Error::io(temp, "write", e.into_error()))?;
     if let Some(meta) = existing {
         #[cfg(unix)]
         {

@@ -1484,3 +1484,56 @@ fn a_bake_out_copy_is_a_res_root_that_reads_before_the_original() {
         text(&again.stdout)
     );
 }
+
+#[test]
+fn the_report_lists_casters_sorted_by_chunk_kind_and_index_to_a_file_and_to_stdout() {
+    let dir = world(Preset::Forest);
+    let settings = settings(&dir);
+    let path = dir.path().join("report.json");
+    let baked = run(&["bake", &settings, "--dry-run", "--no-cache", "--report"]);
+    assert!(!baked.status.success(), "--report needs a file");
+    let to_file = run(&[
+        "bake",
+        &settings,
+        "--dry-run",
+        "--no-cache",
+        "--report",
+        path.to_str().unwrap(),
+    ]);
+    assert!(to_file.status.success(), "{}", text(&to_file.stderr));
+    let to_stdout = run(&[
+        "bake",
+        &settings,
+        "--dry-run",
+        "--no-cache",
+        "--report",
+        "-",
+    ]);
+    assert!(to_stdout.status.success(), "{}", text(&to_stdout.stderr));
+    let from_stdout: Value = serde_json::from_slice(&to_stdout.stdout).unwrap();
+    let report = report_of(&path);
+    assert_eq!(report["casters"], from_stdout["casters"]);
+    let casters = report["casters"].as_array().unwrap();
+    let kinds: std::collections::BTreeSet<&str> = casters
+        .iter()
+        .map(|c| c["kind"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        kinds.into_iter().collect::<Vec<_>>(),
+        ["model", "speedtree", "terrain"]
+    );
+    let keys: Vec<(String, String, i64)> = casters
+        .iter()
+        .map(|c| {
+            (
+                c["chunk"].as_str().unwrap().to_string(),
+                c["kind"].as_str().unwrap().to_string(),
+                c["index"].as_i64().unwrap_or(-1),
+            )
+        })
+        .collect();
+    let mut sorted = keys.clone();
+    sorted.sort();
+    sorted.dedup();
+    assert_eq!(keys, sorted, "sorted, each caster once");
+}
