@@ -19,6 +19,7 @@ pub mod memory;
 pub mod occlusion;
 pub mod output;
 pub mod refine;
+pub mod savings;
 pub mod setup;
 pub mod shard;
 pub mod texel_beam;
@@ -71,6 +72,8 @@ pub struct LightReport {
     pub terrain_blocks: usize,
     /// Both passes (All and Opaque) or only All.
     pub passes: usize,
+    /// The light's shadow pass before and after culling.
+    pub savings: savings::Savings,
 }
 
 /// Something the bake left out, and why.
@@ -491,6 +494,7 @@ fn bake_light_from(
             Passes::AllOnly => 1,
             Passes::AllAndOpaque => 2,
         },
+        savings: savings::of_light(world, reach, &kept),
     };
     (kept, report)
 }

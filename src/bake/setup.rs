@@ -301,12 +301,7 @@ fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
         let (min, max) = block.bounds();
         if grid.reaches(min, max) {
             reach.blocks.push(index as u32);
-            let (cx, cz) = block.cells();
-            let holes = (0..cz)
-                .flat_map(|z| (0..cx).map(move |x| (x, z)))
-                .filter(|&(x, z)| block.cell_is_hole(x, z))
-                .count();
-            reach.triangles += 2 * (cx * cz - holes) as u64;
+            reach.triangles += block.visible_triangles() as u64;
         } else {
             reach.blocks_out_of_reach += 1;
         }

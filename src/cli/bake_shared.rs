@@ -370,6 +370,34 @@ pub fn write_results(
     })
 }
 
+/// Each light's shadow pass before and after culling: instances, draw
+/// calls, triangles, and the share of triangles removed.
+fn write_savings(out: &mut String, result: &BakeResult) {
+    use std::fmt::Write as _;
+    if result.lights.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "{:<3} {:<16} {:>21} {:>21} {:>25} {:>8}",
+        "bit", "shadow pass", "instances", "draw calls", "triangles", "removed"
+    );
+    let pair = |c: &shadowcull::bake::savings::BeforeAfter| format!("{} → {}", c.before, c.after);
+    for light in &result.lights {
+        let s = &light.savings;
+        let _ = writeln!(
+            out,
+            "{:<3} {:<16} {:>21} {:>21} {:>25} {:>7.1}%",
+            light.bit,
+            light.name,
+            pair(&s.instances),
+            pair(&s.draw_calls),
+            pair(&s.triangles),
+            100.0 * s.triangles_removed
+        );
+    }
+}
+
 /// What a bake wrote, for its closing line.
 struct Written {
     chunks: usize,
@@ -421,6 +449,7 @@ fn summary(
             light.culled_casters
         );
     }
+    write_savings(&mut out, result);
     let skipped_lights = config.lights.len() - result.lights.len();
     if skipped_lights > 0 {
         let _ = writeln!(

@@ -216,6 +216,12 @@ impl TerrainBlock {
         self.grid().is_hole(cx, cz)
     }
 
+    /// Its drawn triangles: two per cell that is not a hole.
+    pub fn visible_triangles(&self) -> usize {
+        let holes = self.cell_holes.iter().filter(|&&hole| hole).count();
+        2 * (self.cells_x * self.cells_z - holes)
+    }
+
     /// Whether the cell's diagonal joins (x, z+1)–(x+1, z) rather than
     /// (x, z)–(x+1, z+1).
     pub fn cell_has_odd_diagonal(&self, cx: usize, cz: usize) -> bool {

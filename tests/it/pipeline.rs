@@ -1537,3 +1537,69 @@ fn the_report_lists_casters_sorted_by_chunk_kind_and_index_to_a_file_and_to_stdo
     sorted.dedup();
     assert_eq!(keys, sorted, "sorted, each caster once");
 }
+
+#[test]
+fn savings_count_the_casters_the_report_lists_for_a_light_that_reaches_everything() {
+    let dir = world(Preset::Village);
+    let path = dir.path().join("report.json");
+    let settings = settings(&dir);
+    let baked = run(&[
+        "bake",
+        &settings,
+        "--dry-run",
+        "--no-cache",
+        "--report",
+        path.to_str().unwrap(),
+    ]);
+    assert!(baked.status.success(), "{}", text(&baked.stderr));
+    assert!(text(&baked.stdout).contains("shadow pass"));
+    let report = report_of(&path);
+    let casters = report["casters"].as_array().unwrap();
+    let parts: u64 = casters
+        .iter()
+        .filter_map(|c| c["resources"].as_array())
+        .map(|r| r.len() as u64)
+        .sum();
+    let everything = report["lights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l["instances"].as_u64() == Some(parts))
+        .collect::<Vec<_>>();
+    assert!(!everything.is_empty(), "the sun reaches every part");
+    for light in everything {
+        let bit = 1u64 << light["bit"].as_u64().unwrap();
+        let (mut instances, mut draw_calls) = ((0, 0), (0, 0));
+        for caster in casters {
+            if caster["receiver_only"] == true {
+                continue;
+            }
+            let groups: Vec<u64> = match caster["groups"].as_array() {
+                Some(groups) => groups.iter().map(|m| m.as_u64().unwrap()).collect(),
+                None if caster["kind"] == "terrain" => vec![caster["mask"].as_u64().unwrap()],
+                None => continue,
+            };
+            let kept = groups.iter().filter(|&&m| m & bit != 0).count();
+            draw_calls.0 += groups.len() as u64;
+            draw_calls.1 += kept as u64;
+            if caster["kind"] != "terrain" && !groups.is_empty() {
+                instances.0 += 1;
+                instances.1 += u64::from(kept > 0);
+            }
+        }
+        let savings = &light["savings"];
+        let pair = |what: &str| {
+            (
+                savings[what]["before"].as_u64().unwrap(),
+                savings[what]["after"].as_u64().unwrap(),
+            )
+        };
+        assert_eq!(pair("draw_calls"), draw_calls, "{}", light["name"]);
+        assert_eq!(pair("instances"), instances, "{}", light["name"]);
+        let (before, after) = pair("triangles");
+        assert!(after <= before && before <= light["triangles"].as_u64().unwrap());
+        let removed = savings["triangles_removed"].as_f64().unwrap();
+        assert!((removed - (1.0 - after as f64 / before as f64)).abs() < 1e-12);
+        assert!(draw_calls.1 < draw_calls.0, "the village culls something");
+    }
+}
