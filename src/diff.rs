@@ -799,7 +799,8 @@ mod tests {
             (terrain, 0b10),
         ]);
         let changes = diff_chunk("c", &old, &new);
-        let summary: Vec<(Option<usize>, Change, Vec<u32>, Vec<u32>)> = changes
+        type Summary = (Option<usize>, Change, Vec<u32>, Vec<u32>);
+        let summary: Vec<Summary> = changes
             .iter()
             .map(|c| (c.index, c.change, c.to_culled.clone(), c.to_useful.clone()))
             .collect();
