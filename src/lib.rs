@@ -4,6 +4,7 @@
 pub mod bake;
 pub mod cache;
 pub mod classify;
+pub mod diff;
 pub mod digest;
 pub mod error;
 pub mod files;

@@ -5,6 +5,7 @@
 mod bake;
 mod bake_shared;
 mod cache;
+mod diff;
 pub mod memory;
 mod merge;
 mod messages;
@@ -62,6 +63,10 @@ enum Command {
     Merge(merge::MergeArgs),
     /// Classification error against run time over a ladder of settings.
     Sweep(sweep::SweepArgs),
+    /// What changed between two bakes: per light and chunk, the casters
+    /// whose bit flipped, appeared or disappeared (two reports or two
+    /// folders of chunk files).
+    Diff(diff::DiffArgs),
     /// Print what the world holds, and every problem in it, without baking.
     Inspect {
         #[command(flatten)]
@@ -123,10 +128,24 @@ pub fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
             messages::error(&format!("{err:#}"));
-            ExitCode::from(1)
+            let usage = err.downcast_ref::<UsageError>().is_some();
+            ExitCode::from(if usage { 2 } else { 1 })
         }
     }
 }
+
+/// A usage error found after parsing (arguments that parse but do not go
+/// together): exit status 2, as clap's own.
+#[derive(Debug)]
+pub(crate) struct UsageError(pub(crate) String);
+
+impl std::fmt::Display for UsageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}
 
 impl Command {
     /// `--progress json` makes every line on standard error a JSON object
@@ -141,6 +160,7 @@ impl Command {
             | Command::Render(_)
             | Command::Xcheck(_)
             | Command::Cache(_)
+            | Command::Diff(_)
             | Command::Gen { .. } => StderrForm::Text,
         }
     }
@@ -155,6 +175,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Render(args) => render::run(args),
         Command::Xcheck(args) => xcheck::run(args),
         Command::Cache(args) => cache::run(args),
+        Command::Diff(args) => diff::run(args),
         Command::Inspect {
             settings,
             json,

@@ -23,10 +23,13 @@ pub use process::{
     host_name, own_executable_stamp, read_own_executable, resident_memory, Invocation,
     ResidentMemory,
 };
-pub use read::{read_file, size_cap, total_size, DEFAULT_SIZE_CAP, SIZE_CAPS};
+pub use read::{
+    read_file, read_report_bytes, size_cap, total_size, DEFAULT_SIZE_CAP, REPORT_SIZE_CAP,
+    SIZE_CAPS,
+};
 pub use replaceable::check_replaceable;
 pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};
-pub use stamp::{exists, folder_names, stamp, Stamp};
+pub use stamp::{exists, folder_names, is_folder, stamp, Stamp};
 pub use temporaries::STALE_TEMPORARY_AGE;
 pub use typed::{read_bake_settings, read_partial, write_partial, write_png};
 pub use walk::{find_files, find_files_in, walk, Walk};

@@ -136,6 +136,20 @@ pub fn total_size<'a>(paths: impl Iterator<Item = &'a Path>) -> u64 {
 /// of their kind ([`SIZE_CAPS`]).
 pub fn read_file(path: &Path) -> Result<Vec<u8>> {
     let (cap, kind) = size_cap(path);
+    read_file_capped(path, cap, &kind)
+}
+
+/// The most bytes read from a bake report (`--report` JSON, pretty-printed):
+/// a world of thousands of chunks lists millions of group masks.
+pub const REPORT_SIZE_CAP: u64 = 4 * GIB;
+
+/// [`read_file`] for a bake report, whatever its name: its own cap.
+pub fn read_report_bytes(path: &Path) -> Result<Vec<u8>> {
+    read_file_capped(path, REPORT_SIZE_CAP, "bake reports")
+}
+
+/// [`read_file`] with the cap `cap` of files of the kind `kind` (words).
+fn read_file_capped(path: &Path, cap: u64, kind: &str) -> Result<Vec<u8>> {
     let meta = fs::metadata(path).map_err(|e| Error::io(path, "read", e))?;
     if !meta.is_file() {
         return Err(not_regular(path, &meta));
@@ -147,11 +161,11 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>> {
         return Err(not_regular(path, &meta));
     }
     if meta.len() > cap {
-        return Err(too_large(path, cap, &kind, Some(meta.len())));
+        return Err(too_large(path, cap, kind, Some(meta.len())));
     }
     let bytes = read_at_most(file, cap, meta.len()).map_err(|e| Error::io(path, "read", e))?;
     if bytes.len() as u64 > cap {
-        return Err(too_large(path, cap, &kind, None));
+        return Err(too_large(path, cap, kind, None));
     }
     Ok(bytes)
 }

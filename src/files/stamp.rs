@@ -97,6 +97,12 @@ pub fn exists(path: &Path) -> bool {
     fs::metadata(path).is_ok()
 }
 
+/// Whether `path` is a folder (links followed): what tells a folder of
+/// chunk files from a report file.
+pub fn is_folder(path: &Path) -> bool {
+    fs::metadata(path).is_ok_and(|meta| meta.is_dir())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

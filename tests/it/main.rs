@@ -5,6 +5,7 @@ mod bake_rules;
 mod bake_world;
 mod cache;
 mod cli;
+mod diff;
 mod fuzz;
 mod generated;
 mod ground;
