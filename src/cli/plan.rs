@@ -181,9 +181,15 @@ fn light_line(light: &LightPlan) -> String {
     match &light.nothing_to_trace {
         Some(why) => line += &format!("nothing to trace ({why})"),
         None => {
+            // No ray rate when the cache holds every cell: nothing was
+            // traced to measure one, and nothing is left to trace.
+            let rate = match light.rays_per_second {
+                r if r > 0.0 => format!(" at {:.2} Mrays/s", r / 1e6),
+                _ => " (no ray left to trace)".to_string(),
+            };
             line += &format!(
                 "{} × {} × {} texels, {} rays; in reach {} model parts, {} terrain blocks, \
-                 {} triangles (parts' and blocks'); est. {:.1} s at {:.2} Mrays/s, {} for its \
+                 {} triangles (parts' and blocks'); est. {:.1} s{rate}, {} for its \
                  top level and tracing",
                 light.faces,
                 light.width,
@@ -193,7 +199,6 @@ fn light_line(light: &LightPlan) -> String {
                 light.terrain_blocks,
                 light.triangles,
                 light.estimated_seconds,
-                light.rays_per_second / 1e6,
                 human_bytes(light.estimated_bytes)
             );
             if let (Some(cells), Some(stored)) = (light.cells, light.cells_stored) {
