@@ -13,6 +13,7 @@
 //!   swapped entries; two bakes on one cache at once; shards and merge.
 
 use crate::micro::{config, cube, directional, quad_up, Mesh, World, CHUNK, OPAQUE};
+use crate::support::{model_elements, moved};
 use glam::{DMat4, DVec3, Vec3};
 use shadowcull::bake::cache_keys::KeyInput;
 use shadowcull::bake::cached::BakeCache;
@@ -693,32 +694,6 @@ impl Twins {
         );
         reports.swap_remove(0)
     }
-}
-
-/// The `<model>` elements of chunk text `text`, as byte ranges.
-fn model_elements(text: &str) -> Vec<std::ops::Range<usize>> {
-    let mut out = Vec::new();
-    let mut from = 0;
-    while let Some(start) = text[from..].find("\t<model>") {
-        let start = from + start;
-        let end = start + text[start..].find("</model>\n").unwrap() + "</model>\n".len();
-        out.push(start..end);
-        from = end;
-    }
-    out
-}
-
-/// `element` (a `<model>` element's text) with its translation moved by
-/// `dx`, `dz` metres.
-fn moved(element: &str, dx: f64, dz: f64) -> String {
-    let start = element.find("<row3>\t").unwrap() + "<row3>\t".len();
-    let end = start + element[start..].find('\t').unwrap();
-    let v: Vec<f64> = element[start..end]
-        .split(' ')
-        .map(|n| n.parse().unwrap())
-        .collect();
-    let row = format!("{:.6} {:.6} {:.6}", v[0] + dx, v[1], v[2] + dz);
-    format!("{}{row}{}", &element[..start], &element[end..])
 }
 
 const CHUNKS: [&str; 4] = ["00000000o", "0000ffffo", "ffff0000o", "ffffffffo"];

@@ -3,6 +3,7 @@
 //! chunk folders, and the differing casters are checked against a
 //! comparison of the two reports' masks made here, bit by bit.
 
+use crate::support::{model_elements, moved};
 use serde_json::Value;
 use shadowcull::files::write_tree;
 use shadowcull::gen::{generate, Preset};
@@ -65,32 +66,6 @@ impl Baked {
     fn report(&self) -> Value {
         serde_json::from_slice(&std::fs::read(&self.report).unwrap()).unwrap()
     }
-}
-
-/// The `<model>` elements of chunk text `text`, as byte ranges.
-fn model_elements(text: &str) -> Vec<std::ops::Range<usize>> {
-    let mut out = Vec::new();
-    let mut from = 0;
-    while let Some(start) = text[from..].find("\t<model>") {
-        let start = from + start;
-        let end = start + text[start..].find("</model>\n").unwrap() + "</model>\n".len();
-        out.push(start..end);
-        from = end;
-    }
-    out
-}
-
-/// `element` (a `<model>` element's text) with its translation moved by
-/// `dx`, `dz` metres.
-fn moved(element: &str, dx: f64, dz: f64) -> String {
-    let start = element.find("<row3>\t").unwrap() + "<row3>\t".len();
-    let end = start + element[start..].find('\t').unwrap();
-    let v: Vec<f64> = element[start..end]
-        .split(' ')
-        .map(|n| n.parse().unwrap())
-        .collect();
-    let row = format!("{:.6} {:.6} {:.6}", v[0] + dx, v[1], v[2] + dz);
-    format!("{}{row}{}", &element[..start], &element[end..])
 }
 
 /// The chunk text with model `index` moved by (6, 8) m.

@@ -52,3 +52,29 @@ pub fn say_not_run(message: &str) {
         "NOT RUN ({n}): {message} (the test passes without checking this)"
     );
 }
+
+/// The `<model>` elements of chunk text `text`, as byte ranges.
+pub fn model_elements(text: &str) -> Vec<std::ops::Range<usize>> {
+    let mut out = Vec::new();
+    let mut from = 0;
+    while let Some(start) = text[from..].find("\t<model>") {
+        let start = from + start;
+        let end = start + text[start..].find("</model>\n").unwrap() + "</model>\n".len();
+        out.push(start..end);
+        from = end;
+    }
+    out
+}
+
+/// `element` (a `<model>` element's text) with its translation moved by
+/// `dx`, `dz` metres.
+pub fn moved(element: &str, dx: f64, dz: f64) -> String {
+    let start = element.find("<row3>\t").unwrap() + "<row3>\t".len();
+    let end = start + element[start..].find('\t').unwrap();
+    let v: Vec<f64> = element[start..end]
+        .split(' ')
+        .map(|n| n.parse().unwrap())
+        .collect();
+    let row = format!("{:.6} {:.6} {:.6}", v[0] + dx, v[1], v[2] + dz);
+    format!("{}{row}{}", &element[..start], &element[end..])
+}
