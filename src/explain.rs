@@ -223,7 +223,10 @@ pub fn caster_name(scene: &Scene, casters: &CasterTable, id: u32) -> String {
             )
         }
         Owner::Terrain { block } => {
-            let chunk = scene.chunks.iter().find(|c| c.terrain == Some(block as usize));
+            let chunk = scene
+                .chunks
+                .iter()
+                .find(|c| c.terrain == Some(block as usize));
             format!("{}:terrain", chunk.map_or("?", |c| c.name.as_str()))
         }
         Owner::Unmodelled { instance } => {
@@ -429,7 +432,11 @@ pub fn explain(
         Err(NoSetup::NoGeometry) => None,
     };
     let tallies = match &setup {
-        Some(setup) => trace(&setup.rays(world, &grid_config), grid_config.supersample, ids),
+        Some(setup) => trace(
+            &setup.rays(world, &grid_config),
+            grid_config.supersample,
+            ids,
+        ),
         None => vec![Tally::default(); ids.len()],
     };
     let bake_with = |config: &BakeConfig| {
@@ -464,13 +471,11 @@ pub fn explain(
                 None => (plain_useful, None),
                 Some(moded) => {
                     let useful = useful_in(moded, id);
-                    let kept_by = (useful && !plain_useful).then(|| {
-                        match &conservative_only {
-                            Some(c) if useful_in(c, id) => "the conservative grid pass",
-                            Some(_) => "refinement",
-                            None if conservative => "the conservative grid pass",
-                            None => "refinement",
-                        }
+                    let kept_by = (useful && !plain_useful).then(|| match &conservative_only {
+                        Some(c) if useful_in(c, id) => "the conservative grid pass",
+                        Some(_) => "refinement",
+                        None if conservative => "the conservative grid pass",
+                        None => "refinement",
                     });
                     (useful, kept_by)
                 }
@@ -739,7 +744,7 @@ fn tally_ray(rays: &LightRays, hits: &RayHits, slot: &[u32], tallies: &mut [Tall
             tally.hidden += 1;
             // The last pass it takes part in: the Opaque pass's nearest
             // caster is what truly hides an opaque caster.
-            let hider = fronts.iter().flatten().filter(|f| in_pass(f)).last();
+            let hider = fronts.iter().flatten().rev().find(|f| in_pass(f));
             if let Some(f) = hider {
                 *tally.hidden_by.entry(f.nearest).or_default() += 1;
             }
@@ -806,7 +811,17 @@ mod tests {
                 group: Some(0)
             }
         );
-        for bad in ["", "a", ":3", "a:", "a:x", "a:3:y", "a:1:2:3", "a:-1", "a:terrain:1"] {
+        for bad in [
+            "",
+            "a",
+            ":3",
+            "a:",
+            "a:x",
+            "a:3:y",
+            "a:1:2:3",
+            "a:-1",
+            "a:terrain:1",
+        ] {
             assert!(parse(bad).is_err(), "`{bad}` refused");
         }
     }

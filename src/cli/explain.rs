@@ -65,9 +65,9 @@ pub fn run(args: ExplainArgs) -> Result<()> {
     }
     let explanation = pool.install(|| -> Result<Explanation> {
         let world = BakeWorld::new(&scene);
-        let ids = explain::resolve(&scene, &world.casters, &args.caster)
-            .with_context(|| file.clone())?;
-        Ok(explain::explain(&world, &config, light, &ids).with_context(|| file.clone())?)
+        let ids =
+            explain::resolve(&scene, &world.casters, &args.caster).with_context(|| file.clone())?;
+        explain::explain(&world, &config, light, &ids).with_context(|| file.clone())
     })?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&explanation)?);
