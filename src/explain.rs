@@ -9,7 +9,7 @@
 
 use crate::bake::casters::{Caster, CasterTable, Owner};
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
-use crate::bake::trace_light::{tile_rect, HitFate, LightRays};
+use crate::bake::trace_light::{tile_rect, CasterSet, HitFate, LightRays};
 use crate::bake::{self, BakeConfig, GridMode, Silent};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::chunk::InstanceKind;
@@ -274,7 +274,8 @@ pub enum Reason {
     LightReachesNothing,
     /// Its box lies outside the light's reach.
     OutOfReach,
-    /// No texel ray meets it (smaller than a texel, or between rays).
+    /// No texel ray meets it (between rays, smaller than a texel, or
+    /// beyond a spot or point light's near..far range).
     NeverHit,
     /// Rays meet it, but every such hit faces away or lies below ground.
     HitsDropped,
@@ -294,7 +295,9 @@ impl Reason {
             Reason::ReceiverOnly => "castsShadow is false: a receiver only, never a caster",
             Reason::LightReachesNothing => "the light reaches no geometry",
             Reason::OutOfReach => "it lies outside the light's reach",
-            Reason::NeverHit => "no texel ray meets it (smaller than a texel, or between rays)",
+            Reason::NeverHit => {
+                "no texel ray meets it (between rays, smaller than a texel, or outside the light's near..far range)"
+            },
             Reason::HitsDropped => {
                 "every ray that meets it meets a face turned away or a point below ground"
             }
@@ -439,26 +442,7 @@ pub fn explain(
         ),
         None => vec![Tally::default(); ids.len()],
     };
-    let bake_with = |config: &BakeConfig| {
-        // The modes change how the light is traced, never its setup.
-        let baked = |setup| bake::bake_light(world, setup, config, &Silent, &mut Vec::new()).0;
-        setup.as_ref().map(baked)
-    };
-    let grid_baked = bake_with(&grid_config);
-    let refine = config.refine_samples > 0 || config.refine_density > 0;
-    let conservative = config.grid_mode == GridMode::Conservative;
-    let moded = (refine || conservative).then(|| bake_with(config));
-    let conservative_only = (refine && conservative).then(|| {
-        bake_with(&BakeConfig {
-            refine_samples: 0,
-            refine_density: 0,
-            ..config.clone()
-        })
-    });
-    let useful_in = |set: &Option<crate::bake::trace_light::CasterSet>, id: u32| {
-        let caster = &world.casters.casters[id as usize];
-        caster.is_unmodelled() || set.as_ref().is_some_and(|s| s.contains(id))
-    };
+    let baked = BakeVerdicts::new(world, setup.as_ref(), config, &grid_config);
     let casters = ids
         .iter()
         .zip(tallies)
@@ -466,20 +450,7 @@ pub fn explain(
             let caster = &world.casters.casters[id as usize];
             let reason = reason(world, setup.as_ref(), id, caster, &tally);
             let grid_useful = matches!(reason, Reason::SomethingBehind | Reason::Unmodelled);
-            let plain_useful = useful_in(&grid_baked, id);
-            let (bake_useful, kept_by) = match &moded {
-                None => (plain_useful, None),
-                Some(moded) => {
-                    let useful = useful_in(moded, id);
-                    let kept_by = (useful && !plain_useful).then(|| match &conservative_only {
-                        Some(c) if useful_in(c, id) => "the conservative grid pass",
-                        Some(_) => "refinement",
-                        None if conservative => "the conservative grid pass",
-                        None => "refinement",
-                    });
-                    (useful, kept_by)
-                }
-            };
+            let (plain_useful, bake_useful, kept_by) = baked.of(world, id);
             let disagrees = grid_useful != plain_useful || (plain_useful && !bake_useful);
             CasterExplanation {
                 caster: caster_name(world.scene, &world.casters, id),
@@ -507,10 +478,74 @@ pub fn explain(
             Some(Passes::AllAndOpaque) => "all_and_opaque",
             _ => "all",
         },
-        refine,
-        conservative,
+        refine: baked.refine,
+        conservative: baked.conservative,
         casters,
     })
+}
+
+/// The bake's verdicts for one light: a plain grid pass, and with the
+/// modes `config` asks for.
+struct BakeVerdicts {
+    plain: Option<CasterSet>,
+    /// With the modes (`None` without, or nothing to trace).
+    moded: Option<Option<CasterSet>>,
+    /// With both modes asked: the conservative grid pass alone, to tell
+    /// which of the two kept a caster.
+    conservative_only: Option<Option<CasterSet>>,
+    refine: bool,
+    conservative: bool,
+}
+
+impl BakeVerdicts {
+    fn new(
+        world: &BakeWorld,
+        setup: Option<&LightSetup>,
+        config: &BakeConfig,
+        grid_config: &BakeConfig,
+    ) -> BakeVerdicts {
+        let bake_with = |config: &BakeConfig| {
+            // The modes change how the light is traced, never its setup.
+            let baked = |setup| bake::bake_light(world, setup, config, &Silent, &mut Vec::new()).0;
+            setup.map(baked)
+        };
+        let refine = config.refine_samples > 0 || config.refine_density > 0;
+        let conservative = config.grid_mode == GridMode::Conservative;
+        BakeVerdicts {
+            plain: bake_with(grid_config),
+            moded: (refine || conservative).then(|| bake_with(config)),
+            conservative_only: (refine && conservative).then(|| {
+                bake_with(&BakeConfig {
+                    refine_samples: 0,
+                    refine_density: 0,
+                    ..config.clone()
+                })
+            }),
+            refine,
+            conservative,
+        }
+    }
+
+    /// Caster `id`: useful in the plain bake, useful in the bake with the
+    /// modes, and the mode that kept it when only that bake does.
+    fn of(&self, world: &BakeWorld, id: u32) -> (bool, bool, Option<&'static str>) {
+        let useful_in = |set: &Option<CasterSet>| {
+            let caster = &world.casters.casters[id as usize];
+            caster.is_unmodelled() || set.as_ref().is_some_and(|s| s.contains(id))
+        };
+        let plain = useful_in(&self.plain);
+        let Some(moded) = &self.moded else {
+            return (plain, plain, None);
+        };
+        let useful = useful_in(moded);
+        let kept_by = (useful && !plain).then(|| match &self.conservative_only {
+            Some(c) if useful_in(c) => "the conservative grid pass",
+            Some(_) => "refinement",
+            None if self.conservative => "the conservative grid pass",
+            None => "refinement",
+        });
+        (plain, useful, kept_by)
+    }
 }
 
 fn resource_of(scene: &Scene, caster: &Caster) -> Option<String> {

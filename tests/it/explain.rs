@@ -308,6 +308,20 @@ fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
     assert_eq!(tiny.grid_verdict, Verdict::Culled);
     assert_eq!(tiny.bake_verdict, Verdict::Useful);
     assert_eq!(tiny.kept_by, Some("the conservative grid pass"));
+
+    // Refinement aims rays at the box's own surface, with terrain behind.
+    let refined = BakeConfig {
+        grid_mode: GridMode::Centres,
+        refine_samples: 64,
+        refine_density: 8,
+        ..config.clone()
+    };
+    let explanation = explain_all(&world.scene, &refined, 0);
+    assert!(explanation.refine && !explanation.conservative);
+    let tiny = of(&explanation, &world, m);
+    assert_eq!(tiny.grid_verdict, Verdict::Culled);
+    assert_eq!(tiny.bake_verdict, Verdict::Useful, "{tiny:?}");
+    assert_eq!(tiny.kept_by, Some("refinement"));
 }
 
 fn shadowcull(args: &[&str]) -> Output {
