@@ -7,6 +7,7 @@ pub mod classify;
 pub mod diff;
 pub mod digest;
 pub mod error;
+pub mod explain;
 pub mod files;
 pub mod formats;
 pub mod gen;

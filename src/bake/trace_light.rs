@@ -327,6 +327,20 @@ fn prove(c: u32, settled: Option<&Settled>, useful: &mut CasterSet) {
     useful.insert(c);
 }
 
+/// What the per-hit filter (docs/contract.md §4, steps 1 and 2) makes of
+/// one hit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HitFate {
+    /// It reaches the rules.
+    Kept(RayHit),
+    /// A face the light's face culling drops.
+    FacingAway,
+    /// A non-terrain hit below the terrain surface.
+    BelowGround,
+    /// Its caster id is not in the table (never for a table's own world).
+    Unknown,
+}
+
 /// Everything one light's rays need: its grid, how to find hits, what the
 /// hits belong to, the ground and the rules. Made by
 /// [`super::setup::LightSetup::rays`]; the grid pass, refinement, the
@@ -847,6 +861,17 @@ impl LightRays<'_> {
         best
     }
 
+    /// Every hit of `ray` (no early cut-off), each with what the filter
+    /// makes of it ([`HitFate`]), in the order the tracer finds them: a
+    /// caller explaining a verdict needs the hits the rules never see.
+    pub fn every_hit(&self, ray: &TexelRay, mut visit: impl FnMut(&Hit, HitFate)) {
+        let traced = self.light_relative(ray);
+        self.tracer.for_each_hit(&traced, |hit| {
+            visit(&hit, self.fate(&hit, ray));
+            traced.t_max
+        });
+    }
+
     /// A ray in the tracer's light-relative f32 frame.
     pub fn light_relative(&self, ray: &TexelRay) -> TraceRay {
         let reference: DVec3 = self.grid.reference_point();
@@ -867,7 +892,18 @@ impl LightRays<'_> {
     /// instances are judged in model space, see `trace::instance`) and the
     /// below-ground test for non-terrain hits. `None`: the hit does not count.
     fn filter_hit(&self, hit: &Hit, ray: &TexelRay) -> Option<RayHit> {
-        let caster = self.casters.casters.get(hit.caster as usize)?;
+        match self.fate(hit, ray) {
+            HitFate::Kept(kept) => Some(kept),
+            HitFate::FacingAway | HitFate::BelowGround | HitFate::Unknown => None,
+        }
+    }
+
+    /// What [`Self::filter_hit`] makes of `hit`, and why when it drops it.
+    #[inline]
+    fn fate(&self, hit: &Hit, ray: &TexelRay) -> HitFate {
+        let Some(caster) = self.casters.casters.get(hit.caster as usize) else {
+            return HitFate::Unknown;
+        };
         let culled = !caster.double_sided
             && match self.rules.face_culling {
                 FaceCulling::Back => hit.back_facing,
@@ -875,15 +911,15 @@ impl LightRays<'_> {
                 FaceCulling::None => false,
             };
         if culled {
-            return None;
+            return HitFate::FacingAway;
         }
         if let Some(ground) = self.ground.filter(|_| !caster.is_terrain()) {
             let p = ray.origin + ray.direction * hit.t as f64;
             if ground.is_below(p, self.rules.height_bias) {
-                return None;
+                return HitFate::BelowGround;
             }
         }
-        Some(RayHit {
+        HitFate::Kept(RayHit {
             t: hit.t,
             caster: hit.caster,
             receiver_only: caster.receiver_only,

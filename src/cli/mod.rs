@@ -6,6 +6,7 @@ mod bake;
 mod bake_shared;
 mod cache;
 mod diff;
+mod explain;
 pub mod memory;
 mod merge;
 mod messages;
@@ -67,6 +68,9 @@ enum Command {
     /// whose bit flipped, appeared or disappeared (two reports or two
     /// folders of chunk files).
     Diff(diff::DiffArgs),
+    /// Why one caster is kept or culled for one light: where it is the
+    /// front hit, what lies behind it, what hides it; checked against a bake.
+    Explain(explain::ExplainArgs),
     /// Print what the world holds, and every problem in it, without baking.
     Inspect {
         #[command(flatten)]
@@ -161,6 +165,7 @@ impl Command {
             | Command::Xcheck(_)
             | Command::Cache(_)
             | Command::Diff(_)
+            | Command::Explain(_)
             | Command::Gen { .. } => StderrForm::Text,
         }
     }
@@ -176,6 +181,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Xcheck(args) => xcheck::run(args),
         Command::Cache(args) => cache::run(args),
         Command::Diff(args) => diff::run(args),
+        Command::Explain(args) => explain::run(args),
         Command::Inspect {
             settings,
             json,

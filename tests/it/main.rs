@@ -6,6 +6,7 @@ mod bake_world;
 mod cache;
 mod cli;
 mod diff;
+mod explain;
 mod fuzz;
 mod generated;
 mod ground;
