@@ -297,3 +297,48 @@ fn html_page_filters_in_a_headless_browser() {
         );
     }
 }
+
+/// The page's maps come from the bake's masks (`Source::Baked`): each is
+/// the picture of a fresh bake of its light alone, pixel for pixel.
+#[test]
+fn html_maps_from_the_bake_masks_equal_a_bake_of_each_light() {
+    use shadowcull::bake::{self, setup::BakeWorld, BakeConfig};
+    use shadowcull::render::{self, Source};
+    let settings_file = crate::generated::fixture_dir(Preset::Small).join("bake.xml");
+    let settings = shadowcull::files::read_bake_settings(&settings_file).unwrap();
+    let scene =
+        shadowcull::scene::load_scene(&shadowcull::scene::LoadConfig::from_settings(&settings))
+            .unwrap();
+    let config = BakeConfig::from_settings(&settings);
+    let result = bake::bake(&scene, &config, &bake::Silent).unwrap();
+    let world = BakeWorld::new(&scene);
+    let size = Some((
+        shadowcull::report_html::MAP_MAX_SIDE,
+        shadowcull::report_html::MAP_MAX_SIDE,
+    ));
+    assert!(result.lights.len() > 1);
+    for light in &result.lights {
+        let masks = Source::Baked {
+            masks: &result.masks,
+            bit: light.bit,
+        };
+        let from_masks = render::light_view_in(&world, &config, light.index, size, masks).unwrap();
+        let fresh = render::light_view(&scene, &config, light.index, size).unwrap();
+        assert_eq!(
+            (from_masks.width, from_masks.height),
+            (fresh.width, fresh.height)
+        );
+        assert!(from_masks.width.max(from_masks.height) <= shadowcull::report_html::MAP_MAX_SIDE);
+        assert!(
+            from_masks.classes == fresh.classes,
+            "light {}: the classes differ",
+            light.name
+        );
+        assert!(
+            from_masks.rgb == fresh.rgb,
+            "light {}: the pixels differ",
+            light.name
+        );
+        assert_eq!(from_masks.light.culled, fresh.light.culled);
+    }
+}
