@@ -6,6 +6,7 @@ fn main() {
     for (variable, cfg) in [
         ("SHADOWCULL_REALDATA", "shadowcull_realdata"),
         ("SHADOWCULL_SLOW", "shadowcull_slow"),
+        ("SHADOWCULL_BROWSER", "shadowcull_browser"),
     ] {
         println!("cargo::rustc-check-cfg=cfg({cfg})");
         println!("cargo::rerun-if-env-changed={variable}");

@@ -17,6 +17,7 @@ pub mod progress;
 #[cfg(feature = "raster")]
 pub mod raster;
 pub mod render;
+pub mod report_html;
 pub mod rng;
 pub mod scene;
 pub mod sweep;

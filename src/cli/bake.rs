@@ -60,7 +60,9 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     let reporter = Reporter::new(&args.options.progress);
     let record_key = cache
         .as_ref()
-        .filter(|_| args.output.out.is_none() && args.output.report.is_none())
+        .filter(|_| {
+            args.output.out.is_none() && args.output.report.is_none() && args.output.html.is_none()
+        })
         .map(|cache| world_record_key(cache, file, settings, config));
     if let (Some(cache), Some(key)) = (&cache, &record_key) {
         if let Some(found) = world_record::check(cache, key) {
@@ -104,6 +106,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
         scene: &scene,
         res_paths: &settings.res_paths,
         config,
+        settings_file: file,
         started,
         cache: cache.as_ref(),
     };

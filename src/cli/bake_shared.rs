@@ -30,6 +30,11 @@ pub struct OutputArgs {
     /// output; the table then goes to standard error).
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
+    /// Write a self-contained HTML page to FILE: per light its totals,
+    /// savings and map, the culled casters (a table that sorts and
+    /// filters), what was skipped, the settings and the command.
+    #[arg(long, value_name = "FILE")]
+    pub html: Option<PathBuf>,
 }
 
 /// The options that decide a bake's answer and how it runs: `bake`, `bake
@@ -234,6 +239,8 @@ pub struct Results<'a> {
     pub scene: &'a Scene,
     pub res_paths: &'a [PathBuf],
     pub config: &'a BakeConfig,
+    /// The settings file, shown in the HTML report.
+    pub settings_file: &'a Path,
     pub started: Instant,
     /// The bake's cache: chunks whose `<shadow>`s it knows are kept
     /// without being parsed.
@@ -326,6 +333,9 @@ pub fn write_results(
             })?;
         }
     }
+    if let Some(path) = &output_args.html {
+        write_html(path, results, &result)?;
+    }
     let summary = summary(
         output_args,
         options,
@@ -368,6 +378,21 @@ pub fn write_results(
         changed,
         lights,
     })
+}
+
+/// Writes the HTML report of `result` to `path`.
+fn write_html(path: &Path, results: &Results, result: &BakeResult) -> Result<()> {
+    let settings_text = files::read_file(results.settings_file)?;
+    let page = shadowcull::report_html::page(&shadowcull::report_html::PageInput {
+        scene: results.scene,
+        config: results.config,
+        result,
+        command: &super::command_line(),
+        settings_file: &results.settings_file.display().to_string(),
+        settings_text: &String::from_utf8_lossy(&settings_text),
+    });
+    files::write_atomic(path, &page)?;
+    Ok(())
 }
 
 /// Each light's shadow pass before and after culling: instances, draw

@@ -101,6 +101,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
             scene: &scene,
             res_paths: &settings.res_paths,
             config: &config,
+            settings_file: &args.settings.settings,
             started,
             cache: cache.as_ref(),
         };

@@ -232,6 +232,27 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
+/// The command as typed (arguments with spaces quoted), for the render
+/// legend and the HTML report.
+pub(crate) fn command_line() -> String {
+    std::env::args()
+        .enumerate()
+        .map(|(i, arg)| {
+            let arg = if i == 0 {
+                "shadowcull".to_string()
+            } else {
+                arg
+            };
+            if arg.is_empty() || arg.contains(char::is_whitespace) || arg.contains('"') {
+                format!("\"{}\"", arg.replace('"', "\\\""))
+            } else {
+                arg
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// A worker pool of `threads` (default: one per core).
 pub(crate) fn thread_pool(threads: Option<u16>) -> Result<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new()

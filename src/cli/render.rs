@@ -140,7 +140,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     })?;
     files::write_png(&args.output, picture.width, picture.height, &picture.rgb)?;
     let legend_path = args.output.with_extension("txt");
-    let legend = picture.legend(&command_line());
+    let legend = picture.legend(&super::command_line());
     files::write_atomic(&legend_path, legend.as_bytes())?;
     let [useful, culled, terrain_useful, terrain_culled, no_mask, receiver, nothing] =
         picture.counts();
@@ -158,24 +158,4 @@ pub fn run(args: RenderArgs) -> Result<()> {
         picture.light.no_mask_casters,
     );
     Ok(())
-}
-
-/// The command as typed (arguments with spaces quoted), for the legend.
-fn command_line() -> String {
-    std::env::args()
-        .enumerate()
-        .map(|(i, arg)| {
-            let arg = if i == 0 {
-                "shadowcull".to_string()
-            } else {
-                arg
-            };
-            if arg.is_empty() || arg.contains(char::is_whitespace) || arg.contains('"') {
-                format!("\"{}\"", arg.replace('"', "\\\""))
-            } else {
-                arg
-            }
-        })
-        .collect::<Vec<_>>()
-        .join(" ")
 }

@@ -23,7 +23,7 @@ pub struct ShardArgs {
     /// `merge`; `auto`: the index and count from the array job's variables
     /// (Slurm, Kubernetes Indexed Job with --shards, AWS Batch).
     #[arg(long, value_name = "I/N|auto", requires = "partial",
-          conflicts_with_all = ["out", "dry_run", "report", "refine"])]
+          conflicts_with_all = ["out", "dry_run", "report", "html", "refine"])]
     shard: Option<String>,
     /// The number of shards when the scheduler does not say it
     /// (Kubernetes: the Job's completions).

@@ -102,10 +102,21 @@ pub fn light_view_from(
     max_size: Option<(u32, u32)>,
     source: Source,
 ) -> Result<Picture, RenderError> {
+    light_view_in(&BakeWorld::new(scene), config, light, max_size, source)
+}
+
+/// [`light_view_from`] on a world already built, so that several lights'
+/// views share its bottom levels.
+pub fn light_view_in(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+    max_size: Option<(u32, u32)>,
+    source: Source,
+) -> Result<Picture, RenderError> {
     let max_size = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
     check_size(max_size.0, max_size.1)?;
-    let world = BakeWorld::new(scene);
-    let (verdicts, setup) = verdicts(&world, config, light, source)?;
+    let (verdicts, setup) = verdicts(world, config, light, source)?;
     let Some(setup) = setup else {
         // The light reaches nothing: say why, as the grid does.
         let bounds = world.bounds.ok_or(RenderError::EmptyWorld)?;
@@ -114,7 +125,7 @@ pub fn light_view_from(
     };
     let grid = &setup.grid;
     // front_hit does not classify: the passes play no part.
-    let rays_of_light = setup.rays(&world, config);
+    let rays_of_light = setup.rays(world, config);
     let layout = MapLayout::of(grid, max_size);
     let pixels = front_surfaces(&rays_of_light, &verdicts.classes, &layout);
     let depths = DepthRange::of(&pixels);

@@ -20,7 +20,7 @@ mod camera;
 mod light_view;
 
 pub use camera::{camera_view, camera_view_from, CameraSpec};
-pub use light_view::{light_view, light_view_from, DEFAULT_MAX_LIGHT_SIZE};
+pub use light_view::{light_view, light_view_from, light_view_in, DEFAULT_MAX_LIGHT_SIZE};
 
 use crate::bake::casters::Caster;
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
@@ -164,6 +164,10 @@ pub enum Source<'a> {
     /// per caster id (`None`: the chunk holds none for it), read at the
     /// light's bit.
     ChunkMasks { masks: &'a [Option<u32>], bit: u32 },
+    /// The masks of a bake just made (`BakeResult::masks`, per caster id
+    /// of the same scene), read at the light's bit: no light traced again
+    /// for the verdicts.
+    Baked { masks: &'a [u32], bit: u32 },
 }
 
 /// A rendered picture: `rgb` is `width × height × 3` bytes, rows top to
@@ -289,7 +293,9 @@ fn verdicts(
                 let (useful, _) = bake::bake_light(world, &setup, config, &Silent, &mut Vec::new());
                 (useful, Some(setup))
             }
-            Source::ChunkMasks { .. } => (CasterSet::new(casters.len()), Some(setup)),
+            Source::ChunkMasks { .. } | Source::Baked { .. } => {
+                (CasterSet::new(casters.len()), Some(setup))
+            }
         },
         Err(nothing) if nothing.is_nothing_to_trace() => (CasterSet::new(casters.len()), None),
         Err(NoSetup::Grid(err)) => return Err(err.into()),
@@ -303,6 +309,9 @@ fn verdicts(
                 .copied()
                 .flatten()
                 .map(|mask| mask & 1u32.wrapping_shl(bit) != 0),
+            Source::Baked { masks, bit } => {
+                masks.get(id).map(|mask| mask & 1u32.wrapping_shl(bit) != 0)
+            }
         };
         match useful_here {
             Some(true) => Verdict::Useful,
@@ -339,6 +348,7 @@ fn verdicts(
                 Source::ChunkMasks { bit, .. } => {
                     format!("the masks in the chunk files (bit {bit}; not baked)")
                 }
+                Source::Baked { bit, .. } => format!("the bake's masks (bit {bit})"),
             },
         },
         classes,

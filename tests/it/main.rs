@@ -11,6 +11,7 @@ mod fuzz;
 mod generated;
 mod ground;
 mod hardening;
+mod html;
 mod memory;
 mod micro;
 mod nomiss;

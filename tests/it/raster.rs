@@ -535,12 +535,9 @@ fn bench_sun_at_a_quarter_metre_counts_exactly() {
     match run(Counter::QueriesUnflushed) {
         Err(e) => println!("unflushed queries: {e}"),
         Ok(r) => {
-            // Another driver (or a fixed Mesa) may count right.
-            assert!(
-                !r.renderer.contains("llvmpipe") || !r.renderer.contains("Mesa 22.3"),
-                "Mesa 22.3's llvmpipe no longer miscounts here: {}",
-                r.renderer
-            );
+            // Another driver, a fixed Mesa, or llvmpipe's threads finishing
+            // in time on a given run count right: then every count must.
+            println!("unflushed queries counted right on {}", r.renderer);
             assert_eq!(r.texels, both.texels);
         }
     }
