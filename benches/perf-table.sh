@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reproduces the tables of docs/performance.md: generates the worlds, then
-# runs `shadowcull bake SETTINGS --dry-run --quiet [OPTIONS]` RUNS times for
+# runs `shadowcull bake SETTINGS --dry-run --quiet --no-cache [OPTIONS]` RUNS times for
 # every row, the rows taking turns run after run so that a change in the
 # machine's load touches every row alike, and prints one Markdown table per
 # world: median wall seconds (with the range), the lights' rays and trace
@@ -85,7 +85,7 @@ measure() {
       IFS='|' read -r world settings options <<<"${rows[$i]}"
       log "run $run/$runs: $world $(basename "$settings") $options"
       # shellcheck disable=SC2086
-      /usr/bin/time -v -o "$results/$i.time" "$bin" bake "$settings" --dry-run --quiet \
+      /usr/bin/time -v -o "$results/$i.time" "$bin" bake "$settings" --dry-run --quiet --no-cache \
         --threads "$threads" $options >"$results/$i.out"
       wall=$(awk -F': ' '/Elapsed \(wall clock\)/ { n = split($2, p, ":"); s = 0; for (k = 1; k <= n; k++) s = s * 60 + p[k]; print s }' "$results/$i.time")
       rss=$(awk -F': ' '/Maximum resident set size/ { print $2 }' "$results/$i.time")
