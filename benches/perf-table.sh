@@ -5,8 +5,7 @@
 # machine's load touches every row alike, and prints one Markdown table per
 # world: median wall seconds (with the range), the lights' rays and trace
 # seconds from the bake's closing table, and the median peak resident
-# memory from /usr/bin/time -v. (No --report: building it in memory would
-# add to the peak.)
+# memory from /usr/bin/time -v.
 #
 #   benches/perf-table.sh [WORK_DIR]          (default: target/perf)
 #
