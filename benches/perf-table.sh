@@ -117,9 +117,9 @@ median() { awk -v c="$1" '{ print $c }' "$2" | sort -g | awk '{ v[NR] = $1 } END
     IFS='|' read -r world settings options <<<"${rows[$i]}"
     if [ "$world" != "$current" ]; then
       current=$world
-      stats=$("$bin" inspect "$settings" --json | awk -F'[:,]' '/"(chunks|instances|triangles)"/ { gsub(/[ "]/, "", $1); gsub(/ /, "", $2); printf "%s %s, ", $2, $1 }')
+      stats=$("$bin" inspect "$settings" --json | python3 -c 'import json, sys; w = json.load(sys.stdin); print(", ".join("%d %s" % (w[k], k) for k in ("chunks", "instances", "triangles")))')
       echo
-      echo "### $world (${stats%, })"
+      echo "### $world ($stats)"
       echo
       echo "| settings | options | rays | wall s | trace s | Mrays/s | peak RSS |"
       echo "|---|---|---|---|---|---|---|"
