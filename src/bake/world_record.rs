@@ -227,7 +227,8 @@ pub enum NotRecorded {
 /// Stores the record of `baked` under `key`. Every file is stamped, then
 /// read again and compared with what the bake used (the chunks with the
 /// bytes it left in them), so a file edited during the bake is never
-/// recorded as baked.
+/// recorded as baked; a file whose stamp proves it unchanged since the
+/// last record keeps that record's key without being read.
 pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded> {
     let scene = baked.scene;
     if !scene.problems.is_empty() {
@@ -243,11 +244,25 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
             None => (input.path.as_path(), input.digest),
         })
         .collect();
+    // A file the last record holds with a stamp that proves it unchanged
+    // since is what this bake read: its key is reused, not read again.
+    let previous = cache.get(Kind::World, key).and_then(|value| decode(&value));
+    let unchanged: BTreeMap<&Path, &FileEntry> = previous
+        .iter()
+        .flat_map(|record| &record.files)
+        .map(|entry| (entry.path.as_path(), entry))
+        .collect();
+    let previous_at = previous.as_ref().map_or(0, |record| record.recorded_at_ns);
     let files: Vec<FileEntry> = expected
         .par_iter()
         .map(|&(path, digest)| {
             let changed = || NotRecorded::Changed(path.to_path_buf());
             let stamp = files::stamp(path).ok_or_else(changed)?;
+            if let Some(&entry) = unchanged.get(path) {
+                if entry.stamp == stamp && trusted(&stamp, previous_at) {
+                    return Ok(entry.clone());
+                }
+            }
             let bytes = files::read_file(path).map_err(|_| changed())?;
             if Digest::of(&bytes) != digest {
                 return Err(changed());
