@@ -48,6 +48,21 @@ pub struct PhaseCounts {
 }
 
 impl PhaseCounts {
+    /// What `cache` did so far with entries of `kind`.
+    pub fn of_kind(cache: &Cache, kind: Kind) -> PhaseCounts {
+        let counts = cache
+            .counts()
+            .into_iter()
+            .find(|(k, _)| *k == kind)
+            .map(|(_, c)| c)
+            .unwrap_or_default();
+        PhaseCounts {
+            reused: counts.reused,
+            computed: counts.computed + counts.damaged,
+            damaged: counts.damaged,
+        }
+    }
+
     pub fn add(&mut self, other: PhaseCounts) {
         self.reused += other.reused;
         self.computed += other.computed;
@@ -148,6 +163,8 @@ const MOST_REASONS_SAID: usize = 4;
 #[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
 pub struct CacheReport {
     pub dir: String,
+    /// Chunk files whose items were read back (`reused`) or parsed.
+    pub chunks: PhaseCounts,
     pub cells: PhaseCounts,
     pub refine: PhaseCounts,
     /// Chunk files kept without being parsed (`reused`) or prepared.

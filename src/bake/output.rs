@@ -5,12 +5,13 @@ use super::cached::{CacheReport, PhaseCounts};
 use super::casters::CasterTable;
 use super::{BakeResult, LightReport, Skipped};
 use crate::cache::codec::{Decoder, Encoder};
-use crate::cache::{content_key, Cache, Fetched, Kind};
+use crate::cache::{content_key, Cache, Fetched, Key, Kind};
 use crate::files::{self, ResPaths};
 use crate::formats::chunk::InstanceKind;
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
 use crate::formats::Section;
 use crate::progress::{Counter, Phase, Progress};
+use crate::scene::chunk_cache::{self, ParsedChunk};
 use crate::scene::Scene;
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -164,7 +165,12 @@ fn masks_held(
 pub struct ChunkOutput {
     pub source: PathBuf,
     pub target: PathBuf,
-    pub bytes: Vec<u8>,
+    /// The target's new content; `None` for a chunk baked in place whose
+    /// bytes stay as they are (not held: a large world's chunks would
+    /// fill memory).
+    pub bytes: Option<Vec<u8>>,
+    /// The content key of what the target holds after writing.
+    pub key: Key,
     /// The target would hold different bytes after writing.
     pub changed: bool,
 }
@@ -266,14 +272,23 @@ struct ChunkOutputs<'o> {
 
 impl ChunkOutputs<'_> {
     fn chunk(&self, index: usize, chunk: &crate::scene::Chunk) -> Result<Made> {
-        let original = files::read_file(&chunk.file)?;
+        // Baked in place, a chunk loaded from files is known by the key of
+        // the bytes the load read: one its entry proves unchanged is not
+        // read again.
+        let mut original = None;
+        let content = match (chunk.file_key, self.out_dir) {
+            (Some(key), None) => key,
+            _ => content_key(original.insert(files::read_file(&chunk.file)?)),
+        };
         let mut damaged = false;
         if let Some(cache) = self.cache {
-            let key = output_key(cache, &original);
+            let key = output_key(cache, &content);
             match cache.fetch(Kind::Output, &key) {
                 Fetched::Value(value) => match decode_shadows(&value) {
                     Some(written) => {
-                        if let Some(made) = self.unchanged(index, chunk, &original, &written)? {
+                        let unchanged =
+                            self.unchanged(index, chunk, content, &written, &original)?;
+                        if let Some(made) = unchanged {
                             return Ok(made);
                         }
                     }
@@ -286,20 +301,28 @@ impl ChunkOutputs<'_> {
                 Fetched::Absent => {}
             }
         }
+        let original = match original {
+            Some(bytes) => bytes,
+            None => files::read_file(&chunk.file)?,
+        };
         let root = crate::formats::parse_data_section(&original)
             .map_err(|e| e.in_source(&chunk.file, &original))?;
         let old = || old_masks(self.scene, &self.result.casters, chunk, &original, &root);
         let (kept, shadows) = self.shadows(index, old)?;
         let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
             .map_err(|e| e.in_file(&chunk.file))?;
+        let key = content_key(&bytes);
         if let Some(cache) = self.cache {
             cache.put(
                 Kind::Output,
-                &output_key(cache, &bytes),
+                &output_key(cache, &key),
                 &encode_shadows(&shadows),
             );
+            if bytes != original {
+                self.keep_items(cache, chunk, &root, &key);
+            }
         }
-        let output = self.output(chunk, &original, bytes)?;
+        let output = self.output(chunk, &original, bytes, key)?;
         Ok(Made {
             output,
             kept,
@@ -308,22 +331,56 @@ impl ChunkOutputs<'_> {
         })
     }
 
-    /// The chunk's output when its bytes `original` were written with
-    /// `written` and its new `<shadow>`s are the same: those bytes, not
-    /// parsed; `None` when they differ.
+    /// Stores the chunk's items under the content key `key` of its new
+    /// bytes: writing masks changes neither them nor the chunk as an input
+    /// (`scene::chunk_cache`), so the next load reads them back instead of
+    /// parsing what this bake wrote.
+    fn keep_items(&self, cache: &Cache, chunk: &crate::scene::Chunk, root: &Section, key: &Key) {
+        let inputs = &self.scene.inputs;
+        let Ok(at) = inputs.binary_search_by(|f| f.path.as_path().cmp(&chunk.file)) else {
+            return;
+        };
+        let Ok(items) = crate::formats::chunk::parse(root) else {
+            return;
+        };
+        let parsed = ParsedChunk {
+            chunk: items,
+            canonical: inputs[at].digest,
+        };
+        cache.put(
+            Kind::Chunk,
+            &chunk_cache::key(cache, key),
+            &chunk_cache::encode(&parsed),
+        );
+    }
+
+    /// The chunk's output when its bytes (of content key `content`; read
+    /// into `original` unless baked in place) were written with `written`
+    /// and its new `<shadow>`s are the same: those bytes, not parsed;
+    /// `None` when they differ.
     fn unchanged(
         &self,
         index: usize,
         chunk: &crate::scene::Chunk,
-        original: &[u8],
+        content: Key,
         written: &ChunkShadows,
+        original: &Option<Vec<u8>>,
     ) -> Result<Option<Made>> {
         let old = || Ok(masks_held(self.scene, &self.result.casters, chunk, written));
         let (kept, shadows) = self.shadows(index, old)?;
         if shadows != *written {
             return Ok(None);
         }
-        let output = self.output(chunk, original, original.to_vec())?;
+        let output = match original {
+            Some(bytes) => self.output(chunk, bytes, bytes.clone(), content)?,
+            None => ChunkOutput {
+                source: chunk.file.clone(),
+                target: chunk.file.clone(),
+                bytes: None,
+                key: content,
+                changed: false,
+            },
+        };
         Ok(Some(Made {
             output,
             kept,
@@ -366,6 +423,7 @@ impl ChunkOutputs<'_> {
         chunk: &crate::scene::Chunk,
         original: &[u8],
         bytes: Vec<u8>,
+        key: Key,
     ) -> Result<ChunkOutput> {
         let target = match self.out_dir {
             None => chunk.file.clone(),
@@ -385,18 +443,22 @@ impl ChunkOutputs<'_> {
                 .map(|old| old != bytes)
                 .unwrap_or(true),
         };
+        // In place, bytes that stay are not held.
+        let keeps_its_bytes = self.out_dir.is_none() && !changed;
         Ok(ChunkOutput {
             source: chunk.file.clone(),
             target,
-            bytes,
+            bytes: (!keeps_its_bytes).then_some(bytes),
+            key,
             changed,
         })
     }
 }
 
-/// The key of the [`Kind::Output`] entry of chunk bytes `bytes`.
-fn output_key(cache: &Cache, bytes: &[u8]) -> crate::cache::Key {
-    cache.hasher(Kind::Output).key(&content_key(bytes)).finish()
+/// The key of the [`Kind::Output`] entry of chunk bytes whose content
+/// key is `content`.
+fn output_key(cache: &Cache, content: &Key) -> Key {
+    cache.hasher(Kind::Output).key(content).finish()
 }
 
 fn encode_shadows(shadows: &ChunkShadows) -> Vec<u8> {
@@ -504,7 +566,8 @@ pub fn space_settings_output(
     Ok(ChunkOutput {
         source,
         target,
-        bytes,
+        key: content_key(&bytes),
+        bytes: Some(bytes),
         changed,
     })
 }
@@ -524,7 +587,7 @@ pub fn write_outputs<'a>(
         outputs.into_iter().partition(|o| o.changed);
     let batch: Vec<(&Path, &[u8])> = changed
         .iter()
-        .map(|o| (o.target.as_path(), o.bytes.as_slice()))
+        .filter_map(|o| Some((o.target.as_path(), o.bytes.as_deref()?)))
         .collect();
     let unchanged: Vec<&Path> = unchanged.iter().map(|o| o.target.as_path()).collect();
     let counter = Counter::begin(progress, Phase::Writing, None, batch.len() as u64);

@@ -208,8 +208,9 @@ fn check_folder(entry: &FolderEntry, recorded_at_ns: u64) -> Option<(FolderEntry
 /// and its table.
 pub struct Baked<'a> {
     pub scene: &'a Scene,
-    /// Every chunk file's path and the bytes the bake left in it.
-    pub chunks: Vec<(&'a Path, &'a [u8])>,
+    /// Every chunk file's path and the content key of the bytes the bake
+    /// left in it.
+    pub chunks: Vec<(&'a Path, Key)>,
     pub res_roots: &'a [PathBuf],
     pub lights: Vec<LightLine>,
 }
@@ -224,6 +225,14 @@ pub enum NotRecorded {
     Changed(PathBuf),
 }
 
+/// What a file must hold to be recorded: the bytes a bake left in a chunk
+/// (by content key), or the bytes the load read (by digest).
+#[derive(Clone, Copy)]
+enum Expected {
+    Key(Key),
+    Digest(Digest),
+}
+
 /// Stores the record of `baked` under `key`. Every file is stamped, then
 /// read again and compared with what the bake used (the chunks with the
 /// bytes it left in them), so a file edited during the bake is never
@@ -235,13 +244,13 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
         return Err(NotRecorded::Problems);
     }
     let recorded_at_ns = now_ns();
-    let chunks: BTreeMap<&Path, &[u8]> = baked.chunks.iter().copied().collect();
-    let expected: Vec<(&Path, Digest)> = scene
+    let chunks: BTreeMap<&Path, Key> = baked.chunks.iter().copied().collect();
+    let expected: Vec<(&Path, Expected)> = scene
         .inputs
         .iter()
         .map(|input| match chunks.get(input.path.as_path()) {
-            Some(bytes) => (input.path.as_path(), Digest::of(bytes)),
-            None => (input.path.as_path(), input.digest),
+            Some(key) => (input.path.as_path(), Expected::Key(*key)),
+            None => (input.path.as_path(), Expected::Digest(input.digest)),
         })
         .collect();
     // A file the last record holds with a stamp that proves it unchanged
@@ -255,7 +264,7 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
     let previous_at = previous.as_ref().map_or(0, |record| record.recorded_at_ns);
     let files: Vec<FileEntry> = expected
         .par_iter()
-        .map(|&(path, digest)| {
+        .map(|&(path, expected)| {
             let changed = || NotRecorded::Changed(path.to_path_buf());
             let stamp = files::stamp(path).ok_or_else(changed)?;
             if let Some(&entry) = unchanged.get(path) {
@@ -264,13 +273,18 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
                 }
             }
             let bytes = files::read_file(path).map_err(|_| changed())?;
-            if Digest::of(&bytes) != digest {
+            let key = content_key(&bytes);
+            let same = match expected {
+                Expected::Key(k) => k == key,
+                Expected::Digest(d) => d == Digest::of(&bytes),
+            };
+            if !same {
                 return Err(changed());
             }
             Ok(FileEntry {
                 path: path.to_path_buf(),
                 stamp,
-                key: content_key(&bytes),
+                key,
             })
         })
         .collect::<Result<_, _>>()?;

@@ -71,7 +71,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
             return Ok(());
         }
     }
-    let scene = load_scene_told(settings, &args.options, &reporter)?;
+    let scene = load_scene_told(settings, &args.options, &reporter, cache.as_ref())?;
     warn_locked_chunks(&scene, &args.output, &args.options);
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);
@@ -119,7 +119,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
                 chunks: wrote
                     .outputs
                     .iter()
-                    .map(|o| (o.target.as_path(), o.bytes.as_slice()))
+                    .map(|o| (o.target.as_path(), o.key))
                     .collect(),
                 res_roots: &settings.res_paths,
                 lights: wrote.lights,

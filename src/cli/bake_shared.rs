@@ -8,10 +8,10 @@ use super::messages;
 use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
 use anyhow::{Context, Result};
-use shadowcull::bake::cached::CacheReport;
+use shadowcull::bake::cached::{CacheReport, PhaseCounts};
 use shadowcull::bake::world_record::LightLine;
 use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
-use shadowcull::cache::Cache;
+use shadowcull::cache::{Cache, Kind};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::scene::{self, Scene};
@@ -150,13 +150,33 @@ pub fn load_scene_told(
     settings: &BakeSettings,
     options: &BakeOptions,
     reporter: &Reporter,
+    cache: Option<&Cache>,
 ) -> Result<Scene> {
     let started = Instant::now();
-    let scene = scene::load_scene_with(&load_config(settings), reporter)?;
+    let scene = scene::load_scene_cached(&load_config(settings), reporter, cache)?;
     let keep_going = options.pipeline.keep_going;
     say_loaded(&scene, started, keep_going, reporter);
+    if let Some(cache) = cache {
+        say_chunks_cached(cache, reporter);
+    }
     pipeline::refuse_problems(&scene, keep_going, settings.unmodelled_casters)?;
     Ok(scene)
+}
+
+/// How many chunks the load read back from the cache and how many it
+/// parsed.
+fn say_chunks_cached(cache: &Cache, reporter: &Reporter) {
+    let chunks = PhaseCounts::of_kind(cache, Kind::Chunk);
+    reporter.say(
+        "cache_chunks",
+        &format!(
+            "cache: chunks: {} of {} read back without parsing, {} parsed",
+            chunks.reused,
+            chunks.reused + chunks.computed,
+            chunks.computed
+        ),
+        serde_json::json!({ "chunks": chunks }),
+    );
 }
 
 /// The `loaded` line: what loading found, how long it took, and how many
@@ -281,6 +301,7 @@ pub fn write_results(
             ..CacheReport::default()
         });
         report.output = kept;
+        report.chunks = PhaseCounts::of_kind(cache, Kind::Chunk);
         reporter.say(
             "cache_output",
             &format!(

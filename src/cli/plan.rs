@@ -59,13 +59,13 @@ pub fn run(args: PlanArgs) -> Result<()> {
     pool.install(|| {
         let started = Instant::now();
         let reporter = Reporter::new(&args.progress);
-        let scene = scene::load_scene_with(&load_config(&settings), &reporter)?;
+        let cache = args.cache.open(&file)?;
+        let scene = scene::load_scene_cached(&load_config(&settings), &reporter, cache.as_ref())?;
         for problem in &scene.problems {
             messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
         }
         bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
         let world = BakeWorld::build(&scene, &reporter);
-        let cache = args.cache.open(&file)?;
         let bake_cache = cache
             .as_ref()
             .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));

@@ -1,15 +1,14 @@
 //! `.chunk` files (chunk/chunk.cpp, chunk_model.cpp): the instances a chunk
 //! places (`<model>`, `<shell>`, `<speedtree>`), its terrain, (indoor
 //! chunks) its own transform, and how many items of every kind it holds,
-//! so nothing the bake leaves out goes unmentioned. Everything else in a
-//! chunk is left alone; element spans let the bake rewrite `<shadow>`
-//! without touching the rest.
+//! so nothing the bake leaves out goes unmentioned. None of it depends on
+//! the `<shadow>`s a bake writes (`formats::shadow_write` rewrites those
+//! from the parsed tree), so a chunk reads the same before and after.
 
 use super::Section;
 use crate::error::FormatError;
 use glam::DMat4;
 use std::collections::BTreeMap;
-use std::ops::Range;
 
 /// What a placed instance element is: a model, an indoor shell, or a
 /// SpeedTree placement (docs/contract.md §2).
@@ -89,9 +88,8 @@ pub struct InstanceElement {
     /// `<castsShadow>` (14.x), else the legacy `<editorOnly><castsShadow>`,
     /// else true.
     pub casts_shadow: bool,
-    /// Tag path and byte span, for messages and the write-back.
+    /// Tag path, for messages.
     pub path: String,
-    pub span: Range<usize>,
 }
 
 /// One `<speedtree>` element: a SpeedTree placement. The `.spt` itself is
@@ -112,9 +110,8 @@ pub struct SpeedTreeElement {
     /// Local-to-chunk transform: twelve numbers in `<transform>` or
     /// `<row0>`..`<row3>`, as a model's; identity when absent.
     pub transform: DMat4,
-    /// Tag path and byte span, for messages and the write-back.
+    /// Tag path, for messages.
     pub path: String,
-    pub span: Range<usize>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -122,7 +119,6 @@ pub struct TerrainElement {
     /// e.g. `0000fffdo.cdata/terrain2`, relative to the space folder.
     pub resource: String,
     pub path: String,
-    pub span: Range<usize>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -170,7 +166,6 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             transform,
             casts_shadow,
             path: element.path.clone(),
-            span: element.span.clone(),
         });
     }
     let speedtrees = speedtree_elements(root)
@@ -181,7 +176,6 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
         Some(element) => Some(TerrainElement {
             resource: element.required("resource")?.value.clone(),
             path: element.path.clone(),
-            span: element.span.clone(),
         }),
         None => None,
     };
@@ -214,7 +208,6 @@ fn parse_speedtree(index: usize, element: &Section) -> Result<SpeedTreeElement, 
             None => DMat4::IDENTITY,
         },
         path: element.path.clone(),
-        span: element.span.clone(),
     })
 }
 
@@ -246,8 +239,6 @@ mod tests {
             model.transform.transform_point3(DVec3::X),
             DVec3::new(4.0, 6.0, 7.0)
         );
-        assert!(CHUNK[model.span.clone()].starts_with("<model>"));
-        assert!(CHUNK[model.span.clone()].ends_with("</model>"));
         assert_eq!(chunk.terrain.unwrap().resource, "00000000o.cdata/terrain2");
         assert_eq!(chunk.transform, None);
     }
@@ -296,12 +287,6 @@ mod tests {
             assert_eq!(speedtree_elements(&root).count(), 2);
             assert_eq!(instance_elements(&root).count(), 1);
         }
-        assert!(TREES[parse(&xml::parse(TREES.as_bytes()).unwrap())
-            .unwrap()
-            .speedtrees[1]
-            .span
-            .clone()]
-        .starts_with("<speedtree>"));
     }
 
     #[test]

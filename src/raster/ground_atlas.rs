@@ -232,6 +232,7 @@ mod tests {
             chunks.push(Chunk {
                 name: outdoor_chunk_name(x, z),
                 file: format!("{x}_{z}.chunk").into(),
+                file_key: None,
                 grid: Some((x, z)),
                 transform: DMat4::from_translation(origin),
                 instances: 0..0,

@@ -8,8 +8,10 @@
 //! Speedtrees take the proxy the settings give their `.spt`: a `.model`
 //! loaded like any other, or a parametric model built once per shape.
 
+use super::chunk_cache::{self, ParsedChunk};
 use super::items::ItemCount;
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
+use crate::cache::{content_key, Cache, Fetched, Key, Kind};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
 use crate::files::{self, ResPaths};
@@ -60,9 +62,13 @@ struct ReadLog(Mutex<Vec<InputFile>>);
 
 impl ReadLog {
     fn record(&self, path: &Path, bytes: &[u8]) {
+        self.record_digest(path, Digest::of(bytes));
+    }
+
+    fn record_digest(&self, path: &Path, digest: Digest) {
         let file = InputFile {
             path: path.to_path_buf(),
-            digest: Digest::of(bytes),
+            digest,
         };
         self.0.lock().unwrap_or_else(|e| e.into_inner()).push(file);
     }
@@ -82,9 +88,21 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 /// [`load_scene`], telling `progress` how many chunks, models and terrain
 /// blocks are done.
 pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
+    load_scene_cached(config, progress, None)
+}
+
+/// [`load_scene_with`], reading the items of chunks parsed before from
+/// `cache` (and storing the others'): the same scene, without parsing
+/// the XML of unchanged chunks.
+pub fn load_scene_cached(
+    config: &LoadConfig,
+    progress: &dyn Progress,
+    cache: Option<&Cache>,
+) -> Result<Scene> {
     let mut loader = Loader {
         config,
         progress,
+        cache,
         log: ReadLog::default(),
         problems: Vec::new(),
     };
@@ -126,6 +144,8 @@ pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<S
 struct Loader<'a> {
     config: &'a LoadConfig,
     progress: &'a dyn Progress,
+    /// Where parsed chunks are kept between bakes.
+    cache: Option<&'a Cache>,
     log: ReadLog,
     problems: Vec<Problem>,
 }
@@ -222,7 +242,7 @@ impl Loader<'_> {
         &mut self,
         space_dir: &Path,
         settings: &space_settings::SpaceSettings,
-    ) -> Result<Vec<(PathBuf, Result<ChunkFile>)>> {
+    ) -> Result<Vec<(PathBuf, Result<ReadChunk>)>> {
         // Large spaces keep chunks in `XXXxZZZx/sep/` sub-folders unless
         // space.settings says <singleDir>.
         // Entries that are not regular files (a FIFO, a link to a device) are
@@ -243,12 +263,12 @@ impl Loader<'_> {
                 },
             ));
         }
-        let log = &self.log;
+        let (log, cache) = (&self.log, self.cache);
         let counter = Counter::begin(self.progress, Phase::Chunks, None, chunk_files.len() as u64);
         let parsed = chunk_files
             .par_iter()
             .map(|path| {
-                let chunk = read_chunk(path, log);
+                let chunk = read_chunk(path, log, cache);
                 counter.add(1);
                 (path.clone(), chunk)
             })
@@ -263,12 +283,12 @@ impl Loader<'_> {
     /// bounds are problems.
     fn keep_chunks_by_name(
         &mut self,
-        parsed: Vec<(PathBuf, Result<ChunkFile>)>,
+        parsed: Vec<(PathBuf, Result<ReadChunk>)>,
         space_dir: &Path,
         settings: &space_settings::SpaceSettings,
-    ) -> Result<BTreeMap<String, (PathBuf, ChunkFile)>> {
+    ) -> Result<BTreeMap<String, (PathBuf, ChunkFile, Key)>> {
         let problems = &mut self.problems;
-        let mut by_name: BTreeMap<String, (PathBuf, ChunkFile)> = BTreeMap::new();
+        let mut by_name: BTreeMap<String, (PathBuf, ChunkFile, Key)> = BTreeMap::new();
         for (path, chunk) in parsed {
             let name = chunk_name(&path);
             match chunk {
@@ -276,8 +296,8 @@ impl Loader<'_> {
                     let (what, why) = err.as_problem_of(&path);
                     problems.push(Problem { what, why });
                 }
-                Ok(chunk) => {
-                    if let Some((kept, _)) = by_name.get(&name) {
+                Ok((chunk, key)) => {
+                    if let Some((kept, _, _)) = by_name.get(&name) {
                         problems.push(Problem {
                             what: path.display().to_string(),
                             why: format!("duplicate of chunk {}; ignored", kept.display()),
@@ -295,7 +315,7 @@ impl Loader<'_> {
                             continue;
                         }
                     }
-                    by_name.insert(name, (path, chunk));
+                    by_name.insert(name, (path, chunk, key));
                 }
             }
         }
@@ -318,7 +338,7 @@ impl Loader<'_> {
     /// problem saying how many placements in how many chunks lose it.
     fn load_models(
         &mut self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
     ) -> (Vec<Model>, BTreeMap<String, usize>) {
         let (sources, usage) = self.models_needed(by_name);
         let (res_paths, log) = (&self.config.res_paths, &self.log);
@@ -363,7 +383,7 @@ impl Loader<'_> {
     /// much of the world uses it.
     fn models_needed(
         &self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
     ) -> (BTreeMap<String, ModelSource>, BTreeMap<String, Usage>) {
         let mut sources: BTreeMap<String, ModelSource> = BTreeMap::new();
         let mut usage: BTreeMap<String, Usage> = BTreeMap::new();
@@ -375,7 +395,7 @@ impl Loader<'_> {
             used.chunks.insert(chunk.to_string());
             sources.entry(name).or_insert(source);
         };
-        for (chunk, (path, file)) in by_name {
+        for (chunk, (path, file, _)) in by_name {
             let first = || ModelSource::Resource {
                 referenced_by: path.clone(),
             };
@@ -403,7 +423,7 @@ impl Loader<'_> {
     /// terrain blocks to read.
     fn place_chunks(
         &mut self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile)>,
+        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
         settings: &space_settings::SpaceSettings,
         model_names: &BTreeMap<String, usize>,
     ) -> Placed {
@@ -415,10 +435,10 @@ impl Loader<'_> {
         instances.reserve_exact(
             by_name
                 .values()
-                .map(|(_, f)| f.instances.len() + f.speedtrees.len())
+                .map(|(_, f, _)| f.instances.len() + f.speedtrees.len())
                 .sum(),
         );
-        for (name, (path, file)) in by_name {
+        for (name, (path, file, key)) in by_name {
             for (kind, &count) in &file.items {
                 let item = items.entry(kind).or_insert_with(|| ItemCount {
                     kind: kind.clone(),
@@ -457,6 +477,7 @@ impl Loader<'_> {
             chunks.push(Chunk {
                 name: name.clone(),
                 file: path.clone(),
+                file_key: Some(*key),
                 grid,
                 transform,
                 instances: first_instance..instances.len(),
@@ -666,18 +687,48 @@ fn read_parsed<T>(
         .map_err(|e| e.in_source(path, &bytes))
 }
 
-/// Reads and parses a chunk, noting it in `log` with its masks zeroed: the
-/// bake ignores old `<shadow>` values, so writing masks does not change the
-/// chunk as an input.
-fn read_chunk(path: &Path, log: &ReadLog) -> Result<ChunkFile> {
+/// A chunk file's items and the content key of its bytes.
+type ReadChunk = (ChunkFile, Key);
+
+/// Reads a chunk, noting it in `log` with its masks zeroed: the bake
+/// ignores old `<shadow>` values, so writing masks does not change the
+/// chunk as an input. Its items come from `cache` when a bake before
+/// parsed the same bytes.
+fn read_chunk(path: &Path, log: &ReadLog, cache: Option<&Cache>) -> Result<ReadChunk> {
     let bytes = files::read_file(path)?;
-    let root = formats::parse_data_section(&bytes).map_err(|e| e.in_source(path, &bytes))?;
-    let chunk = chunk::parse(&root).map_err(|e| e.in_source(path, &bytes))?;
-    match shadow_write::without_masks(&bytes, &root, &chunk) {
-        Ok(canonical) => log.record(path, &canonical),
-        Err(_) => log.record(path, &bytes),
+    let key = content_key(&bytes);
+    let parsed = match cache {
+        Some(cache) => cached_chunk(cache, path, &bytes, &key)?,
+        None => parse_chunk(path, &bytes)?,
+    };
+    log.record_digest(path, parsed.canonical);
+    Ok((parsed.chunk, key))
+}
+
+/// The chunk file holding `bytes` (whose content key is `key`): read back
+/// from `cache`, or parsed and stored.
+fn cached_chunk(cache: &Cache, path: &Path, bytes: &[u8], key: &Key) -> Result<ParsedChunk> {
+    let entry = chunk_cache::key(cache, key);
+    if let Fetched::Value(value) = cache.fetch(Kind::Chunk, &entry) {
+        match chunk_cache::decode(&value) {
+            Some(parsed) => return Ok(parsed),
+            None => cache.reject(Kind::Chunk, &entry),
+        }
     }
-    Ok(chunk)
+    let parsed = parse_chunk(path, bytes)?;
+    cache.put(Kind::Chunk, &entry, &chunk_cache::encode(&parsed));
+    Ok(parsed)
+}
+
+/// Parses chunk file `bytes` (read from `path`, which errors name).
+fn parse_chunk(path: &Path, bytes: &[u8]) -> Result<ParsedChunk> {
+    let root = formats::parse_data_section(bytes).map_err(|e| e.in_source(path, bytes))?;
+    let chunk = chunk::parse(&root).map_err(|e| e.in_source(path, bytes))?;
+    let canonical = match shadow_write::without_masks(bytes, &root, &chunk) {
+        Ok(canonical) => Digest::of(&canonical),
+        Err(_) => Digest::of(bytes),
+    };
+    Ok(ParsedChunk { chunk, canonical })
 }
 
 /// Reads and parses a data section, noting the file in `log`.

@@ -4,12 +4,14 @@
 //! `load` builds it from the `formats/` readers; everything else here is
 //! plain data.
 
+pub mod chunk_cache;
 pub mod items;
 pub mod keys;
 pub mod load;
 pub mod speedtree;
 pub mod terrain;
 
+use crate::cache::Key;
 use crate::formats::chunk::InstanceKind;
 use crate::formats::space_settings::SpaceSettings;
 use glam::{DMat4, DVec3, Vec3};
@@ -18,7 +20,7 @@ use std::path::PathBuf;
 
 pub use items::{ItemCount, ItemEntry, Treatment, UnproxiedTrees};
 pub use keys::SceneKeys;
-pub use load::{load_scene, load_scene_with, LoadConfig};
+pub use load::{load_scene, load_scene_cached, load_scene_with, LoadConfig};
 pub use terrain::TerrainBlock;
 
 #[derive(Debug, Clone)]
@@ -168,6 +170,9 @@ pub struct Chunk {
     /// File stem, e.g. `ffff0000o` or `00am0002i`.
     pub name: String,
     pub file: PathBuf,
+    /// The content key of the file's bytes as loaded (`None` for a scene
+    /// not read from files).
+    pub file_key: Option<Key>,
     /// Outdoor grid coordinates.
     pub grid: Option<(i32, i32)>,
     /// Chunk to world.

@@ -1009,6 +1009,13 @@ fn damaged_entries_are_warned_about_recomputed_and_the_result_is_the_same() {
     std::fs::copy(&refine[0], &refine[1]).unwrap();
     std::fs::copy(&cells[3], &cells[2]).unwrap();
     std::fs::write(&output[0], b"").unwrap();
+    // Every chunk's parsed items: truncated.
+    let chunks = entries(&cache, "chunk");
+    assert!(chunks.len() >= CHUNKS.len());
+    for entry in &chunks {
+        let bytes = std::fs::read(entry).unwrap();
+        std::fs::write(entry, &bytes[..bytes.len() - 1]).unwrap();
+    }
     let touched = [&cells[0], &cells[1], &refine[1], &cells[2], &output[0]];
     let settings = twins.cached.path().join("bake.xml");
     let report_path = twins.cached.path().join("report.json");
@@ -1029,6 +1036,12 @@ fn damaged_entries_are_warned_about_recomputed_and_the_result_is_the_same() {
     assert!(
         cached["cache"]["cells"]["damaged"].as_u64().unwrap() >= 3,
         "{}",
+        cached["cache"]
+    );
+    assert_eq!(
+        cached["cache"]["chunks"]["damaged"],
+        CHUNKS.len(),
+        "every chunk parsed again: {}",
         cached["cache"]
     );
     // The twin without cache baked the same world: the same result.
@@ -1359,4 +1372,75 @@ fn a_world_as_its_last_bake_left_it_is_known_and_no_edit_is_missed() {
         let raised = raised_terrain(&std::fs::read(&cdata).unwrap(), 1.5);
         std::fs::write(&cdata, raised).unwrap();
     });
+}
+
+// ---------------------------------------------------------------------------
+// Chunks read back from the cache instead of parsed.
+
+/// The scene as the bake uses it, without the keys of the files' bytes
+/// (which writing masks changes).
+fn scene_text(scene: &shadowcull::scene::Scene) -> String {
+    let mut chunks = scene.chunks.clone();
+    for chunk in &mut chunks {
+        chunk.file_key = None;
+    }
+    format!(
+        "{chunks:?}\n{:?}\n{:?}\n{:?}\n{:?}",
+        scene.instances, scene.items, scene.problems, scene.inputs
+    )
+}
+
+#[test]
+fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after_a_bake() {
+    use shadowcull::bake::output;
+    use shadowcull::cache::{Kind, KindCounts};
+    use shadowcull::files::ResPaths;
+    use shadowcull::scene::{load_scene_cached, LoadConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let settings_path = small_world(dir.path());
+    let bytes = std::fs::read(&settings_path).unwrap();
+    let settings = shadowcull::formats::bake_settings::from_bytes(&bytes, &settings_path).unwrap();
+    let load = LoadConfig::from_settings(&settings);
+    let chunk_counts = |cache: &Cache| -> KindCounts {
+        let counts = cache.counts().into_iter().find(|(k, _)| *k == Kind::Chunk);
+        counts.unwrap().1
+    };
+    let open = || Cache::open(dir.path().join("cache"), u64::MAX, content_key(b"a build"));
+    let first = open();
+    let parsed = load_scene_cached(&load, &Silent, Some(&first)).unwrap();
+    let chunks = parsed.chunks.len() as u64;
+    assert_eq!(chunk_counts(&first).written, chunks);
+    let uncached = load_scene_cached(&load, &Silent, None).unwrap();
+    assert_eq!(scene_text(&parsed), scene_text(&uncached));
+
+    // Read back: the same scene, and nothing parsed.
+    let second = open();
+    let read_back = load_scene_cached(&load, &Silent, Some(&second)).unwrap();
+    assert_eq!(chunk_counts(&second).reused, chunks);
+    assert_eq!(scene_text(&read_back), scene_text(&parsed));
+
+    // A bake in place writes masks into every chunk; the entries it stores
+    // for the bytes it wrote load the scene a parse of them loads.
+    let config = BakeConfig::from_settings(&settings);
+    let mut result = bake::bake(&read_back, &config, &Silent).unwrap();
+    let res_paths = ResPaths::new(settings.res_paths.clone());
+    let (outputs, _) = output::chunk_outputs_cached(
+        &read_back,
+        &mut result,
+        &res_paths,
+        None,
+        &Silent,
+        Some(&second),
+    )
+    .unwrap();
+    assert!(outputs.iter().any(|o| o.changed), "masks written");
+    output::write_outputs(&outputs, &Silent).unwrap();
+    let third = open();
+    let after = load_scene_cached(&load, &Silent, Some(&third)).unwrap();
+    assert_eq!(chunk_counts(&third).reused, chunks, "nothing parsed again");
+    let parsed_after = load_scene_cached(&load, &Silent, None).unwrap();
+    assert_eq!(scene_text(&after), scene_text(&parsed_after));
+    for (chunk, output) in after.chunks.iter().zip(&outputs) {
+        assert_eq!(chunk.file_key, Some(output.key), "{}", chunk.name);
+    }
 }

@@ -113,6 +113,7 @@ impl World {
                 chunks.push(Chunk {
                     name: shadowcull::formats::space_settings::outdoor_chunk_name(x, z),
                     file: format!("{x}_{z}.chunk").into(),
+                    file_key: None,
                     grid: Some((x, z)),
                     transform: DMat4::from_translation(DVec3::new(
                         x as f64 * CHUNK,

@@ -1,0 +1,325 @@
+//! A chunk file's parsed items kept in the bake cache. Parsing the XML of
+//! every chunk is most of a large world's load; a re-bake after an edit
+//! reads the unchanged chunks' items back from entries keyed by the chunk
+//! file's bytes instead. The value holds exactly what parsing gives
+//! (`formats::chunk::ChunkFile`) and the digest of the chunk with its
+//! masks zeroed that the load records as its input, so a chunk read back
+//! is indistinguishable from one parsed. Neither changes when a bake
+//! writes masks, so the output stores the same value under the key of
+//! the bytes it writes.
+
+use crate::cache::codec::{DecodeError, Decoder, Encoder};
+use crate::cache::{Cache, Key, Kind};
+use crate::digest::Digest;
+use crate::formats::chunk::{
+    ChunkFile, InstanceElement, InstanceKind, SpeedTreeElement, TerrainElement,
+};
+use glam::DMat4;
+use std::collections::{BTreeMap, HashMap};
+
+/// A chunk file as the load uses it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParsedChunk {
+    pub chunk: ChunkFile,
+    /// The digest of the file with its `<shadow>` masks zeroed: what the
+    /// load records as the input it read.
+    pub canonical: Digest,
+}
+
+/// The key of the [`Kind::Chunk`] entry of a chunk file whose bytes'
+/// content key is `content`.
+pub fn key(cache: &Cache, content: &Key) -> Key {
+    cache.hasher(Kind::Chunk).key(content).finish()
+}
+
+/// `parsed` as an entry's value: a table of the distinct strings (element
+/// paths and resource names repeat), then the items naming them by index.
+pub fn encode(parsed: &ParsedChunk) -> Vec<u8> {
+    let mut strings = Strings::default();
+    let mut body = Encoder::new();
+    let chunk = &parsed.chunk;
+    body.bytes(&parsed.canonical.0);
+    body.var(strings.index(&chunk.root_name));
+    match &chunk.transform {
+        Some(m) => matrix(body.u8(1), m),
+        None => body.u8(0),
+    };
+    body.var(chunk.instances.len() as u64);
+    for instance in &chunk.instances {
+        encode_instance(&mut body, &mut strings, instance);
+    }
+    body.var(chunk.speedtrees.len() as u64);
+    for tree in &chunk.speedtrees {
+        encode_speedtree(&mut body, &mut strings, tree);
+    }
+    match &chunk.terrain {
+        Some(t) => {
+            body.u8(1).var(strings.index(&t.resource));
+            body.var(strings.index(&t.path));
+        }
+        None => {
+            body.u8(0);
+        }
+    }
+    body.var(chunk.items.len() as u64);
+    for (tag, count) in &chunk.items {
+        body.var(strings.index(tag)).var(*count as u64);
+    }
+    let mut out = Encoder::new();
+    out.var(strings.list.len() as u64);
+    for s in &strings.list {
+        out.str(s);
+    }
+    let mut bytes = out.into_bytes();
+    bytes.extend_from_slice(&body.into_bytes());
+    bytes
+}
+
+/// The value [`encode`] made, or `None` when the bytes are of another
+/// shape (the caller rejects the entry and parses the chunk).
+pub fn decode(bytes: &[u8]) -> Option<ParsedChunk> {
+    decode_checked(bytes).ok()
+}
+
+fn decode_checked(bytes: &[u8]) -> Result<ParsedChunk, DecodeError> {
+    let mut d = Decoder::new(bytes);
+    let count = d.len(1)?;
+    let table = (0..count).map(|_| d.str()).collect::<Result<Vec<_>, _>>()?;
+    let strings = Table(&table);
+    let canonical = Digest(d.bytes()?.try_into().map_err(|_| DecodeError { at: 0 })?);
+    let root_name = strings.get(&mut d)?;
+    let transform = match d.u8()? {
+        0 => None,
+        1 => Some(read_matrix(&mut d)?),
+        _ => return Err(DecodeError { at: 0 }),
+    };
+    let count = d.len(1)?;
+    let instances = (0..count)
+        .map(|_| decode_instance(&mut d, &strings))
+        .collect::<Result<_, _>>()?;
+    let count = d.len(1)?;
+    let speedtrees = (0..count)
+        .map(|_| decode_speedtree(&mut d, &strings))
+        .collect::<Result<_, _>>()?;
+    let terrain = match d.u8()? {
+        0 => None,
+        1 => Some(TerrainElement {
+            resource: strings.get(&mut d)?,
+            path: strings.get(&mut d)?,
+        }),
+        _ => return Err(DecodeError { at: 0 }),
+    };
+    let count = d.len(1)?;
+    let mut items = BTreeMap::new();
+    for _ in 0..count {
+        let tag = strings.get(&mut d)?;
+        items.insert(tag, d.var()? as usize);
+    }
+    if !d.is_done() {
+        return Err(DecodeError { at: 0 });
+    }
+    Ok(ParsedChunk {
+        chunk: ChunkFile {
+            root_name,
+            transform,
+            instances,
+            speedtrees,
+            terrain,
+            items,
+        },
+        canonical,
+    })
+}
+
+fn encode_instance(e: &mut Encoder, strings: &mut Strings, instance: &InstanceElement) {
+    e.u8(match instance.kind {
+        InstanceKind::Model => 0,
+        InstanceKind::Shell => 1,
+        InstanceKind::SpeedTree => 2,
+    });
+    e.var(instance.index as u64);
+    e.var(instance.resources.len() as u64);
+    for resource in &instance.resources {
+        e.var(strings.index(resource));
+    }
+    matrix(e, &instance.transform);
+    e.u8(u8::from(instance.casts_shadow));
+    e.var(strings.index(&instance.path));
+}
+
+fn decode_instance(d: &mut Decoder, strings: &Table) -> Result<InstanceElement, DecodeError> {
+    let kind = match d.u8()? {
+        0 => InstanceKind::Model,
+        1 => InstanceKind::Shell,
+        2 => InstanceKind::SpeedTree,
+        _ => return Err(DecodeError { at: 0 }),
+    };
+    let index = d.var()? as usize;
+    let count = d.len(1)?;
+    let resources = (0..count)
+        .map(|_| strings.get(d))
+        .collect::<Result<_, _>>()?;
+    Ok(InstanceElement {
+        kind,
+        index,
+        resources,
+        transform: read_matrix(d)?,
+        casts_shadow: read_bool(d)?,
+        path: strings.get(d)?,
+    })
+}
+
+fn encode_speedtree(e: &mut Encoder, strings: &mut Strings, tree: &SpeedTreeElement) {
+    e.var(tree.index as u64);
+    e.var(strings.index(&tree.spt));
+    for value in [tree.seed, tree.visibility_mask] {
+        match value {
+            Some(v) => e.u8(1).u64(v as u64),
+            None => e.u8(0),
+        };
+    }
+    matrix(e, &tree.transform);
+    e.var(strings.index(&tree.path));
+}
+
+fn decode_speedtree(d: &mut Decoder, strings: &Table) -> Result<SpeedTreeElement, DecodeError> {
+    let index = d.var()? as usize;
+    let spt = strings.get(d)?;
+    let mut integer = || -> Result<Option<i64>, DecodeError> {
+        match d.u8()? {
+            0 => Ok(None),
+            1 => Ok(Some(d.u64()? as i64)),
+            _ => Err(DecodeError { at: 0 }),
+        }
+    };
+    let (seed, visibility_mask) = (integer()?, integer()?);
+    Ok(SpeedTreeElement {
+        index,
+        spt,
+        seed,
+        visibility_mask,
+        transform: read_matrix(d)?,
+        path: strings.get(d)?,
+    })
+}
+
+/// A transform's 16 numbers, bit for bit; the zeros and ones that fill
+/// most placements take one byte each.
+fn matrix<'e>(e: &'e mut Encoder, m: &DMat4) -> &'e mut Encoder {
+    for v in m.to_cols_array() {
+        match v.to_bits() {
+            0 => e.u8(0),
+            b if b == 1f64.to_bits() => e.u8(1),
+            b if b == (-1f64).to_bits() => e.u8(2),
+            _ => e.u8(3).f64(v),
+        };
+    }
+    e
+}
+
+fn read_matrix(d: &mut Decoder) -> Result<DMat4, DecodeError> {
+    let mut values = [0f64; 16];
+    for v in &mut values {
+        *v = match d.u8()? {
+            0 => 0.0,
+            1 => 1.0,
+            2 => -1.0,
+            3 => d.f64()?,
+            _ => return Err(DecodeError { at: 0 }),
+        };
+    }
+    Ok(DMat4::from_cols_array(&values))
+}
+
+fn read_bool(d: &mut Decoder) -> Result<bool, DecodeError> {
+    match d.u8()? {
+        0 => Ok(false),
+        1 => Ok(true),
+        _ => Err(DecodeError { at: 0 }),
+    }
+}
+
+/// The distinct strings of one value, in order of first use.
+#[derive(Default)]
+struct Strings {
+    list: Vec<String>,
+    at: HashMap<String, u64>,
+}
+
+impl Strings {
+    fn index(&mut self, s: &str) -> u64 {
+        if let Some(&i) = self.at.get(s) {
+            return i;
+        }
+        let i = self.list.len() as u64;
+        self.list.push(s.to_string());
+        self.at.insert(s.to_string(), i);
+        i
+    }
+}
+
+/// A decoded string table.
+struct Table<'t>(&'t [String]);
+
+impl Table<'_> {
+    fn get(&self, d: &mut Decoder) -> Result<String, DecodeError> {
+        let i = d.var()?;
+        usize::try_from(i)
+            .ok()
+            .and_then(|i| self.0.get(i))
+            .cloned()
+            .ok_or(DecodeError { at: 0 })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formats::{chunk, xml};
+
+    const CHUNK: &str = "<root>\n\t<transform>\n\t\t<row0>\t0.6 0 -0.8\t</row0>\n\t\t<row1>\t0 1 0\t</row1>\n\t\t<row2>\t0.8 0 0.6\t</row2>\n\t\t<row3>\t100 -2.5 7\t</row3>\n\t</transform>\n\t<shell>\n\t\t<resource>\tsets/a/shell.model\t</resource>\n\t\t<editorOnly>\n\t\t\t<castsShadow>\tfalse\t</castsShadow>\n\t\t</editorOnly>\n\t</shell>\n\t<entity>\n\t\t<type>\tInfo\t</type>\n\t</entity>\n\t<model>\n\t\t<resource>\tsets/b.model\t</resource>\n\t\t<resource>\tsets/a/shell.model\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t-1 0 0\t</row0>\n\t\t\t<row1>\t0 1 0\t</row1>\n\t\t\t<row2>\t0 0 1\t</row2>\n\t\t\t<row3>\t5.125 6 -7\t</row3>\n\t\t</transform>\n\t</model>\n\t<speedtree>\n\t\t<spt>\ttrees/oak.spt\t</spt>\n\t\t<seed>\t-3\t</seed>\n\t\t<transform>\n\t\t\t<row0>\t1 0 0\t</row0>\n\t\t\t<row1>\t0 1 0\t</row1>\n\t\t\t<row2>\t0 0 1\t</row2>\n\t\t\t<row3>\t1e-300 -0 3\t</row3>\n\t\t</transform>\n\t</speedtree>\n\t<speedtree>\n\t\t<spt>\ttrees/oak.spt\t</spt>\n\t\t<visibilityMask>\t4294967295\t</visibilityMask>\n\t</speedtree>\n\t<terrain>\n\t\t<resource>\t00000000o.cdata/terrain2\t</resource>\n\t</terrain>\n</root>\n";
+
+    fn parsed(text: &str) -> ParsedChunk {
+        ParsedChunk {
+            chunk: chunk::parse(&xml::parse(text.as_bytes()).unwrap()).unwrap(),
+            canonical: Digest::of(text.as_bytes()),
+        }
+    }
+
+    #[test]
+    fn a_chunk_decodes_to_exactly_what_parsing_gave() {
+        let original = parsed(CHUNK);
+        assert_eq!(original.chunk.instances.len(), 2);
+        assert_eq!(original.chunk.speedtrees.len(), 2);
+        let back = decode(&encode(&original)).expect("decodes");
+        assert_eq!(back, original);
+        // Bit for bit, signs of zero included.
+        let tree = &back.chunk.speedtrees[0].transform;
+        assert_eq!(tree.w_axis.y.to_bits(), (-0f64).to_bits());
+        assert_eq!(tree.w_axis.x, 1e-300);
+    }
+
+    #[test]
+    fn a_chunk_without_optional_items_round_trips() {
+        let original = parsed("<root>\n\t<entity/>\n</root>\n");
+        assert_eq!(decode(&encode(&original)), Some(original));
+    }
+
+    #[test]
+    fn a_value_of_another_shape_is_refused_never_a_panic() {
+        let bytes = encode(&parsed(CHUNK));
+        for cut in 0..bytes.len() {
+            assert_eq!(decode(&bytes[..cut]), None, "cut at {cut}");
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert_eq!(decode(&longer), None);
+        for at in 0..bytes.len() {
+            let mut flipped = bytes.clone();
+            flipped[at] ^= 0x5A;
+            // Any answer but a panic; the entry's checksum catches flips
+            // before decoding in a bake.
+            let _ = decode(&flipped);
+        }
+    }
+}
