@@ -6,6 +6,7 @@
 //! (docs/contract.md §4), who hides it, and what its rays meet after it.
 //! The explanation's verdict is checked against a plain bake of the light:
 //! they must agree, so a disagreement is a bug, not a matter of opinion.
+//! [`picture`] draws the same counts texel by texel over `render`'s map.
 
 use crate::bake::casters::{Caster, CasterTable, Owner};
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
@@ -14,6 +15,7 @@ use crate::bake::{self, BakeConfig, GridMode, Silent};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::chunk::InstanceKind;
 use crate::light::GridError;
+use crate::render::{self, Picture, RenderError, TexelMark};
 use crate::scene::Scene;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -421,13 +423,7 @@ pub fn explain(
     ids: &[u32],
 ) -> Result<Explanation, ExplainError> {
     let settings = &config.lights[light];
-    let grid_config = BakeConfig {
-        refine_samples: 0,
-        refine_density: 0,
-        grid_mode: GridMode::Centres,
-        filter_radius: 0,
-        ..config.clone()
-    };
+    let grid_config = grid_config(config);
     let setup = match LightSetup::new(world, &grid_config, light) {
         Ok(setup) => Some(setup),
         Err(nothing) if nothing.is_nothing_to_trace() => None,
@@ -482,6 +478,70 @@ pub fn explain(
         conservative: baked.conservative,
         casters,
     })
+}
+
+/// The grid pass `explain` counts: `config`'s rules and supersampling at
+/// texel centres, without the modes that keep more.
+fn grid_config(config: &BakeConfig) -> BakeConfig {
+    BakeConfig {
+        refine_samples: 0,
+        refine_density: 0,
+        grid_mode: GridMode::Centres,
+        filter_radius: 0,
+        ..config.clone()
+    }
+}
+
+/// The light's map (`render`'s light view, in grey) with the texels of
+/// casters `ids` marked as [`explain`] counts them: the same rays, filter
+/// and rules, texel by texel. A texel of several rays (supersampling) or
+/// several targets shows its best mark (useful, then nothing behind, then
+/// hidden); with one ray a texel drawn 1:1, each mark's pixels equal the
+/// explanation's `useful`, `front − useful` and `hidden`.
+pub fn picture(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+    ids: &[u32],
+    max_size: Option<(u32, u32)>,
+) -> Result<Picture, RenderError> {
+    let grid_config = grid_config(config);
+    // Without a setup the light reaches nothing, and the render says so.
+    let setup = LightSetup::new(world, &grid_config, light).ok();
+    let rays = setup.as_ref().map(|s| s.rays(world, &grid_config));
+    let slot = slots(world.casters.len(), ids);
+    let samples = grid_config.supersample;
+    let marker = |face: usize, x: u32, y: u32| {
+        let rays = rays.as_ref()?;
+        let mut tallies = vec![Tally::default(); ids.len()];
+        let mut scratch = RayHits::default();
+        trace_texel(
+            rays,
+            samples,
+            &slot,
+            (face, x, y),
+            &mut scratch,
+            &mut tallies,
+        );
+        let sum = |count: fn(&Tally) -> u64| tallies.iter().map(count).sum::<u64>();
+        if sum(|t| t.useful) > 0 {
+            Some(TexelMark::Useful)
+        } else if sum(|t| t.front) > 0 {
+            Some(TexelMark::NothingBehind)
+        } else if sum(|t| t.hidden) > 0 {
+            Some(TexelMark::Hidden)
+        } else {
+            None
+        }
+    };
+    render::light_view_marked(
+        world,
+        &grid_config,
+        light,
+        max_size,
+        render::Source::Bake,
+        &marker,
+    )
 }
 
 /// The bake's verdicts for one light: a plain grid pass, and with the
@@ -661,12 +721,18 @@ struct RayHits {
     dropped: Vec<(f32, u32, HitFate)>,
 }
 
-/// Every ray of the grid, its hits tallied for the casters `ids`.
-fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
-    let mut slot = vec![u32::MAX; rays.casters.len()];
+/// Per caster id: its index in `ids`, or `u32::MAX`.
+fn slots(casters: usize, ids: &[u32]) -> Vec<u32> {
+    let mut slot = vec![u32::MAX; casters];
     for (i, &id) in ids.iter().enumerate() {
         slot[id as usize] = i as u32;
     }
+    slot
+}
+
+/// Every ray of the grid, its hits tallied for the casters `ids`.
+fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
+    let slot = slots(rays.casters.len(), ids);
     let grid = rays.grid;
     (0..rays.tile_count())
         .into_par_iter()
@@ -679,17 +745,8 @@ fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
                 }
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        for ray in grid.texel_rays(face, x, y, samples.max(1)) {
-                            scratch.kept.clear();
-                            scratch.dropped.clear();
-                            rays.every_hit(&ray, |hit, fate| match fate {
-                                HitFate::Kept(kept) => scratch.kept.push(kept),
-                                HitFate::Unknown => {}
-                                dropped => scratch.dropped.push((hit.t, hit.caster, dropped)),
-                            });
-                            classify::sort_hits(&mut scratch.kept);
-                            tally_ray(rays, &scratch, &slot, &mut tallies);
-                        }
+                        let texel = (face, x, y);
+                        trace_texel(rays, samples, &slot, texel, &mut scratch, &mut tallies);
                     }
                 }
                 (tallies, scratch)
@@ -705,6 +762,29 @@ fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
                 a
             },
         )
+}
+
+/// The rays of texel `(face, x, y)`, their hits tallied for the casters
+/// `slot` names: the one path of both the counts and the picture.
+fn trace_texel(
+    rays: &LightRays,
+    samples: u32,
+    slot: &[u32],
+    (face, x, y): (usize, u32, u32),
+    scratch: &mut RayHits,
+    tallies: &mut [Tally],
+) {
+    for ray in rays.grid.texel_rays(face, x, y, samples.max(1)) {
+        scratch.kept.clear();
+        scratch.dropped.clear();
+        rays.every_hit(&ray, |hit, fate| match fate {
+            HitFate::Kept(kept) => scratch.kept.push(kept),
+            HitFate::Unknown => {}
+            dropped => scratch.dropped.push((hit.t, hit.caster, dropped)),
+        });
+        classify::sort_hits(&mut scratch.kept);
+        tally_ray(rays, scratch, slot, tallies);
+    }
 }
 
 /// One pass's front: the nearest caster hit's distance and caster.

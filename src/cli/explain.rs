@@ -7,7 +7,10 @@ use anyhow::{bail, Context, Result};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{BakeConfig, GridMode};
 use shadowcull::explain::{self, CasterExplanation, Explanation, Target};
+use shadowcull::files;
+use shadowcull::render::Picture;
 use shadowcull::scene;
+use std::path::PathBuf;
 
 /// `--refine`'s samples and density, the bake's defaults.
 const REFINE_SAMPLES: u32 = 64;
@@ -35,6 +38,13 @@ pub struct ExplainArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    /// Also draw the light's map to FILE.png in grey with the caster's
+    /// texels in colour: useful (something behind), front with nothing
+    /// behind, hidden by a nearer caster. One pixel a texel up to
+    /// 2048x2048; a larger map is shown smaller, each pixel the texel
+    /// under its centre.
+    #[arg(short = 'o', long = "output", value_name = "FILE.png")]
+    output: Option<PathBuf>,
     /// Worker threads (default: one per core); the answer is the same for any N.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
     threads: Option<u16>,
@@ -63,12 +73,28 @@ pub fn run(args: ExplainArgs) -> Result<()> {
     for problem in scene.problems.iter().take(5) {
         eprintln!("  {}: {}", problem.what, problem.why);
     }
-    let explanation = pool.install(|| -> Result<Explanation> {
+    let (explanation, picture) = pool.install(|| -> Result<(Explanation, Option<Picture>)> {
         let world = BakeWorld::new(&scene);
         let ids =
             explain::resolve(&scene, &world.casters, &args.caster).with_context(|| file.clone())?;
-        explain::explain(&world, &config, light, &ids).with_context(|| file.clone())
+        let explanation =
+            explain::explain(&world, &config, light, &ids).with_context(|| file.clone())?;
+        let picture = match &args.output {
+            Some(_) => Some(
+                explain::picture(&world, &config, light, &ids, None)
+                    .with_context(|| format!("drawing light `{}` ({file})", args.light))?,
+            ),
+            None => None,
+        };
+        Ok((explanation, picture))
     })?;
+    if let (Some(path), Some(picture)) = (&args.output, &picture) {
+        files::write_png(path, picture.width, picture.height, &picture.rgb)?;
+        eprintln!("wrote {}:", path.display());
+        for note in &picture.notes {
+            eprintln!("  {note}");
+        }
+    }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&explanation)?);
     } else {
