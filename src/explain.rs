@@ -380,7 +380,8 @@ pub struct CasterExplanation {
     /// The grid pass's verdict, from the counts below.
     pub grid_verdict: Verdict,
     pub reason: Reason,
-    /// A plain bake's verdict (with `--refine`/`--conservative` when asked).
+    /// A bake's verdict with the modes asked (`--filter-radius`,
+    /// `--conservative`, `--refine`).
     pub bake_verdict: Verdict,
     /// When the bake keeps what the grid pass culls: the rule that kept it.
     pub kept_by: Option<&'static str>,
@@ -398,9 +399,14 @@ pub struct Explanation {
     pub texels: u64,
     /// `all` or `all_and_opaque`.
     pub passes: &'static str,
+    /// Rays per texel side of the grid pass (`--supersample`): the
+    /// counts are of rays.
+    pub supersample: u32,
     /// The modes the bake verdict was computed with.
     pub refine: bool,
     pub conservative: bool,
+    /// `--filter-radius` (0: none).
+    pub filter_radius: u32,
     pub casters: Vec<CasterExplanation>,
 }
 
@@ -413,9 +419,9 @@ impl Explanation {
 
 /// Explains casters `ids` for light `light` of `config`. The grid pass is
 /// traced with `config`'s rules at texel centres (`supersample`² rays a
-/// texel); the bake verdict uses `config` whole, so refinement and the
-/// conservative mode are reported as the rule that kept a caster the grid
-/// pass culls.
+/// texel); the bake verdict uses `config` whole, so the filter margin, the
+/// conservative mode and refinement are reported as the rule that kept a
+/// caster the grid pass culls.
 pub fn explain(
     world: &BakeWorld,
     config: &BakeConfig,
@@ -474,8 +480,10 @@ pub fn explain(
             Some(Passes::AllAndOpaque) => "all_and_opaque",
             _ => "all",
         },
-        refine: baked.refine,
-        conservative: baked.conservative,
+        supersample: grid_config.supersample.max(1),
+        refine: config.refine_samples > 0 || config.refine_density > 0,
+        conservative: config.grid_mode == GridMode::Conservative,
+        filter_radius: config.filter_radius,
         casters,
     })
 }
@@ -544,17 +552,15 @@ pub fn picture(
     )
 }
 
-/// The bake's verdicts for one light: a plain grid pass, and with the
-/// modes `config` asks for.
+/// The bake's verdicts for one light: a plain grid pass, then one bake per
+/// mode `config` asks for, each adding its mode to the one before in the
+/// order the bake applies them (the filter margin and the conservative
+/// beams in the grid pass, then refinement), the last being `config`
+/// whole.
 struct BakeVerdicts {
     plain: Option<CasterSet>,
-    /// With the modes (`None` without, or nothing to trace).
-    moded: Option<Option<CasterSet>>,
-    /// With both modes asked: the conservative grid pass alone, to tell
-    /// which of the two kept a caster.
-    conservative_only: Option<Option<CasterSet>>,
-    refine: bool,
-    conservative: bool,
+    /// Per mode asked: the rule it adds and the bake with it.
+    rungs: Vec<(&'static str, Option<CasterSet>)>,
 }
 
 impl BakeVerdicts {
@@ -569,41 +575,41 @@ impl BakeVerdicts {
             let baked = |setup| bake::bake_light(world, setup, config, &Silent, &mut Vec::new()).0;
             setup.map(baked)
         };
-        let refine = config.refine_samples > 0 || config.refine_density > 0;
-        let conservative = config.grid_mode == GridMode::Conservative;
+        let mut rungs = Vec::new();
+        let mut step = grid_config.clone();
+        if config.filter_radius > 0 {
+            step.filter_radius = config.filter_radius;
+            rungs.push(("the filter margin", bake_with(&step)));
+        }
+        if config.grid_mode == GridMode::Conservative {
+            step.grid_mode = GridMode::Conservative;
+            rungs.push(("the conservative grid pass", bake_with(&step)));
+        }
+        if config.refine_samples > 0 || config.refine_density > 0 {
+            rungs.push(("refinement", bake_with(config)));
+        }
         BakeVerdicts {
             plain: bake_with(grid_config),
-            moded: (refine || conservative).then(|| bake_with(config)),
-            conservative_only: (refine && conservative).then(|| {
-                bake_with(&BakeConfig {
-                    refine_samples: 0,
-                    refine_density: 0,
-                    ..config.clone()
-                })
-            }),
-            refine,
-            conservative,
+            rungs,
         }
     }
 
-    /// Caster `id`: useful in the plain bake, useful in the bake with the
-    /// modes, and the mode that kept it when only that bake does.
+    /// Caster `id`: useful in the plain bake, useful in the bake `config`
+    /// asks for, and the first mode that kept it when only the modes do.
     fn of(&self, world: &BakeWorld, id: u32) -> (bool, bool, Option<&'static str>) {
         let useful_in = |set: &Option<CasterSet>| {
             let caster = &world.casters.casters[id as usize];
             caster.is_unmodelled() || set.as_ref().is_some_and(|s| s.contains(id))
         };
         let plain = useful_in(&self.plain);
-        let Some(moded) = &self.moded else {
+        let Some((_, last)) = self.rungs.last() else {
             return (plain, plain, None);
         };
-        let useful = useful_in(moded);
-        let kept_by = (useful && !plain).then(|| match &self.conservative_only {
-            Some(c) if useful_in(c) => "the conservative grid pass",
-            Some(_) => "refinement",
-            None if self.conservative => "the conservative grid pass",
-            None => "refinement",
-        });
+        let useful = useful_in(last);
+        let kept_by = (useful && !plain)
+            .then(|| self.rungs.iter().find(|(_, set)| useful_in(set)))
+            .flatten()
+            .map(|(rule, _)| *rule);
         (plain, useful, kept_by)
     }
 }

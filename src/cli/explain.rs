@@ -2,19 +2,15 @@
 //! text or one JSON object; an explanation that disagrees with the bake
 //! fails the command (exit 1), since one of the two is wrong.
 
+use super::bake_shared::VerdictOptions;
 use super::{load_config, load_settings, thread_pool, SettingsArgs};
 use anyhow::{bail, Context, Result};
 use shadowcull::bake::setup::BakeWorld;
-use shadowcull::bake::{BakeConfig, GridMode};
 use shadowcull::explain::{self, CasterExplanation, Explanation, Target};
 use shadowcull::files;
 use shadowcull::render::Picture;
 use shadowcull::scene;
 use std::path::PathBuf;
-
-/// `--refine`'s samples and density, the bake's defaults.
-const REFINE_SAMPLES: u32 = 64;
-const REFINE_DENSITY: u32 = 8;
 
 #[derive(Debug, clap::Args)]
 pub struct ExplainArgs {
@@ -28,13 +24,13 @@ pub struct ExplainArgs {
     /// CHUNK:terrain. Without GROUP, every group of the instance.
     #[arg(long, value_name = "CHUNK:INDEX[:GROUP]", value_parser = parse_target)]
     caster: Target,
-    /// The bake verdict with refinement (the explanation covers the grid
-    /// pass and says when refinement kept the caster).
-    #[arg(long)]
-    refine: bool,
-    /// The bake verdict with the conservative grid pass (likewise).
-    #[arg(long)]
-    conservative: bool,
+    /// The bake's options that change a verdict (`--supersample`,
+    /// `--filter-radius`, `--refine`, `--conservative`, overrides of the
+    /// settings' rules): the explanation covers the texel-centre grid pass
+    /// at `--supersample`, the bake verdict uses them all and names the
+    /// mode that kept a caster the grid pass culls.
+    #[command(flatten)]
+    verdict: VerdictOptions,
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
@@ -57,16 +53,7 @@ fn parse_target(text: &str) -> Result<Target, String> {
 pub fn run(args: ExplainArgs) -> Result<()> {
     let file = args.settings.settings.display().to_string();
     let settings = load_settings(&args.settings)?;
-    let config = BakeConfig {
-        refine_samples: if args.refine { REFINE_SAMPLES } else { 0 },
-        refine_density: if args.refine { REFINE_DENSITY } else { 0 },
-        grid_mode: if args.conservative {
-            GridMode::Conservative
-        } else {
-            GridMode::Centres
-        },
-        ..BakeConfig::from_settings(&settings)
-    };
+    let config = args.verdict.config(&settings)?;
     let light = explain::find_light(&config, &args.light).with_context(|| file.clone())?;
     let pool = thread_pool(args.threads)?;
     let scene = scene::load_scene(&load_config(&settings))?;
@@ -125,14 +112,23 @@ fn text(explanation: &Explanation) -> String {
         explanation.texels,
         explanation.passes.replace('_', " ")
     );
+    let radius = format!("--filter-radius {}", explanation.filter_radius);
     let modes: Vec<&str> = [
-        (explanation.refine, "--refine"),
+        (explanation.filter_radius > 0, radius.as_str()),
         (explanation.conservative, "--conservative"),
+        (explanation.refine, "--refine"),
     ]
     .iter()
     .filter(|m| m.0)
     .map(|m| m.1)
     .collect();
+    if explanation.supersample > 1 {
+        let k = explanation.supersample;
+        out += &format!(
+            "supersampled {k}×{k}: the counts below are of rays, {} a texel\n",
+            k * k
+        );
+    }
     if !modes.is_empty() {
         out += &format!(
             "the explanation covers the grid pass; the bake verdict uses {}\n",

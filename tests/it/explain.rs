@@ -49,29 +49,55 @@ fn check_counts(c: &CasterExplanation) {
     );
 }
 
+/// Every caster of village for every light, with the bake's default
+/// options and with each option that changes a verdict without
+/// refinement's cost: the explanation's bake verdict is an independent
+/// bake's mask; without modes the grid pass's own verdict is too, with the
+/// filter margin every caster it adds is named as kept by it.
 #[test]
 fn every_village_caster_gets_the_bakes_verdict_for_every_light() {
     let settings = fixture_dir(Preset::Village).join("bake.xml");
     let scene = load_world(&settings);
     let file_settings = shadowcull::files::read_bake_settings(&settings).unwrap();
-    let config = BakeConfig::from_settings(&file_settings);
-    let baked = bake::bake(&scene, &config, &Silent).expect("bake");
+    let plain = BakeConfig::from_settings(&file_settings);
+    let options = [
+        plain.clone(),
+        BakeConfig {
+            supersample: 2,
+            ..plain.clone()
+        },
+        BakeConfig {
+            filter_radius: 1,
+            ..plain.clone()
+        },
+    ];
     let mut seen = std::collections::BTreeSet::new();
-    for light in 0..config.lights.len() {
-        let explanation = explain_all(&scene, &config, light);
-        assert!(!explanation.disagrees(), "light {light}");
-        let bit = 1u32 << config.bit(light);
-        for caster in &explanation.casters {
-            check_counts(caster);
-            let useful = baked.masks[caster.id as usize] & bit != 0;
-            assert_eq!(
-                caster.grid_verdict == Verdict::Useful,
-                useful,
-                "light {light} caster {}",
-                caster.caster
-            );
-            assert_eq!(caster.bake_verdict, caster.grid_verdict);
-            seen.insert(format!("{:?}", caster.reason));
+    let mut kept_by_margin = 0;
+    for config in &options {
+        let baked = bake::bake(&scene, config, &Silent).expect("bake");
+        for light in 0..config.lights.len() {
+            let explanation = explain_all(&scene, config, light);
+            assert!(!explanation.disagrees(), "light {light}");
+            assert_eq!(explanation.supersample, config.supersample);
+            assert_eq!(explanation.filter_radius, config.filter_radius);
+            let bit = 1u32 << config.bit(light);
+            for caster in &explanation.casters {
+                check_counts(caster);
+                let useful = baked.masks[caster.id as usize] & bit != 0;
+                let at = format!("light {light} caster {} {config:?}", caster.caster);
+                assert_eq!(caster.bake_verdict == Verdict::Useful, useful, "{at}");
+                let grid_useful = caster.grid_verdict == Verdict::Useful;
+                if config.filter_radius == 0 {
+                    assert_eq!(grid_useful, useful, "{at}");
+                    assert_eq!(caster.kept_by, None, "{at}");
+                } else if useful && !grid_useful {
+                    assert_eq!(caster.kept_by, Some("the filter margin"), "{at}");
+                    kept_by_margin += 1;
+                } else {
+                    assert!(useful || !grid_useful, "the margin only adds: {at}");
+                }
+                seen.insert(format!("{:?}", caster.reason));
+            }
         }
     }
     // Houses stand on the terrain; the terrain is the lowest surface, with
@@ -82,6 +108,7 @@ fn every_village_caster_gets_the_bakes_verdict_for_every_light() {
             "{reason:?} in {seen:?}"
         );
     }
+    assert!(kept_by_margin > 0, "the filter margin keeps some caster");
 }
 
 fn opaque(triangles: Vec<[Vec3; 3]>) -> Mesh {
@@ -444,6 +471,28 @@ fn cli_prints_the_explanation_as_text_and_json() {
     for field in ["hit", "front", "useful", "hidden", "hidden_by", "behind"] {
         assert!(caster["texels"].get(field).is_some(), "{field} in {caster}");
     }
+
+    // The bake's own flags: the verdict is the bake's with them.
+    let moded = shadowcull(&[
+        "explain",
+        settings,
+        "--light",
+        "sun",
+        "--caster",
+        &terrain,
+        "--supersample",
+        "2",
+        "--filter-radius",
+        "1",
+        "--json",
+    ]);
+    assert!(moded.status.success(), "{}", stderr(&moded));
+    let value: serde_json::Value = serde_json::from_slice(&moded.stdout).unwrap();
+    assert_eq!(
+        (&value["supersample"], &value["filter_radius"]),
+        (&2.into(), &1.into())
+    );
+    assert_eq!(value["casters"][0]["disagrees"], false);
 }
 
 /// `-o`: the PNG's marked pixels are the texels the JSON counts, for a
