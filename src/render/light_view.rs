@@ -11,6 +11,10 @@
 //! smaller by picking, for each pixel, the texel under the pixel's centre
 //! (no blending, so every pixel is one class and the counts stay counts of
 //! texels); only those texels are traced.
+//!
+//! The marked view (`light_view_marked`, for `explain -o`) is the same map
+//! in grey with a caller's texels in colours no grey pixel has, so a reader
+//! (or a test decoding the PNG) counts them by colour.
 
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
 use crate::bake::setup::BakeWorld;
