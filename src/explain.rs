@@ -6,6 +6,7 @@
 //! (docs/contract.md §4), who hides it, and what its rays meet after it.
 //! The explanation's verdict is checked against a plain bake of the light:
 //! they must agree, so a disagreement is a bug, not a matter of opinion.
+//! [`picture`] draws the same counts texel by texel over `render`'s map.
 
 use crate::bake::casters::{Caster, CasterTable, Owner};
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};
@@ -14,6 +15,7 @@ use crate::bake::{self, BakeConfig, GridMode, Silent};
 use crate::classify::{self, Passes, RayHit};
 use crate::formats::chunk::InstanceKind;
 use crate::light::GridError;
+use crate::render::{self, Picture, RenderError, TexelMark};
 use crate::scene::Scene;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -378,7 +380,8 @@ pub struct CasterExplanation {
     /// The grid pass's verdict, from the counts below.
     pub grid_verdict: Verdict,
     pub reason: Reason,
-    /// A plain bake's verdict (with `--refine`/`--conservative` when asked).
+    /// A bake's verdict with the modes asked (`--filter-radius`,
+    /// `--conservative`, `--refine`).
     pub bake_verdict: Verdict,
     /// When the bake keeps what the grid pass culls: the rule that kept it.
     pub kept_by: Option<&'static str>,
@@ -396,9 +399,14 @@ pub struct Explanation {
     pub texels: u64,
     /// `all` or `all_and_opaque`.
     pub passes: &'static str,
+    /// Rays per texel side of the grid pass (`--supersample`): the
+    /// counts are of rays.
+    pub supersample: u32,
     /// The modes the bake verdict was computed with.
     pub refine: bool,
     pub conservative: bool,
+    /// `--filter-radius` (0: none).
+    pub filter_radius: u32,
     pub casters: Vec<CasterExplanation>,
 }
 
@@ -411,9 +419,9 @@ impl Explanation {
 
 /// Explains casters `ids` for light `light` of `config`. The grid pass is
 /// traced with `config`'s rules at texel centres (`supersample`² rays a
-/// texel); the bake verdict uses `config` whole, so refinement and the
-/// conservative mode are reported as the rule that kept a caster the grid
-/// pass culls.
+/// texel); the bake verdict uses `config` whole, so the filter margin, the
+/// conservative mode and refinement are reported as the rule that kept a
+/// caster the grid pass culls.
 pub fn explain(
     world: &BakeWorld,
     config: &BakeConfig,
@@ -421,13 +429,7 @@ pub fn explain(
     ids: &[u32],
 ) -> Result<Explanation, ExplainError> {
     let settings = &config.lights[light];
-    let grid_config = BakeConfig {
-        refine_samples: 0,
-        refine_density: 0,
-        grid_mode: GridMode::Centres,
-        filter_radius: 0,
-        ..config.clone()
-    };
+    let grid_config = grid_config(config);
     let setup = match LightSetup::new(world, &grid_config, light) {
         Ok(setup) => Some(setup),
         Err(nothing) if nothing.is_nothing_to_trace() => None,
@@ -478,23 +480,87 @@ pub fn explain(
             Some(Passes::AllAndOpaque) => "all_and_opaque",
             _ => "all",
         },
-        refine: baked.refine,
-        conservative: baked.conservative,
+        supersample: grid_config.supersample.max(1),
+        refine: config.refine_samples > 0 || config.refine_density > 0,
+        conservative: config.grid_mode == GridMode::Conservative,
+        filter_radius: config.filter_radius,
         casters,
     })
 }
 
-/// The bake's verdicts for one light: a plain grid pass, and with the
-/// modes `config` asks for.
+/// The grid pass `explain` counts: `config`'s rules and supersampling at
+/// texel centres, without the modes that keep more.
+fn grid_config(config: &BakeConfig) -> BakeConfig {
+    BakeConfig {
+        refine_samples: 0,
+        refine_density: 0,
+        grid_mode: GridMode::Centres,
+        filter_radius: 0,
+        ..config.clone()
+    }
+}
+
+/// The light's map (`render`'s light view, in grey) with the texels of
+/// casters `ids` marked as [`explain`] counts them: the same rays, filter
+/// and rules, texel by texel. A texel of several rays (supersampling) or
+/// several targets shows its best mark (useful, then nothing behind, then
+/// hidden); with one ray a texel drawn 1:1, each mark's pixels equal the
+/// explanation's `useful`, `front − useful` and `hidden`.
+pub fn picture(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+    ids: &[u32],
+    max_size: Option<(u32, u32)>,
+) -> Result<Picture, RenderError> {
+    let grid_config = grid_config(config);
+    // Without a setup the light reaches nothing, and the render says so.
+    let setup = LightSetup::new(world, &grid_config, light).ok();
+    let rays = setup.as_ref().map(|s| s.rays(world, &grid_config));
+    let slot = slots(world.casters.len(), ids);
+    let samples = grid_config.supersample;
+    let marker = |face: usize, x: u32, y: u32| {
+        let rays = rays.as_ref()?;
+        let mut tallies = vec![Tally::default(); ids.len()];
+        let mut scratch = RayHits::default();
+        trace_texel(
+            rays,
+            samples,
+            &slot,
+            (face, x, y),
+            &mut scratch,
+            &mut tallies,
+        );
+        let sum = |count: fn(&Tally) -> u64| tallies.iter().map(count).sum::<u64>();
+        if sum(|t| t.useful) > 0 {
+            Some(TexelMark::Useful)
+        } else if sum(|t| t.front) > 0 {
+            Some(TexelMark::NothingBehind)
+        } else if sum(|t| t.hidden) > 0 {
+            Some(TexelMark::Hidden)
+        } else {
+            None
+        }
+    };
+    render::light_view_marked(
+        world,
+        &grid_config,
+        light,
+        max_size,
+        render::Source::Bake,
+        &marker,
+    )
+}
+
+/// The bake's verdicts for one light: a plain grid pass, then one bake per
+/// mode `config` asks for, each adding its mode to the one before in the
+/// order the bake applies them (the filter margin and the conservative
+/// beams in the grid pass, then refinement), the last being `config`
+/// whole.
 struct BakeVerdicts {
     plain: Option<CasterSet>,
-    /// With the modes (`None` without, or nothing to trace).
-    moded: Option<Option<CasterSet>>,
-    /// With both modes asked: the conservative grid pass alone, to tell
-    /// which of the two kept a caster.
-    conservative_only: Option<Option<CasterSet>>,
-    refine: bool,
-    conservative: bool,
+    /// Per mode asked: the rule it adds and the bake with it.
+    rungs: Vec<(&'static str, Option<CasterSet>)>,
 }
 
 impl BakeVerdicts {
@@ -509,41 +575,41 @@ impl BakeVerdicts {
             let baked = |setup| bake::bake_light(world, setup, config, &Silent, &mut Vec::new()).0;
             setup.map(baked)
         };
-        let refine = config.refine_samples > 0 || config.refine_density > 0;
-        let conservative = config.grid_mode == GridMode::Conservative;
+        let mut rungs = Vec::new();
+        let mut step = grid_config.clone();
+        if config.filter_radius > 0 {
+            step.filter_radius = config.filter_radius;
+            rungs.push(("the filter margin", bake_with(&step)));
+        }
+        if config.grid_mode == GridMode::Conservative {
+            step.grid_mode = GridMode::Conservative;
+            rungs.push(("the conservative grid pass", bake_with(&step)));
+        }
+        if config.refine_samples > 0 || config.refine_density > 0 {
+            rungs.push(("refinement", bake_with(config)));
+        }
         BakeVerdicts {
             plain: bake_with(grid_config),
-            moded: (refine || conservative).then(|| bake_with(config)),
-            conservative_only: (refine && conservative).then(|| {
-                bake_with(&BakeConfig {
-                    refine_samples: 0,
-                    refine_density: 0,
-                    ..config.clone()
-                })
-            }),
-            refine,
-            conservative,
+            rungs,
         }
     }
 
-    /// Caster `id`: useful in the plain bake, useful in the bake with the
-    /// modes, and the mode that kept it when only that bake does.
+    /// Caster `id`: useful in the plain bake, useful in the bake `config`
+    /// asks for, and the first mode that kept it when only the modes do.
     fn of(&self, world: &BakeWorld, id: u32) -> (bool, bool, Option<&'static str>) {
         let useful_in = |set: &Option<CasterSet>| {
             let caster = &world.casters.casters[id as usize];
             caster.is_unmodelled() || set.as_ref().is_some_and(|s| s.contains(id))
         };
         let plain = useful_in(&self.plain);
-        let Some(moded) = &self.moded else {
+        let Some((_, last)) = self.rungs.last() else {
             return (plain, plain, None);
         };
-        let useful = useful_in(moded);
-        let kept_by = (useful && !plain).then(|| match &self.conservative_only {
-            Some(c) if useful_in(c) => "the conservative grid pass",
-            Some(_) => "refinement",
-            None if self.conservative => "the conservative grid pass",
-            None => "refinement",
-        });
+        let useful = useful_in(last);
+        let kept_by = (useful && !plain)
+            .then(|| self.rungs.iter().find(|(_, set)| useful_in(set)))
+            .flatten()
+            .map(|(rule, _)| *rule);
         (plain, useful, kept_by)
     }
 }
@@ -661,12 +727,18 @@ struct RayHits {
     dropped: Vec<(f32, u32, HitFate)>,
 }
 
-/// Every ray of the grid, its hits tallied for the casters `ids`.
-fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
-    let mut slot = vec![u32::MAX; rays.casters.len()];
+/// Per caster id: its index in `ids`, or `u32::MAX`.
+fn slots(casters: usize, ids: &[u32]) -> Vec<u32> {
+    let mut slot = vec![u32::MAX; casters];
     for (i, &id) in ids.iter().enumerate() {
         slot[id as usize] = i as u32;
     }
+    slot
+}
+
+/// Every ray of the grid, its hits tallied for the casters `ids`.
+fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
+    let slot = slots(rays.casters.len(), ids);
     let grid = rays.grid;
     (0..rays.tile_count())
         .into_par_iter()
@@ -679,17 +751,8 @@ fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
                 }
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        for ray in grid.texel_rays(face, x, y, samples.max(1)) {
-                            scratch.kept.clear();
-                            scratch.dropped.clear();
-                            rays.every_hit(&ray, |hit, fate| match fate {
-                                HitFate::Kept(kept) => scratch.kept.push(kept),
-                                HitFate::Unknown => {}
-                                dropped => scratch.dropped.push((hit.t, hit.caster, dropped)),
-                            });
-                            classify::sort_hits(&mut scratch.kept);
-                            tally_ray(rays, &scratch, &slot, &mut tallies);
-                        }
+                        let texel = (face, x, y);
+                        trace_texel(rays, samples, &slot, texel, &mut scratch, &mut tallies);
                     }
                 }
                 (tallies, scratch)
@@ -705,6 +768,29 @@ fn trace(rays: &LightRays, samples: u32, ids: &[u32]) -> Vec<Tally> {
                 a
             },
         )
+}
+
+/// The rays of texel `(face, x, y)`, their hits tallied for the casters
+/// `slot` names: the one path of both the counts and the picture.
+fn trace_texel(
+    rays: &LightRays,
+    samples: u32,
+    slot: &[u32],
+    (face, x, y): (usize, u32, u32),
+    scratch: &mut RayHits,
+    tallies: &mut [Tally],
+) {
+    for ray in rays.grid.texel_rays(face, x, y, samples.max(1)) {
+        scratch.kept.clear();
+        scratch.dropped.clear();
+        rays.every_hit(&ray, |hit, fate| match fate {
+            HitFate::Kept(kept) => scratch.kept.push(kept),
+            HitFate::Unknown => {}
+            dropped => scratch.dropped.push((hit.t, hit.caster, dropped)),
+        });
+        classify::sort_hits(&mut scratch.kept);
+        tally_ray(rays, scratch, slot, tallies);
+    }
 }
 
 /// One pass's front: the nearest caster hit's distance and caster.

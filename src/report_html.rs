@@ -12,7 +12,9 @@
 //!
 //! The script answers a self-test for headless browsers: with the URL hash
 //! `#selftest=TEXT` it filters the table by TEXT on load and writes the
-//! number of rows left visible into `#selftest`; any script error is
+//! number of rows left visible into `#selftest`; `#selftest=TEXT&click=I,J`
+//! first clicks the headers of columns I, J (from 0), in that order, so the
+//! rows are sorted as a reader's clicks sort them; any script error is
 //! written into `#errors`.
 
 use crate::bake::output::{self, CasterEntry};
@@ -323,7 +325,7 @@ figure.map img { image-rendering: pixelated; border: 1px solid #888; max-width: 
 "#;
 
 /// Sorting by a clicked header, filtering by the text box, and the
-/// self-test (`#selftest=TEXT`).
+/// self-test (`#selftest=TEXT[&click=I,J…]`).
 const TABLE_SCRIPT: &str = r##"
 (function () {
   "use strict";
@@ -378,7 +380,15 @@ const TABLE_SCRIPT: &str = r##"
   applyFilter();
   var hash = window.location.hash;
   if (hash.indexOf("#selftest=") === 0) {
-    filter.value = decodeURIComponent(hash.slice("#selftest=".length));
+    var test = hash.slice("#selftest=".length);
+    var at = test.lastIndexOf("&click=");
+    if (at >= 0) {
+      test.slice(at + "&click=".length).split(",").forEach(function (column) {
+        headers[Number(column)].click();
+      });
+      test = test.slice(0, at);
+    }
+    filter.value = decodeURIComponent(test);
     var visible = applyFilter();
     var result = document.createElement("output");
     result.id = "selftest";

@@ -1,6 +1,7 @@
 //! What `bake`, `bake --shard` and `merge` share: the options that decide
-//! a bake's answer, loading the scene (with the refusal of broken input),
-//! and writing the chunks, the report and the per-light table.
+//! a bake's answer (`VerdictOptions`, which `explain` takes too), loading
+//! the scene (with the refusal of broken input), and writing the chunks,
+//! the report and the per-light table.
 
 use super::cache::{self, CacheArgs};
 use super::load_config;
@@ -37,13 +38,11 @@ pub struct OutputArgs {
     pub html: Option<PathBuf>,
 }
 
-/// The options that decide a bake's answer and how it runs: `bake`, `bake
-/// --shard` and `merge` take the same ones.
+/// The options that decide which casters a bake keeps: `bake`, `bake
+/// --shard`, `merge` and `explain` take the same ones, so an explanation
+/// can be asked for exactly the bake it explains.
 #[derive(Debug, clap::Args)]
-pub struct BakeOptions {
-    /// Worker threads (default: one per core). Results are identical for any N.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
-    threads: Option<u16>,
+pub struct VerdictOptions {
     /// Override <faceCulling>.
     #[arg(long, value_name = "MODE", value_parser = ["back", "front", "none"])]
     face_culling: Option<String>,
@@ -84,18 +83,11 @@ pub struct BakeOptions {
     /// correctness oracle; slow).
     #[arg(long, hide = true)]
     brute_force: bool,
-    #[command(flatten)]
-    pub pipeline: PipelineArgs,
-    #[command(flatten)]
-    pub progress: ProgressArgs,
-    #[command(flatten)]
-    pub cache: CacheArgs,
 }
 
-impl BakeOptions {
-    /// The settings file's values with these overrides and the `--light`
-    /// selection.
-    pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
+impl VerdictOptions {
+    /// The settings file's values with these overrides, every light kept.
+    pub fn config(&self, settings: &BakeSettings) -> Result<BakeConfig> {
         let mut config = BakeConfig {
             brute_force: self.brute_force,
             supersample: self.supersample,
@@ -129,6 +121,32 @@ impl BakeOptions {
         if let Some(epsilon) = self.tie_epsilon {
             config.tie_epsilon = epsilon;
         }
+        Ok(config)
+    }
+}
+
+/// The options that decide a bake's answer and how it runs: `bake`, `bake
+/// --shard` and `merge` take the same ones.
+#[derive(Debug, clap::Args)]
+pub struct BakeOptions {
+    /// Worker threads (default: one per core). Results are identical for any N.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    threads: Option<u16>,
+    #[command(flatten)]
+    pub verdict: VerdictOptions,
+    #[command(flatten)]
+    pub pipeline: PipelineArgs,
+    #[command(flatten)]
+    pub progress: ProgressArgs,
+    #[command(flatten)]
+    pub cache: CacheArgs,
+}
+
+impl BakeOptions {
+    /// The settings file's values with these overrides and the `--light`
+    /// selection.
+    pub fn config(&self, settings: &BakeSettings, settings_file: &Path) -> Result<BakeConfig> {
+        let config = self.verdict.config(settings)?;
         let config = pipeline::select_lights(config, &self.pipeline.lights, settings_file)?;
         anyhow::ensure!(
             !config.lights.is_empty(),

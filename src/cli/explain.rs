@@ -2,16 +2,15 @@
 //! text or one JSON object; an explanation that disagrees with the bake
 //! fails the command (exit 1), since one of the two is wrong.
 
+use super::bake_shared::VerdictOptions;
 use super::{load_config, load_settings, thread_pool, SettingsArgs};
 use anyhow::{bail, Context, Result};
 use shadowcull::bake::setup::BakeWorld;
-use shadowcull::bake::{BakeConfig, GridMode};
 use shadowcull::explain::{self, CasterExplanation, Explanation, Target};
+use shadowcull::files;
+use shadowcull::render::Picture;
 use shadowcull::scene;
-
-/// `--refine`'s samples and density, the bake's defaults.
-const REFINE_SAMPLES: u32 = 64;
-const REFINE_DENSITY: u32 = 8;
+use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct ExplainArgs {
@@ -25,16 +24,23 @@ pub struct ExplainArgs {
     /// CHUNK:terrain. Without GROUP, every group of the instance.
     #[arg(long, value_name = "CHUNK:INDEX[:GROUP]", value_parser = parse_target)]
     caster: Target,
-    /// The bake verdict with refinement (the explanation covers the grid
-    /// pass and says when refinement kept the caster).
-    #[arg(long)]
-    refine: bool,
-    /// The bake verdict with the conservative grid pass (likewise).
-    #[arg(long)]
-    conservative: bool,
+    /// The bake's options that change a verdict (`--supersample`,
+    /// `--filter-radius`, `--refine`, `--conservative`, overrides of the
+    /// settings' rules): the explanation covers the texel-centre grid pass
+    /// at `--supersample`, the bake verdict uses them all and names the
+    /// mode that kept a caster the grid pass culls.
+    #[command(flatten)]
+    verdict: VerdictOptions,
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    /// Also draw the light's map to FILE.png in grey with the caster's
+    /// texels in colour: useful (something behind), front with nothing
+    /// behind, hidden by a nearer caster. One pixel a texel up to
+    /// 2048x2048; a larger map is shown smaller, each pixel the texel
+    /// under its centre.
+    #[arg(short = 'o', long = "output", value_name = "FILE.png")]
+    output: Option<PathBuf>,
     /// Worker threads (default: one per core); the answer is the same for any N.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
     threads: Option<u16>,
@@ -47,28 +53,35 @@ fn parse_target(text: &str) -> Result<Target, String> {
 pub fn run(args: ExplainArgs) -> Result<()> {
     let file = args.settings.settings.display().to_string();
     let settings = load_settings(&args.settings)?;
-    let config = BakeConfig {
-        refine_samples: if args.refine { REFINE_SAMPLES } else { 0 },
-        refine_density: if args.refine { REFINE_DENSITY } else { 0 },
-        grid_mode: if args.conservative {
-            GridMode::Conservative
-        } else {
-            GridMode::Centres
-        },
-        ..BakeConfig::from_settings(&settings)
-    };
+    let config = args.verdict.config(&settings)?;
     let light = explain::find_light(&config, &args.light).with_context(|| file.clone())?;
     let pool = thread_pool(args.threads)?;
     let scene = scene::load_scene(&load_config(&settings))?;
     for problem in scene.problems.iter().take(5) {
         eprintln!("  {}: {}", problem.what, problem.why);
     }
-    let explanation = pool.install(|| -> Result<Explanation> {
+    let (explanation, picture) = pool.install(|| -> Result<(Explanation, Option<Picture>)> {
         let world = BakeWorld::new(&scene);
         let ids =
             explain::resolve(&scene, &world.casters, &args.caster).with_context(|| file.clone())?;
-        explain::explain(&world, &config, light, &ids).with_context(|| file.clone())
+        let explanation =
+            explain::explain(&world, &config, light, &ids).with_context(|| file.clone())?;
+        let picture = match &args.output {
+            Some(_) => Some(
+                explain::picture(&world, &config, light, &ids, None)
+                    .with_context(|| format!("drawing light `{}` ({file})", args.light))?,
+            ),
+            None => None,
+        };
+        Ok((explanation, picture))
     })?;
+    if let (Some(path), Some(picture)) = (&args.output, &picture) {
+        files::write_png(path, picture.width, picture.height, &picture.rgb)?;
+        eprintln!("wrote {}:", path.display());
+        for note in &picture.notes {
+            eprintln!("  {note}");
+        }
+    }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&explanation)?);
     } else {
@@ -99,14 +112,23 @@ fn text(explanation: &Explanation) -> String {
         explanation.texels,
         explanation.passes.replace('_', " ")
     );
+    let radius = format!("--filter-radius {}", explanation.filter_radius);
     let modes: Vec<&str> = [
-        (explanation.refine, "--refine"),
+        (explanation.filter_radius > 0, radius.as_str()),
         (explanation.conservative, "--conservative"),
+        (explanation.refine, "--refine"),
     ]
     .iter()
     .filter(|m| m.0)
     .map(|m| m.1)
     .collect();
+    if explanation.supersample > 1 {
+        let k = explanation.supersample;
+        out += &format!(
+            "supersampled {k}×{k}: the counts below are of rays, {} a texel\n",
+            k * k
+        );
+    }
     if !modes.is_empty() {
         out += &format!(
             "the explanation covers the grid pass; the bake verdict uses {}\n",

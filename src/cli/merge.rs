@@ -69,7 +69,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
         let (merged, plan) = shard::merge(&world, &config, &own, &partials, &command, &locate)?;
         let units = partials.iter().flat_map(|(_, p)| &p.units);
         let (rays, seconds) = units.fold((0u64, 0f64), |(r, s), u| (r + u.rays, s + u.seconds));
-        let refining = if args.options.refine {
+        let refining = if args.options.verdict.refine {
             "; --refine: refinement rays are traced here, after each light's merge"
         } else {
             ""
@@ -87,7 +87,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
                 "shards": plan.shards,
                 "shard_rays": rays,
                 "shard_seconds": seconds,
-                "refine": args.options.refine,
+                "refine": args.options.verdict.refine,
             }),
         );
         // With a cache, refinement is reused or refined per chunk and

@@ -1,5 +1,7 @@
-//! `shadowcull xcheck`: the ray-cast bake against the rasterized method
-//! (cargo feature `raster`); without the feature it says how to get it.
+//! `shadowcull xcheck`: the ray-cast bake against the rasterized method,
+//! or with `--savings` each light's shadow pass timed with all casters and
+//! with the kept ones (cargo feature `raster`); without the feature it
+//! says how to get it.
 
 use super::SettingsArgs;
 use anyhow::{bail, Result};
@@ -9,9 +11,18 @@ use std::path::PathBuf;
 pub struct XcheckArgs {
     #[command(flatten)]
     settings: SettingsArgs,
-    /// Write the comparison as JSON (pairs, agreeing, unexplained, disagreements).
+    /// Write the comparison as JSON (pairs, agreeing, unexplained,
+    /// disagreements), or with --savings the timings.
     #[arg(long, value_name = "FILE")]
     report: Option<PathBuf>,
+    /// Instead of the comparison: bake, then per light render the shadow
+    /// pass (depth only, the bake's grid) with every caster and with the
+    /// kept ones, and report the median GPU and CPU time of each.
+    #[arg(long)]
+    savings: bool,
+    /// Timed renders of each pass for --savings (after one warm-up).
+    #[arg(long, value_name = "N", default_value_t = 7, value_parser = clap::value_parser!(u32).range(1..=1000), requires = "savings")]
+    repetitions: u32,
     /// How the raster counts each caster's passing samples: per-caster
     /// atomic counters, occlusion queries, or both compared caster by caster.
     #[arg(long, value_enum, default_value_t = CounterArg::Atomics)]
@@ -25,9 +36,16 @@ enum CounterArg {
     Both,
 }
 
+/// How to get a binary that can rasterize.
 #[cfg(not(feature = "raster"))]
-pub fn run(_args: XcheckArgs) -> Result<()> {
-    bail!("xcheck needs the rasterized method: rebuild with `cargo build --release --features raster` (and Mesa's libegl1 libegl-mesa0 libgl1-mesa-dri, or a GPU driver)")
+const REBUILD: &str = "rebuild with `cargo build --release --features raster` (and Mesa's libegl1 libegl-mesa0 libgl1-mesa-dri, or a GPU driver)";
+
+#[cfg(not(feature = "raster"))]
+pub fn run(args: XcheckArgs) -> Result<()> {
+    if args.savings {
+        bail!("xcheck --savings renders shadow passes with OpenGL, but this binary was built without the cargo feature `raster`: {REBUILD}");
+    }
+    bail!("xcheck needs the rasterized method, but this binary was built without the cargo feature `raster`: {REBUILD}")
 }
 
 #[cfg(feature = "raster")]
@@ -44,6 +62,9 @@ pub fn run(args: XcheckArgs) -> Result<()> {
         ..BakeConfig::from_settings(&settings)
     };
     let world = BakeWorld::new(&scene);
+    if args.savings {
+        return savings(&world, &config, &args);
+    }
     let options = RasterOptions {
         counter: match args.counter {
             CounterArg::Atomics => Counter::Atomics,
@@ -105,4 +126,86 @@ pub fn run(args: XcheckArgs) -> Result<()> {
         bail!("{} disagreements stay unexplained", report.unexplained);
     }
     Ok(())
+}
+
+/// `--savings`: bake, time both passes of every light, print the table
+/// and write the report.
+#[cfg(feature = "raster")]
+fn savings(
+    world: &shadowcull::bake::setup::BakeWorld,
+    config: &shadowcull::bake::BakeConfig,
+    args: &XcheckArgs,
+) -> Result<()> {
+    use shadowcull::bake::{self, Silent};
+    use shadowcull::raster::savings::{self, SavingsOptions};
+    eprintln!(
+        "xcheck: baking {} light(s) for the kept casters…",
+        config.lights.len()
+    );
+    let baked = bake::bake(world.scene, config, &Silent)?;
+    let options = SavingsOptions {
+        repetitions: args.repetitions,
+        ..Default::default()
+    };
+    eprintln!(
+        "xcheck: timing each light's shadow pass, all casters and kept ones, {} times each…",
+        options.repetitions
+    );
+    let report = savings::measure(world, config, &baked.masks, &options)
+        .map_err(|e| anyhow::anyhow!("the shadow passes could not be rendered: {e}"))?;
+    print!("{}", savings_table(&report));
+    if let Some(path) = &args.report {
+        let json = serde_json::to_string_pretty(&report)?;
+        shadowcull::files::write_atomic(path, json.as_bytes())?;
+    }
+    Ok(())
+}
+
+/// The timings for people: per light what each pass draws and its median
+/// times, in milliseconds, and kept / all.
+#[cfg(feature = "raster")]
+fn savings_table(report: &shadowcull::raster::savings::SavingsReport) -> String {
+    use std::fmt::Write as _;
+    let mut out = format!(
+        "renderer: {}\nshadow pass, depth only, per light: every caster in reach (all) and the kept ones; \
+         median of {} runs; GPU: GL_TIME_ELAPSED, CPU: first draw to glFinish\n",
+        report.renderer, report.repetitions
+    );
+    for note in &report.notes {
+        let _ = writeln!(out, "note: {note}");
+    }
+    let _ = writeln!(
+        out,
+        "{:<3} {:<16} {:>5} {:>17} {:>21} {:>10} {:>10} {:>6} {:>10} {:>10} {:>6}",
+        "#",
+        "light",
+        "tiles",
+        "draw calls",
+        "triangles",
+        "GPU ms all",
+        "kept",
+        "ratio",
+        "CPU ms all",
+        "kept",
+        "ratio"
+    );
+    let ratio = |r: Option<f64>| r.map_or("-".to_string(), |r| format!("{r:.2}"));
+    for l in &report.lights {
+        let _ = writeln!(
+            out,
+            "{:<3} {:<16} {:>5} {:>17} {:>21} {:>10.3} {:>10.3} {:>6} {:>10.3} {:>10.3} {:>6}",
+            l.light,
+            l.name,
+            l.tiles,
+            format!("{} → {}", l.all.draw_calls, l.kept.draw_calls),
+            format!("{} → {}", l.all.triangles, l.kept.triangles),
+            l.all.gpu_seconds * 1e3,
+            l.kept.gpu_seconds * 1e3,
+            ratio(l.gpu_ratio),
+            l.all.cpu_seconds * 1e3,
+            l.kept.cpu_seconds * 1e3,
+            ratio(l.cpu_ratio),
+        );
+    }
+    out
 }

@@ -50,6 +50,7 @@
 
 pub mod context;
 pub mod ground_atlas;
+pub mod savings;
 pub mod xcheck;
 
 use crate::bake::casters::CasterTable;
@@ -374,13 +375,22 @@ impl Programs {
 }
 
 unsafe fn compile(gl: &glow::Context, defines: &str) -> Result<glow::Program, String> {
+    link(
+        gl,
+        &format!("{defines}{VERTEX}"),
+        &format!("{defines}{FRAGMENT}"),
+    )
+}
+
+/// A program of these two shaders, each after the GLSL version line.
+unsafe fn link(gl: &glow::Context, vertex: &str, fragment: &str) -> Result<glow::Program, String> {
     let program = gl.create_program()?;
     for (kind, source) in [
-        (glow::VERTEX_SHADER, VERTEX),
-        (glow::FRAGMENT_SHADER, FRAGMENT),
+        (glow::VERTEX_SHADER, vertex),
+        (glow::FRAGMENT_SHADER, fragment),
     ] {
         let shader = gl.create_shader(kind)?;
-        gl.shader_source(shader, &format!("{GLSL_VERSION}{defines}{source}"));
+        gl.shader_source(shader, &format!("{GLSL_VERSION}{source}"));
         gl.compile_shader(shader);
         if !gl.get_shader_compile_status(shader) {
             return Err(format!("shader: {}", gl.get_shader_info_log(shader)));

@@ -11,6 +11,10 @@
 //! smaller by picking, for each pixel, the texel under the pixel's centre
 //! (no blending, so every pixel is one class and the counts stay counts of
 //! texels); only those texels are traced.
+//!
+//! The marked view (`light_view_marked`, for `explain -o`) is the same map
+//! in grey with a caller's texels in colours no grey pixel has, so a reader
+//! (or a test decoding the PNG) counts them by colour.
 
 use super::{check_size, shaded, verdicts, Class, Picture, RenderError, Source};
 use crate::bake::setup::BakeWorld;
@@ -114,6 +118,73 @@ pub fn light_view_in(
     max_size: Option<(u32, u32)>,
     source: Source,
 ) -> Result<Picture, RenderError> {
+    draw(world, config, light, max_size, source, None)
+}
+
+/// What a texel says about the caster(s) a marked view is about; `explain`
+/// decides it by the rules of docs/contract.md §4.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum TexelMark {
+    /// The front hit, with something behind it: useful here.
+    Useful,
+    /// The front hit, with nothing behind it that counts.
+    NothingBehind,
+    /// Met, but a nearer caster is the front hit.
+    Hidden,
+}
+
+impl TexelMark {
+    pub const ALL: [TexelMark; 3] = [
+        TexelMark::Useful,
+        TexelMark::NothingBehind,
+        TexelMark::Hidden,
+    ];
+
+    /// Okabe-Ito colours none of which is grey, so every marked pixel
+    /// stands out from the grey map (and a reader counts them by colour).
+    pub fn colour(self) -> [u8; 3] {
+        match self {
+            TexelMark::Useful => [213, 94, 0],
+            TexelMark::NothingBehind => [86, 180, 233],
+            TexelMark::Hidden => [240, 228, 66],
+        }
+    }
+
+    pub fn label(self) -> &'static str {
+        match self {
+            TexelMark::Useful => "front hit, something behind: useful (vermilion)",
+            TexelMark::NothingBehind => "front hit, nothing behind that counts (sky blue)",
+            TexelMark::Hidden => "met but hidden by a nearer caster (yellow)",
+        }
+    }
+}
+
+/// The mark of texel `(face, x, y)`, or `None` to show the map there.
+pub type Marker<'m> = dyn Fn(usize, u32, u32) -> Option<TexelMark> + Sync + 'm;
+
+/// [`light_view_in`] in grey (each class's luminance, shaded by distance),
+/// with each pixel whose texel `marker` marks in its [`TexelMark`] colour.
+/// At 1:1 every texel is one pixel, so the pixels of a colour count the
+/// texels of that mark.
+pub fn light_view_marked(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+    max_size: Option<(u32, u32)>,
+    source: Source,
+    marker: &Marker,
+) -> Result<Picture, RenderError> {
+    draw(world, config, light, max_size, source, Some(marker))
+}
+
+fn draw(
+    world: &BakeWorld,
+    config: &BakeConfig,
+    light: usize,
+    max_size: Option<(u32, u32)>,
+    source: Source,
+    marker: Option<&Marker>,
+) -> Result<Picture, RenderError> {
     let max_size = max_size.unwrap_or(DEFAULT_MAX_LIGHT_SIZE);
     check_size(max_size.0, max_size.1)?;
     let (verdicts, setup) = verdicts(world, config, light, source)?;
@@ -130,8 +201,14 @@ pub fn light_view_in(
     let pixels = front_surfaces(&rays_of_light, &verdicts.classes, &layout);
     let depths = DepthRange::of(&pixels);
     let mut rgb = depths.shade(&pixels);
+    let mut notes = notes(grid, &layout, &depths);
     if grid.faces() == 6 {
         label_faces(&mut rgb, layout.width, layout.height);
+    }
+    // After the labels: a marked texel is never hidden under one.
+    if let Some(marker) = marker {
+        let counts = overlay(&mut rgb, &layout, marker);
+        notes.extend(mark_notes(&counts));
     }
     Ok(Picture {
         width: layout.width,
@@ -139,8 +216,54 @@ pub fn light_view_in(
         rgb,
         classes: pixels.into_iter().map(|(class, _)| class).collect(),
         light: verdicts.light,
-        notes: notes(grid, &layout, &depths),
+        notes,
     })
+}
+
+/// Turns `rgb` grey and paints each marked pixel in its mark's colour;
+/// returns the pixels per mark, in [`TexelMark::ALL`] order.
+fn overlay(rgb: &mut [u8], layout: &MapLayout, marker: &Marker) -> [u64; 3] {
+    let marks: Vec<Option<TexelMark>> = (0..layout.height)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            (0..layout.width).map(move |column| {
+                let (face, x, y) = layout.texel_of(column, row);
+                marker(face, x, y)
+            })
+        })
+        .collect();
+    let mut counts = [0u64; 3];
+    for (pixel, mark) in rgb.chunks_exact_mut(3).zip(marks) {
+        match mark {
+            Some(mark) => {
+                pixel.copy_from_slice(&mark.colour());
+                counts[TexelMark::ALL.iter().position(|&m| m == mark).unwrap_or(0)] += 1;
+            }
+            None => {
+                let [r, g, b] = [pixel[0], pixel[1], pixel[2]].map(f64::from);
+                // Rec. 601 luma: the classes stay apart as shades of grey.
+                let grey = (0.299 * r + 0.587 * g + 0.114 * b).round().min(255.0) as u8;
+                pixel.copy_from_slice(&[grey; 3]);
+            }
+        }
+    }
+    counts
+}
+
+/// The legend's lines for a marked view.
+fn mark_notes(counts: &[u64; 3]) -> Vec<String> {
+    let mut notes = vec![
+        "marked view: the map in grey (each class's luminance), the caster's texels in colour:"
+            .to_string(),
+    ];
+    for (mark, count) in TexelMark::ALL.iter().zip(counts) {
+        let [r, g, b] = mark.colour();
+        notes.push(format!(
+            "  {:<52} {r:>3} {g:>3} {b:>3}  {count:>10}",
+            mark.label()
+        ));
+    }
+    notes
 }
 
 /// The shadow map's size laid out flat (faces side by side) and the
@@ -170,6 +293,18 @@ impl MapLayout {
         }
     }
 
+    /// The texel `(face, x, y)` under the centre of pixel `(column, row)`
+    /// (rows from the top).
+    fn texel_of(&self, column: u32, row: u32) -> (usize, u32, u32) {
+        let native_row = centre_sample(row, self.height, self.native_h);
+        let native_column = centre_sample(column, self.width, self.native_w);
+        (
+            (native_column / self.face_width) as usize,
+            (native_column % self.face_width) as u32,
+            (self.native_h - 1 - native_row) as u32,
+        )
+    }
+
     fn is_one_to_one(&self) -> bool {
         (self.width as u64, self.height as u64) == (self.native_w, self.native_h)
     }
@@ -185,13 +320,9 @@ fn front_surfaces(
     let rows: Vec<Vec<(Class, f32)>> = (0..layout.height)
         .into_par_iter()
         .map(|row| {
-            let native_row = centre_sample(row, layout.height, layout.native_h);
-            let y = (layout.native_h - 1 - native_row) as u32;
             (0..layout.width)
                 .map(|column| {
-                    let native_column = centre_sample(column, layout.width, layout.native_w);
-                    let face = (native_column / layout.face_width) as usize;
-                    let x = (native_column % layout.face_width) as u32;
+                    let (face, x, y) = layout.texel_of(column, row);
                     match rays_of_light.front_hit(face, x, y) {
                         Some(hit) => (
                             classes

@@ -20,7 +20,10 @@ mod camera;
 mod light_view;
 
 pub use camera::{camera_view, camera_view_from, CameraSpec};
-pub use light_view::{light_view, light_view_from, light_view_in, DEFAULT_MAX_LIGHT_SIZE};
+pub use light_view::{
+    light_view, light_view_from, light_view_in, light_view_marked, Marker, TexelMark,
+    DEFAULT_MAX_LIGHT_SIZE,
+};
 
 use crate::bake::casters::Caster;
 use crate::bake::setup::{BakeWorld, LightSetup, NoSetup};

@@ -155,16 +155,27 @@ fn gen_writes_the_same_bytes_as_the_library_and_the_world_inspects_clean() {
     assert_eq!(value["problems"].as_array().map(Vec::len), Some(0));
 }
 
-/// Without the `raster` feature, `xcheck` fails (exit 1) and says how to
-/// get it.
+/// Without the `raster` feature, `xcheck` and `xcheck --savings` fail
+/// (exit 1) and say how to get it.
 #[cfg(not(feature = "raster"))]
 #[test]
 fn xcheck_without_the_raster_feature_says_how_to_build_it() {
     let settings = fixture_dir(Preset::Small).join("bake.xml");
-    let out = shadowcull(&["xcheck", settings.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(1));
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("--features raster"), "{stderr}");
+    for savings in [false, true] {
+        let mut args = vec!["xcheck", settings.to_str().unwrap()];
+        if savings {
+            args.push("--savings");
+        }
+        let out = shadowcull(&args);
+        assert_eq!(out.status.code(), Some(1));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains("--features raster"), "{stderr}");
+        assert!(
+            stderr.contains("built without the cargo feature `raster`"),
+            "{stderr}"
+        );
+        assert_eq!(stderr.contains("--savings"), savings, "{stderr}");
+    }
 }
 
 /// `gen` ends with a bake command that runs this very program: its name

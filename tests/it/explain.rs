@@ -9,7 +9,9 @@ use glam::{DMat4, DVec3, Vec3};
 use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, BakeConfig, GridMode, Silent};
 use shadowcull::explain::{self, CasterExplanation, Explanation, Reason, Verdict};
+use shadowcull::formats::png_write;
 use shadowcull::gen::Preset;
+use shadowcull::render::{self, TexelMark};
 use std::process::{Command, Output};
 
 const DOWN: DVec3 = DVec3::new(0.0, -1.0, 0.0);
@@ -47,29 +49,55 @@ fn check_counts(c: &CasterExplanation) {
     );
 }
 
+/// Every caster of village for every light, with the bake's default
+/// options and with each option that changes a verdict without
+/// refinement's cost: the explanation's bake verdict is an independent
+/// bake's mask; without modes the grid pass's own verdict is too, with the
+/// filter margin every caster it adds is named as kept by it.
 #[test]
 fn every_village_caster_gets_the_bakes_verdict_for_every_light() {
     let settings = fixture_dir(Preset::Village).join("bake.xml");
     let scene = load_world(&settings);
     let file_settings = shadowcull::files::read_bake_settings(&settings).unwrap();
-    let config = BakeConfig::from_settings(&file_settings);
-    let baked = bake::bake(&scene, &config, &Silent).expect("bake");
+    let plain = BakeConfig::from_settings(&file_settings);
+    let options = [
+        plain.clone(),
+        BakeConfig {
+            supersample: 2,
+            ..plain.clone()
+        },
+        BakeConfig {
+            filter_radius: 1,
+            ..plain.clone()
+        },
+    ];
     let mut seen = std::collections::BTreeSet::new();
-    for light in 0..config.lights.len() {
-        let explanation = explain_all(&scene, &config, light);
-        assert!(!explanation.disagrees(), "light {light}");
-        let bit = 1u32 << config.bit(light);
-        for caster in &explanation.casters {
-            check_counts(caster);
-            let useful = baked.masks[caster.id as usize] & bit != 0;
-            assert_eq!(
-                caster.grid_verdict == Verdict::Useful,
-                useful,
-                "light {light} caster {}",
-                caster.caster
-            );
-            assert_eq!(caster.bake_verdict, caster.grid_verdict);
-            seen.insert(format!("{:?}", caster.reason));
+    let mut kept_by_margin = 0;
+    for config in &options {
+        let baked = bake::bake(&scene, config, &Silent).expect("bake");
+        for light in 0..config.lights.len() {
+            let explanation = explain_all(&scene, config, light);
+            assert!(!explanation.disagrees(), "light {light}");
+            assert_eq!(explanation.supersample, config.supersample);
+            assert_eq!(explanation.filter_radius, config.filter_radius);
+            let bit = 1u32 << config.bit(light);
+            for caster in &explanation.casters {
+                check_counts(caster);
+                let useful = baked.masks[caster.id as usize] & bit != 0;
+                let at = format!("light {light} caster {} {config:?}", caster.caster);
+                assert_eq!(caster.bake_verdict == Verdict::Useful, useful, "{at}");
+                let grid_useful = caster.grid_verdict == Verdict::Useful;
+                if config.filter_radius == 0 {
+                    assert_eq!(grid_useful, useful, "{at}");
+                    assert_eq!(caster.kept_by, None, "{at}");
+                } else if useful && !grid_useful {
+                    assert_eq!(caster.kept_by, Some("the filter margin"), "{at}");
+                    kept_by_margin += 1;
+                } else {
+                    assert!(useful || !grid_useful, "the margin only adds: {at}");
+                }
+                seen.insert(format!("{:?}", caster.reason));
+            }
         }
     }
     // Houses stand on the terrain; the terrain is the lowest surface, with
@@ -80,6 +108,7 @@ fn every_village_caster_gets_the_bakes_verdict_for_every_light() {
             "{reason:?} in {seen:?}"
         );
     }
+    assert!(kept_by_margin > 0, "the filter margin keeps some caster");
 }
 
 fn opaque(triangles: Vec<[Vec3; 3]>) -> Mesh {
@@ -127,9 +156,8 @@ fn name(world: &World, instance: usize) -> String {
 /// Flat terrain at 0; box A (4..12 across, y 4..5) over box B (6..8
 /// across, y 1..2): every ray down that meets B meets A first, so B is
 /// hidden by A alone; A has the terrain or B behind it; the terrain has
-/// nothing behind it where it is first.
-#[test]
-fn a_caster_under_a_nearer_one_is_hidden_and_the_nearer_one_named() {
+/// nothing behind it where it is first. Returns the world, A and B.
+fn box_over_box() -> (World, usize, usize) {
     let mut world = World::new(1, 1);
     world.terrain((0, 0), |_, _| 0.0);
     let a = world.model(opaque(cube(
@@ -142,6 +170,12 @@ fn a_caster_under_a_nearer_one_is_hidden_and_the_nearer_one_named() {
     )));
     let a = world.place((0, 0), &[a], DMat4::IDENTITY, true);
     let b = world.place((0, 0), &[b], DMat4::IDENTITY, true);
+    (world, a, b)
+}
+
+#[test]
+fn a_caster_under_a_nearer_one_is_hidden_and_the_nearer_one_named() {
+    let (world, a, b) = box_over_box();
     let explanation = explain_micro(&world);
 
     let hidden = of(&explanation, &world, b);
@@ -262,16 +296,9 @@ fn receiver_only_geometry_behind_keeps_a_caster() {
     assert!(receiver.receiver_only);
 }
 
-/// A box far smaller than a texel (2 cm) over flat terrain at 4 m texels,
-/// placed where no texel centre projects into its footprint: the grid's
-/// centre rays miss it, and the conservative grid pass (every texel's
-/// beam, terrain behind) keeps it.
-#[test]
-fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
-    let config = BakeConfig {
-        grid_mode: GridMode::Conservative,
-        ..config(vec![directional(DOWN, 4.0)])
-    };
+/// A box far smaller than a texel (2 cm) over flat terrain, placed where
+/// no texel centre of `config`'s light 0 projects into its footprint.
+fn tiny_between_centres(config: &BakeConfig) -> (World, usize) {
     let tiny_at = |x: f32| {
         let mut world = World::new(1, 1);
         world.terrain((0, 0), |_, _| 0.0);
@@ -283,7 +310,7 @@ fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
     // Corners of the footprint in texel units; a centre lies at k + 0.5.
     let misses_every_centre = |world: &World, lo: DVec3, hi: DVec3| {
         let baked = BakeWorld::new(&world.scene);
-        let setup = shadowcull::bake::setup::LightSetup::new(&baked, &config, 0).unwrap();
+        let setup = shadowcull::bake::setup::LightSetup::new(&baked, config, 0).unwrap();
         let corners: Vec<(f64, f64)> = [(lo.x, lo.z), (hi.x, lo.z), (lo.x, hi.z), (hi.x, hi.z)]
             .iter()
             .map(|&(x, z)| setup.grid.project_point(0, DVec3::new(x, hi.y, z)).unwrap())
@@ -295,11 +322,22 @@ fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
         };
         span(|c| c.0) || span(|c| c.1)
     };
-    let (world, m) = (0..8)
+    (0..8)
         .map(|step| tiny_at(5.0 + step as f32 * 0.5))
         .find(|(world, _, lo, hi)| misses_every_centre(world, *lo, *hi))
         .map(|(world, m, _, _)| (world, m))
-        .expect("a placement between centres");
+        .expect("a placement between centres")
+}
+
+/// The grid's centre rays miss a box between them (4 m texels), and the
+/// conservative grid pass (every texel's beam, terrain behind) keeps it.
+#[test]
+fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
+    let config = BakeConfig {
+        grid_mode: GridMode::Conservative,
+        ..config(vec![directional(DOWN, 4.0)])
+    };
+    let (world, m) = tiny_between_centres(&config);
     let explanation = explain_all(&world.scene, &config, 0);
     assert!(explanation.conservative && !explanation.disagrees());
     let tiny = of(&explanation, &world, m);
@@ -322,6 +360,70 @@ fn a_caster_the_grid_misses_is_named_and_the_mode_that_keeps_it() {
     assert_eq!(tiny.grid_verdict, Verdict::Culled);
     assert_eq!(tiny.bake_verdict, Verdict::Useful, "{tiny:?}");
     assert_eq!(tiny.kept_by, Some("refinement"));
+}
+
+/// Pixels per [`TexelMark`] (in `TexelMark::ALL` order) of a PNG, and the
+/// pixels in any other colour that is not grey.
+fn marked_pixels(png_bytes: &[u8]) -> ([u64; 3], u64) {
+    let decoder = png::Decoder::new(std::io::Cursor::new(png_bytes));
+    let mut reader = decoder.read_info().expect("a PNG");
+    let mut rgb = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut rgb).expect("its pixels");
+    assert_eq!(info.color_type, png::ColorType::Rgb);
+    let mut counts = [0u64; 3];
+    let mut other = 0;
+    for pixel in rgb[..info.buffer_size()].chunks_exact(3) {
+        let found = TexelMark::ALL.iter().position(|m| m.colour() == pixel);
+        match found {
+            Some(i) => counts[i] += 1,
+            None if pixel[0] == pixel[1] && pixel[1] == pixel[2] => {}
+            None => other += 1,
+        }
+    }
+    (counts, other)
+}
+
+/// A marked picture's PNG bytes (the encoding `files::write_png` uses).
+fn picture_png(world: &World, config: &BakeConfig, ids: &[u32]) -> Vec<u8> {
+    let baked = BakeWorld::new(&world.scene);
+    let picture = explain::picture(&baked, config, 0, ids, None).expect("picture");
+    png_write::encode_rgb(picture.width, picture.height, &picture.rgb).unwrap()
+}
+
+/// Each caster's marked pixels are its counted texels: useful and front
+/// with nothing behind (together its front texels), hidden; the rest of
+/// the map is grey. B under A is only hidden, A is useful wherever it is
+/// first, a box far from every texel centre is not drawn.
+#[test]
+fn the_picture_marks_exactly_the_texels_explain_counts() {
+    let (world, a, b) = box_over_box();
+    let fine = config(vec![directional(DOWN, 0.5)]);
+    let explanation = explain_micro(&world);
+    for instance in [a, b] {
+        let counted = of(&explanation, &world, instance);
+        let (marks, other) = marked_pixels(&picture_png(&world, &fine, &[counted.id]));
+        let t = &counted.texels;
+        assert_eq!(other, 0, "only grey and mark colours");
+        assert_eq!(marks[0] + marks[1], t.front, "{counted:?}");
+        assert_eq!(marks, [t.useful, t.front - t.useful, t.hidden]);
+        assert!(instance != a || marks[0] >= 225, "A is useful: {marks:?}");
+    }
+    let hidden = of(&explanation, &world, b);
+    let (marks, _) = marked_pixels(&picture_png(&world, &fine, &[hidden.id]));
+    assert_eq!(marks[2], hidden.texels.hit);
+    assert!(hidden.texels.hit > 0 && hidden.texels.front == 0);
+
+    // A box between texel centres: met by no ray, so marked nowhere,
+    // while the same map unmarked has colour.
+    let coarse = config(vec![directional(DOWN, 4.0)]);
+    let (world, tiny) = tiny_between_centres(&coarse);
+    let never = of(&explain_all(&world.scene, &coarse, 0), &world, tiny);
+    assert_eq!((never.texels.hit, never.reason), (0, Reason::NeverHit));
+    let marks = marked_pixels(&picture_png(&world, &coarse, &[never.id]));
+    assert_eq!(marks, ([0, 0, 0], 0), "a caster never hit marks no pixel");
+    let plain = render::light_view(&world.scene, &coarse, 0, None).unwrap();
+    let plain = png_write::encode_rgb(plain.width, plain.height, &plain.rgb).unwrap();
+    assert!(marked_pixels(&plain).1 > 0, "the unmarked map is in colour");
 }
 
 fn shadowcull(args: &[&str]) -> Output {
@@ -368,6 +470,79 @@ fn cli_prints_the_explanation_as_text_and_json() {
     assert_eq!(caster["disagrees"], false);
     for field in ["hit", "front", "useful", "hidden", "hidden_by", "behind"] {
         assert!(caster["texels"].get(field).is_some(), "{field} in {caster}");
+    }
+
+    // The bake's own flags: the verdict is the bake's with them.
+    let moded = shadowcull(&[
+        "explain",
+        settings,
+        "--light",
+        "sun",
+        "--caster",
+        &terrain,
+        "--supersample",
+        "2",
+        "--filter-radius",
+        "1",
+        "--json",
+    ]);
+    assert!(moded.status.success(), "{}", stderr(&moded));
+    let value: serde_json::Value = serde_json::from_slice(&moded.stdout).unwrap();
+    assert_eq!(
+        (&value["supersample"], &value["filter_radius"]),
+        (&2.into(), &1.into())
+    );
+    assert_eq!(value["casters"][0]["disagrees"], false);
+}
+
+/// `-o`: the PNG's marked pixels are the texels the JSON counts, for a
+/// terrain block and a model group; a map 1:1 (village's sun fits).
+#[test]
+fn cli_draws_the_casters_texels_over_the_map() {
+    let settings = fixture_dir(Preset::Village).join("bake.xml");
+    let settings = settings.to_str().unwrap();
+    let scene = load_world(std::path::Path::new(settings));
+    let dir = tempfile::tempdir().unwrap();
+    let chunk = &scene.chunks[scene.chunks.len() / 2];
+    let instance = &scene.instances[chunk.instances.start];
+    for (n, target) in [
+        format!("{}:terrain", chunk.name),
+        format!("{}:{}:0", chunk.name, instance.index),
+    ]
+    .iter()
+    .enumerate()
+    {
+        let png = dir.path().join(format!("{n}.png"));
+        let output = shadowcull(&[
+            "explain",
+            settings,
+            "--light",
+            "sun",
+            "--caster",
+            target,
+            "--json",
+            "-o",
+            png.to_str().unwrap(),
+        ]);
+        assert!(output.status.success(), "{}", stderr(&output));
+        let value: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+        let texels = &value["casters"][0]["texels"];
+        let count = |field: &str| texels[field].as_u64().unwrap();
+        let (marks, other) = marked_pixels(&std::fs::read(&png).unwrap());
+        assert_eq!(other, 0, "{target}: grey and marks only");
+        assert_eq!(marks[0] + marks[1], count("front"), "{target}: {texels}");
+        assert_eq!(
+            marks,
+            [
+                count("useful"),
+                count("front") - count("useful"),
+                count("hidden")
+            ],
+            "{target}"
+        );
+        if n == 0 {
+            assert!(count("front") > 1000, "the terrain block is seen: {texels}");
+        }
     }
 }
 

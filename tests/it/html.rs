@@ -1,8 +1,9 @@
 //! `bake --html` and `merge --html`: the page loads nothing from the
 //! network, lists every light and exactly the culled (caster, light) pairs
 //! of the bake's report, escapes the user's text; and, in a headless
-//! Chromium, its script runs without errors and its filter keeps the rows
-//! a count made here from the report says it should.
+//! Chromium, its script runs without errors, its filter keeps the rows a
+//! count made here from the report says it should, and a click on a
+//! header sorts the rows as a sort made here of the report's rows does.
 
 use serde_json::Value;
 use shadowcull::files::write_tree;
@@ -245,6 +246,79 @@ fn element_text<'a>(dom: &'a str, opening: &str) -> Option<&'a str> {
     Some(&dom[start..end])
 }
 
+/// The page's DOM after its script ran in the headless browser with the
+/// URL hash `#selftest=TEST`, checked free of script errors.
+fn browse(browser: &str, baked: &Baked, test: &str) -> String {
+    let profile = baked.root.join("browser-profile");
+    let url = format!("file://{}#selftest={test}", s(&baked.page_path));
+    let output = Command::new(browser)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--virtual-time-budget=2000",
+            &format!("--user-data-dir={}", s(&profile)),
+            "--dump-dom",
+            &url,
+        ])
+        .output()
+        .expect("run the browser");
+    let dom = String::from_utf8_lossy(&ok(output, "the browser").stdout).into_owned();
+    assert_eq!(
+        element_text(&dom, "<div id=\"errors\">"),
+        Some(""),
+        "script errors ({test})"
+    );
+    dom
+}
+
+/// The culled table's rows in the order the DOM holds them, each cell's
+/// text unescaped.
+fn dom_rows(dom: &str) -> Vec<Vec<String>> {
+    let start = dom.find("<table id=\"culled\">").expect("a culled table");
+    let table = &dom[start..start + dom[start..].find("</table>").unwrap()];
+    let body = &table[table.find("<tbody>").expect("a body")..];
+    let unescape = |text: &str| {
+        text.replace("&lt;", "<")
+            .replace("&gt;", ">")
+            .replace("&quot;", "\"")
+            .replace("&#39;", "'")
+            .replace("&amp;", "&")
+    };
+    body.split("<tr")
+        .skip(1)
+        .map(|row| {
+            row.split("<td>")
+                .skip(1)
+                .map(|cell| unescape(&cell[..cell.find("</td>").unwrap()]))
+                .collect()
+        })
+        .collect()
+}
+
+/// The order a click on column `column`'s header gives (`descending`
+/// after a second click), worked out here: cells that are whole numbers
+/// before the others, numbers by value, the rest by text; equal cells keep
+/// the report's order.
+fn sorted_rows(rows: &[[String; 6]], column: usize, descending: bool) -> Vec<Vec<String>> {
+    let key = |row: &[String; 6]| {
+        let text = &row[column];
+        let number = (!text.is_empty() && text.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| text.parse::<u64>().unwrap());
+        (number.is_none(), number, text.clone())
+    };
+    let mut sorted: Vec<&[String; 6]> = rows.iter().collect();
+    sorted.sort_by(|a, b| {
+        let order = key(a).cmp(&key(b));
+        if descending {
+            order.reverse()
+        } else {
+            order
+        }
+    });
+    sorted.into_iter().map(|row| row.to_vec()).collect()
+}
+
 #[test]
 #[cfg_attr(
     not(shadowcull_browser),
@@ -255,7 +329,6 @@ fn html_page_filters_in_a_headless_browser() {
     let baked = bake_village();
     let rows = culled_rows(&baked.report);
     let first_chunk = rows.first().expect("culled casters")[0].clone();
-    let profile = baked.root.join("browser-profile");
     for wanted in [first_chunk.as_str(), "spot", "crate", "no such caster"] {
         let lowered = wanted.to_lowercase();
         let expected = rows
@@ -265,35 +338,58 @@ fn html_page_filters_in_a_headless_browser() {
                     .any(|cell| cell.to_lowercase().contains(&lowered))
             })
             .count();
-        let url = format!(
-            "file://{}#selftest={}",
-            s(&baked.page_path),
-            wanted.replace(' ', "%20")
-        );
-        let output = Command::new(&browser)
-            .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--virtual-time-budget=2000",
-                &format!("--user-data-dir={}", s(&profile)),
-                "--dump-dom",
-                &url,
-            ])
-            .output()
-            .expect("run the browser");
-        let dom = String::from_utf8_lossy(&ok(output, "the browser").stdout).into_owned();
-        assert_eq!(
-            element_text(&dom, "<div id=\"errors\">"),
-            Some(""),
-            "script errors"
-        );
+        let dom = browse(&browser, &baked, &wanted.replace(' ', "%20"));
         let shown = element_text(&dom, "<output id=\"selftest\">")
             .unwrap_or_else(|| panic!("no self-test result in the page for `{wanted}`"));
         assert_eq!(
             shown,
             expected.to_string(),
             "rows kept by the filter `{wanted}`"
+        );
+    }
+}
+
+/// Clicking a header sorts the culled table by that column, a second
+/// click the other way: the rows the browser shows are the report's rows
+/// sorted here, for a text column, whole-number columns (the group column
+/// has empty cells for terrain) and the light.
+#[test]
+#[cfg_attr(
+    not(shadowcull_browser),
+    ignore = "needs a headless Chromium: set SHADOWCULL_BROWSER to its binary"
+)]
+fn html_page_sorts_by_a_clicked_header_in_a_headless_browser() {
+    let browser = std::env::var("SHADOWCULL_BROWSER").expect("SHADOWCULL_BROWSER");
+    let baked = bake_village();
+    let rows = culled_rows(&baked.report);
+    assert!(rows.len() > 10, "enough rows to sort");
+    let unsorted: Vec<Vec<String>> = rows.iter().map(|row| row.to_vec()).collect();
+    same_rows(
+        &dom_rows(&browse(&browser, &baked, "")),
+        &unsorted,
+        "no click",
+    );
+    for (clicks, column, descending) in [
+        ("0,0", 0, true),
+        ("2", 2, false),
+        ("2,2", 2, true),
+        ("4,4", 4, true),
+        ("3,5", 5, false),
+    ] {
+        let expected = sorted_rows(&rows, column, descending);
+        assert!(expected != unsorted, "clicks {clicks}: the sort moves rows");
+        let shown = dom_rows(&browse(&browser, &baked, &format!("&click={clicks}")));
+        same_rows(&shown, &expected, &format!("clicks {clicks}"));
+    }
+}
+
+/// `shown` equals `expected`, or the first row where they differ is named.
+fn same_rows(shown: &[Vec<String>], expected: &[Vec<String>], what: &str) {
+    assert_eq!(shown.len(), expected.len(), "{what}: rows");
+    if let Some(at) = (0..shown.len()).find(|&i| shown[i] != expected[i]) {
+        panic!(
+            "{what}: row {at} is {:?}, expected {:?}",
+            shown[at], expected[at]
         );
     }
 }

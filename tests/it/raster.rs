@@ -9,7 +9,7 @@ use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{bake, BakeConfig, Silent};
 use shadowcull::files::ResPaths;
 use shadowcull::formats::bake_settings::{FaceCulling, LightKind, LightSettings};
-use shadowcull::raster::{self, xcheck, Counter, Fault, RasterOptions, RasterResult};
+use shadowcull::raster::{self, savings, xcheck, Counter, Fault, RasterOptions, RasterResult};
 use shadowcull::scene::{load_scene, LoadConfig, Scene};
 use std::path::Path;
 
@@ -441,6 +441,88 @@ fn xcheck_cli_writes_the_report_fields() {
     let out = crate::cli::shadowcull(&["xcheck", "/nonexistent/bake.xml"]);
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/bake.xml"));
+}
+
+/// `xcheck --savings` on the small fixture: each light's two passes draw
+/// exactly the draw calls and triangles the bake's savings count before
+/// and after culling (so the kept pass draws fewer where the bake culls),
+/// every timing is positive; the command line prints the table and writes
+/// the same counts as JSON. Timing ratios depend on the machine: not
+/// asserted.
+#[test]
+fn savings_passes_draw_what_the_bake_counts_and_take_time() {
+    let (scene, config) = fixture("small");
+    let baked = bake(&scene, &config, &Silent).unwrap();
+    let world = BakeWorld::new(&scene);
+    let options = savings::SavingsOptions {
+        repetitions: 3,
+        ..Default::default()
+    };
+    let report = savings::measure(&world, &config, &baked.masks, &options)
+        .unwrap_or_else(|e| panic!("the shadow passes failed (no OpenGL context?): {e}"));
+    assert_eq!(report.lights.len(), config.lights.len());
+    let mut fewer = 0;
+    for (measured, counted) in report.lights.iter().zip(&baked.lights) {
+        let s = &counted.savings;
+        assert_eq!(measured.name, counted.name);
+        assert_eq!(
+            (measured.all.draw_calls, measured.kept.draw_calls),
+            (s.draw_calls.before, s.draw_calls.after),
+            "{measured:?}"
+        );
+        assert_eq!(
+            (measured.all.triangles, measured.kept.triangles),
+            (s.triangles.before, s.triangles.after),
+            "{measured:?}"
+        );
+        if measured.kept.draw_calls < measured.all.draw_calls {
+            assert!(measured.kept.triangles < measured.all.triangles);
+            fewer += 1;
+        }
+        assert!(measured.tiles >= 1);
+        for pass in [&measured.all, &measured.kept] {
+            assert_eq!(pass.cpu_samples.len(), 3);
+            assert!(pass.cpu_samples.iter().all(|&t| t > 0.0), "{pass:?}");
+            assert!(pass.gpu_samples.iter().all(|&t| t >= 0.0), "{pass:?}");
+            assert!(pass.cpu_seconds > 0.0, "{pass:?}");
+        }
+        assert!(measured.all.gpu_seconds > 0.0, "{measured:?}");
+    }
+    assert!(fewer > 0, "the bake culls something: {report:?}");
+
+    let settings = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small/bake.xml");
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("savings.json");
+    let out = crate::cli::shadowcull(&[
+        "xcheck",
+        settings.to_str().unwrap(),
+        "--savings",
+        "--repetitions",
+        "2",
+        "--report",
+        json.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("GPU ms all"), "{stdout}");
+    let value: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(value["repetitions"], 2);
+    for (light, measured) in value["lights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(&report.lights)
+    {
+        assert_eq!(light["all"]["draw_calls"], measured.all.draw_calls);
+        assert_eq!(light["kept"]["triangles"], measured.kept.triangles);
+        assert!(light["kept"]["cpu_seconds"].as_f64().unwrap() > 0.0);
+        let line = format!("{} → {}", measured.all.draw_calls, measured.kept.draw_calls);
+        assert!(stdout.contains(&line), "{line} in {stdout}");
+    }
 }
 
 /// Atomic counters, occlusion queries (flushed) and both at once count the
