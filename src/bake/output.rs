@@ -166,13 +166,32 @@ pub struct ChunkOutput {
     pub source: PathBuf,
     pub target: PathBuf,
     /// The target's new content; `None` for a chunk baked in place whose
-    /// bytes stay as they are (not held: a large world's chunks would
-    /// fill memory).
+    /// bytes stay as they are, and for every chunk of a bake that writes
+    /// nothing ([`OutputBytes::Dropped`]): not held, since a large world's
+    /// chunks would fill memory.
     pub bytes: Option<Vec<u8>>,
     /// The content key of what the target holds after writing.
     pub key: Key,
     /// The target would hold different bytes after writing.
     pub changed: bool,
+}
+
+/// Where chunk outputs go, and whether their bytes are wanted.
+#[derive(Debug, Clone, Copy)]
+pub struct Destination<'a> {
+    /// Under this folder, at the path relative to the chunk's res root;
+    /// `None`: in place.
+    pub out_dir: Option<&'a Path>,
+    pub bytes: OutputBytes,
+}
+
+/// Whether an output's bytes are kept once compared with its target.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OutputBytes {
+    /// Kept for writing.
+    Kept,
+    /// Dropped: the bake writes nothing (`--dry-run`, `--check`).
+    Dropped,
 }
 
 /// Computes every chunk's new content, in memory, before anything is
@@ -192,7 +211,11 @@ pub fn chunk_outputs(
     out_dir: Option<&Path>,
     progress: &dyn Progress,
 ) -> Result<Vec<ChunkOutput>> {
-    let (outputs, _) = chunk_outputs_cached(scene, result, res_paths, out_dir, progress, None)?;
+    let to = Destination {
+        out_dir,
+        bytes: OutputBytes::Kept,
+    };
+    let (outputs, _) = chunk_outputs_cached(scene, result, res_paths, to, progress, None)?;
     Ok(outputs)
 }
 
@@ -207,7 +230,7 @@ pub fn chunk_outputs_cached(
     scene: &Scene,
     result: &mut BakeResult,
     res_paths: &ResPaths,
-    out_dir: Option<&Path>,
+    to: Destination,
     progress: &dyn Progress,
     cache: Option<&Cache>,
 ) -> Result<(Vec<ChunkOutput>, PhaseCounts)> {
@@ -218,7 +241,8 @@ pub fn chunk_outputs_cached(
             scene,
             result,
             res_paths,
-            out_dir,
+            out_dir: to.out_dir,
+            bytes: to.bytes,
             cache,
         };
         // Chunks are independent; collecting keeps their order, and the
@@ -267,6 +291,7 @@ struct ChunkOutputs<'o> {
     result: &'o BakeResult,
     res_paths: &'o ResPaths,
     out_dir: Option<&'o Path>,
+    bytes: OutputBytes,
     cache: Option<&'o Cache>,
 }
 
@@ -320,6 +345,11 @@ impl ChunkOutputs<'_> {
             );
             if bytes != original {
                 self.keep_items(cache, chunk, &root, &key);
+                // Written in place, the old bytes are gone: so is any use
+                // of their entry.
+                if self.out_dir.is_none() && self.bytes == OutputBytes::Kept {
+                    cache.forget(Kind::Chunk, &chunk_cache::key(cache, &content));
+                }
             }
         }
         let output = self.output(chunk, &original, bytes, key)?;
@@ -445,10 +475,11 @@ impl ChunkOutputs<'_> {
         };
         // In place, bytes that stay are not held.
         let keeps_its_bytes = self.out_dir.is_none() && !changed;
+        let wanted = self.bytes == OutputBytes::Kept && !keeps_its_bytes;
         Ok(ChunkOutput {
             source: chunk.file.clone(),
             target,
-            bytes: (!keeps_its_bytes).then_some(bytes),
+            bytes: wanted.then_some(bytes),
             key,
             changed,
         })

@@ -390,6 +390,12 @@ impl Cache {
         self.damaged(kind, &self.path(kind, key), "does not decode");
     }
 
+    /// Removes the entry under `key`, if any: a value no later bake can
+    /// ask for (the parsed items of chunk bytes a bake replaced in place).
+    pub fn forget(&self, kind: Kind, key: &Key) {
+        let _ = files::remove_cache_file(&self.path(kind, key));
+    }
+
     fn damaged(&self, kind: Kind, path: &Path, why: &str) {
         self.count(kind, |c| c.damaged += 1);
         let _ = files::remove_cache_file(path);

@@ -305,14 +305,15 @@ pub fn write_results(
 ) -> Result<Wrote> {
     let scene = results.scene;
     let res_paths = ResPaths::new(results.res_paths.to_vec());
-    let (outputs, kept) = output::chunk_outputs_cached(
-        scene,
-        &mut result,
-        &res_paths,
-        output_args.out.as_deref(),
-        reporter,
-        results.cache,
-    )?;
+    let to = output::Destination {
+        out_dir: output_args.out.as_deref(),
+        bytes: match options.pipeline.writes_nothing() {
+            true => output::OutputBytes::Dropped,
+            false => output::OutputBytes::Kept,
+        },
+    };
+    let (outputs, kept) =
+        output::chunk_outputs_cached(scene, &mut result, &res_paths, to, reporter, results.cache)?;
     if let Some(cache) = results.cache {
         let report = result.cache.get_or_insert_with(|| CacheReport {
             dir: cache.dir().display().to_string(),

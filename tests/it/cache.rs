@@ -1424,17 +1424,27 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     let config = BakeConfig::from_settings(&settings);
     let mut result = bake::bake(&read_back, &config, &Silent).unwrap();
     let res_paths = ResPaths::new(settings.res_paths.clone());
+    let to = output::Destination {
+        out_dir: None,
+        bytes: output::OutputBytes::Kept,
+    };
     let (outputs, _) = output::chunk_outputs_cached(
         &read_back,
         &mut result,
         &res_paths,
-        None,
+        to,
         &Silent,
         Some(&second),
     )
     .unwrap();
     assert!(outputs.iter().any(|o| o.changed), "masks written");
     output::write_outputs(&outputs, &Silent).unwrap();
+    let changed = outputs.iter().filter(|o| o.changed).count() as u64;
+    assert_eq!(
+        entries(&dir.path().join("cache"), "chunk").len() as u64,
+        chunks,
+        "the entries of the {changed} chunks' replaced bytes are gone"
+    );
     let third = open();
     let after = load_scene_cached(&load, &Silent, Some(&third)).unwrap();
     assert_eq!(chunk_counts(&third).reused, chunks, "nothing parsed again");
