@@ -25,7 +25,7 @@ use super::config::BakeConfig;
 use super::grid_pass::GridPass;
 use super::manifest::{self, Because, LightDigests, Manifest};
 use super::refine::{self, OwnRefinement};
-use super::setup::{BakeWorld, LightSetup};
+use super::setup::{BakeWorld, LightSetup, NoSetup};
 use super::trace_light::{CasterSet, LightRays, RayCounter};
 use super::GridSource;
 use crate::cache::codec::{Decoder, Encoder};
@@ -182,6 +182,20 @@ struct LightCells {
     /// Per cell, the casters its rays prove (ascending ids), when the
     /// grid pass ran here (a merge has only the shards' answers).
     values: Option<Vec<Vec<u32>>>,
+    /// Per cell, what the cache held for it when the light's setup was
+    /// built over the cells it lacks ([`BakeCache::light_setup`]).
+    held: Option<Vec<Held>>,
+}
+
+/// A cell's entry as a cached bake's setup found it.
+#[derive(Debug, Clone)]
+enum Held {
+    /// Nothing in reach: no entry.
+    Empty,
+    /// The casters its entry holds (ascending ids).
+    Value(Vec<u32>),
+    /// No usable entry (`damaged`: one failed its check): traced again.
+    Missing { damaged: bool },
 }
 
 /// A bake's use of a cache: the world's keys, and per light what its grid
@@ -262,6 +276,108 @@ impl<'c> BakeCache<'c> {
             reach,
             keys,
             values: None,
+            held: None,
+        }
+    }
+
+    /// Light `index`'s setup for a bake with this cache, as
+    /// [`Phase::TopLevel`] of `progress`: its cells' keys and the values
+    /// the cache holds for them, read now, and a top level over only what
+    /// the cells it lacks can meet (the whole reach with `--refine`, whose
+    /// rays go beyond the cells traced again). Tracing a cell over it
+    /// gives what tracing it over the whole reach gives: a cell's rays can
+    /// meet only its reach (`bake::cells`).
+    pub fn light_setup(
+        &self,
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+        progress: &dyn Progress,
+    ) -> Result<LightSetup, NoSetup> {
+        let name = Some(config.lights[index].name.as_str());
+        let counter = Counter::begin(progress, Phase::TopLevel, name, 1);
+        let setup = self.setup_over_missing(world, config, index);
+        if setup.is_ok() {
+            counter.add(1);
+        }
+        counter.finish();
+        setup
+    }
+
+    fn setup_over_missing(
+        &self,
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+    ) -> Result<LightSetup, NoSetup> {
+        let mut setup = LightSetup::without_top(world, config, index)?;
+        if setup.is_empty() {
+            return Ok(setup);
+        }
+        // A plan's look at the cache stands (its calibration may have
+        // stored cells since, which the grid pass then finds).
+        let stashed = lock(&self.lights).remove(&index);
+        let light = match stashed {
+            Some(light) if light.values.is_none() && light.held.is_some() => light,
+            _ => {
+                let mut light = self.light_cells(world, &setup, config);
+                light.held = Some(self.held(world, &light));
+                light
+            }
+        };
+        let held = light.held.as_deref().unwrap_or_default();
+        if config.refines() {
+            setup.build_top(world, None);
+        } else {
+            let missing = |cell: &usize| matches!(held[*cell], Held::Missing { .. });
+            let union = |lists: &[Vec<u32>]| -> Vec<u32> {
+                let mut all: Vec<u32> = (0..lists.len())
+                    .filter(missing)
+                    .flat_map(|cell| lists[cell].iter().copied())
+                    .collect();
+                all.sort_unstable();
+                all.dedup();
+                all
+            };
+            let (parts, blocks) = (union(&light.reach.parts), union(&light.reach.blocks));
+            setup.build_top(world, Some((&parts, &blocks)));
+        }
+        lock(&self.lights).insert(index, light);
+        Ok(setup)
+    }
+
+    /// What the cache holds for each cell of `light`, read and checked.
+    fn held(&self, world: &BakeWorld, light: &LightCells) -> Vec<Held> {
+        (0..light.cells.count())
+            .into_par_iter()
+            .map(|cell| match light.keys[cell as usize] {
+                None => Held::Empty,
+                Some(key) => match self.reuse(world, &key, CellLists::of(&light.reach, cell)) {
+                    Ok(ids) => Held::Value(ids),
+                    Err(damaged) => Held::Missing { damaged },
+                },
+            })
+            .collect()
+    }
+
+    /// The casters (ascending ids) the entry under `key` of a cell whose
+    /// reach is `lists` holds; `Err(damaged)` when there is none or it
+    /// failed its check (then removed and warned about).
+    fn reuse(&self, world: &BakeWorld, key: &Key, lists: CellLists) -> Result<Vec<u32>, bool> {
+        match self.cache.fetch(Kind::Cell, key) {
+            Fetched::Value(bytes) => match CellValue::decode(&bytes, world, lists) {
+                Some(value) => {
+                    let mut ids: Vec<u32> = value.casters(world, lists).collect();
+                    ids.sort_unstable();
+                    Ok(ids)
+                }
+                None => {
+                    self.cache.reject(Kind::Cell, key);
+                    Err(true)
+                }
+            },
+            Fetched::Damaged => Err(true),
+            Fetched::Absent => Err(false),
         }
     }
 
@@ -277,12 +393,21 @@ impl<'c> BakeCache<'c> {
         config: &BakeConfig,
         progress: &dyn Progress,
     ) -> PlannedCells {
-        let light = self.light_cells(world, setup, config);
+        let stashed = lock(&self.lights).remove(&setup.index);
+        let light = match stashed {
+            Some(light) if light.values.is_none() => light,
+            _ => self.light_cells(world, setup, config),
+        };
         let held: Vec<(u64, bool)> = (0..light.cells.count())
             .into_par_iter()
             .filter_map(|cell| {
                 let key = light.keys[cell as usize].as_ref()?;
-                Some((cell, self.cache.contains(Kind::Cell, key)))
+                let stored = match light.held.as_ref().map(|held| &held[cell as usize]) {
+                    Some(Held::Value(_)) => true,
+                    Some(Held::Missing { .. }) => false,
+                    Some(Held::Empty) | None => self.cache.contains(Kind::Cell, key),
+                };
+                Some((cell, stored))
             })
             .collect();
         let missing: Vec<u64> = held.iter().filter(|(_, h)| !h).map(|&(c, _)| c).collect();
@@ -342,6 +467,16 @@ impl<'c> BakeCache<'c> {
             rays_done.add(light.cells.rays(cell, samples));
             return (CellOutcome::Empty, Vec::new());
         };
+        let mut was_damaged = false;
+        match light.held.as_ref().map(|held| &held[cell as usize]) {
+            Some(Held::Value(ids)) => {
+                rays_done.add(light.cells.rays(cell, samples));
+                return (CellOutcome::Reused, ids.clone());
+            }
+            // Looked for again: a plan's calibration may have stored it.
+            Some(Held::Missing { damaged }) => was_damaged = *damaged,
+            Some(Held::Empty) | None => {}
+        }
         let tiles = light.cells.tiles(cell);
         let entry = Entry {
             key,
@@ -349,7 +484,15 @@ impl<'c> BakeCache<'c> {
             tiles: &tiles,
             rays: light.cells.rays(cell, samples),
         };
-        self.entry(world, pass, &entry, rays_done, answer)
+        match self.entry(world, pass, &entry, rays_done, answer) {
+            (CellOutcome::Computed { damaged }, ids) => (
+                CellOutcome::Computed {
+                    damaged: damaged || was_damaged,
+                },
+                ids,
+            ),
+            outcome => outcome,
+        }
     }
 
     /// An entry's value from the cache, or its tiles traced by `pass` and
@@ -363,23 +506,13 @@ impl<'c> BakeCache<'c> {
         answer: &Mutex<CasterSet>,
     ) -> (CellOutcome, Vec<u32>) {
         let (key, lists) = (&entry.key, entry.lists);
-        let mut damaged = false;
-        match self.cache.fetch(Kind::Cell, key) {
-            Fetched::Value(bytes) => match CellValue::decode(&bytes, world, lists) {
-                Some(value) => {
-                    rays_done.add(entry.rays);
-                    let mut ids: Vec<u32> = value.casters(world, lists).collect();
-                    ids.sort_unstable();
-                    return (CellOutcome::Reused, ids);
-                }
-                None => {
-                    self.cache.reject(Kind::Cell, key);
-                    damaged = true;
-                }
-            },
-            Fetched::Damaged => damaged = true,
-            Fetched::Absent => {}
-        }
+        let damaged = match self.reuse(world, key, lists) {
+            Ok(ids) => {
+                rays_done.add(entry.rays);
+                return (CellOutcome::Reused, ids);
+            }
+            Err(damaged) => damaged,
+        };
         let useful = pass.trace(entry.tiles.to_vec(), None, rays_done);
         let value = CellValue::of(&useful, world, lists);
         self.cache.put(Kind::Cell, key, &value.encode());
@@ -704,8 +837,12 @@ impl GridSource for BakeCache<'_> {
             .map(|cell| {
                 let (outcome, ids) =
                     self.cell(world, &light, &pass, cell, samples, rays_done, &answer);
+                // Traced by the plan: computed, and damaged if its entry
+                // was when the setup looked.
+                let held = light.held.as_ref().map(|held| &held[cell as usize]);
+                let damaged = matches!(held, Some(Held::Missing { damaged: true }));
                 match calibrated.contains(&(setup.index, cell)) {
-                    true => (CellOutcome::Computed { damaged: false }, ids),
+                    true => (CellOutcome::Computed { damaged }, ids),
                     false => (outcome, ids),
                 }
             })
@@ -723,6 +860,16 @@ impl GridSource for BakeCache<'_> {
 
     fn take_setup(&self, index: usize, _config: &BakeConfig) -> Option<LightSetup> {
         lock(&self.kept).take_if(|setup| setup.index == index)
+    }
+
+    fn build_setup(
+        &self,
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+        progress: &dyn Progress,
+    ) -> Result<LightSetup, NoSetup> {
+        self.light_setup(world, config, index, progress)
     }
 }
 

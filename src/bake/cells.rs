@@ -326,7 +326,7 @@ fn bin(count: usize, items: &[u32], cells_of: impl Fn(&u32) -> Vec<u64> + Sync) 
 /// The largest light-relative coordinate of what the light's top level
 /// holds (for [`TexelGrid::image_rounding`]), as `TileReach` takes it.
 fn reach_magnitude(setup: &LightSetup) -> f64 {
-    setup.top.bounds().map_or(0.0, |(lo, hi)| {
+    setup.extent.bounds.map_or(0.0, |(lo, hi)| {
         let (lo, hi) = (lo.as_dvec3(), hi.as_dvec3());
         lo.abs().max(hi.abs()).max_element()
     })

@@ -59,6 +59,11 @@ pub enum GridMode {
 }
 
 impl BakeConfig {
+    /// Refinement follows the grid (`--refine`).
+    pub fn refines(&self) -> bool {
+        self.refine_samples > 0 || self.refine_density > 0
+    }
+
     /// The settings file's values; no supersampling, no refinement.
     pub fn from_settings(settings: &crate::formats::bake_settings::BakeSettings) -> BakeConfig {
         BakeConfig {

@@ -284,7 +284,11 @@ fn plan_light(
     cache: Option<&BakeCache>,
 ) -> Result<(LightPlan, Option<LightSetup>), BakeError> {
     let mut plan = LightPlan::before_setup(config, index);
-    let setup = match LightSetup::new_with_progress(world, config, index, progress) {
+    let built = match cache {
+        Some(cache) => cache.light_setup(world, config, index, progress),
+        None => LightSetup::new_with_progress(world, config, index, progress),
+    };
+    let setup = match built {
         Ok(setup) => setup,
         Err(nothing) if nothing.is_nothing_to_trace() => {
             plan.nothing_to_trace = Some(nothing.to_string());
@@ -294,7 +298,7 @@ fn plan_light(
         Err(super::setup::NoSetup::NoGeometry) => unreachable!("no geometry is nothing to trace"),
     };
     let grid_rays = plan.size_from(world, config, &setup, threads);
-    if setup.top.is_empty() {
+    if setup.is_empty() {
         plan.nothing_to_trace = Some("its frustum holds no geometry".into());
         plan.estimated_seconds = setup.reach_seconds + setup.top_seconds;
         return Ok((plan, None));

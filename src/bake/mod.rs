@@ -230,6 +230,18 @@ pub trait GridSource: Sync {
     fn take_setup(&self, _index: usize, _config: &BakeConfig) -> Option<LightSetup> {
         None
     }
+
+    /// Light `index`'s setup, as [`Phase::TopLevel`] of `progress`: the
+    /// whole reach under its top level unless the source traces less.
+    fn build_setup(
+        &self,
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+        progress: &dyn Progress,
+    ) -> Result<LightSetup, NoSetup> {
+        LightSetup::new_with_progress(world, config, index, progress)
+    }
 }
 
 /// Traces every texel of the grid.
@@ -318,7 +330,7 @@ pub fn bake_with(
     let mut lights = Vec::new();
     for index in 0..config.lights.len() {
         let prepared = source.take_setup(index, config).map(Ok);
-        let built = || LightSetup::new_with_progress(world, config, index, progress);
+        let built = || source.build_setup(world, config, index, progress);
         let setup = match prepared.unwrap_or_else(built) {
             Ok(setup) => setup,
             Err(nothing) if nothing.is_nothing_to_trace() => {
@@ -457,7 +469,7 @@ fn bake_light_from(
     let name = light_name(config, index);
     note_left_out(setup, &name, skipped);
     let trace_started = Instant::now();
-    let traced = if setup.top.is_empty() {
+    let traced = if setup.is_empty() {
         skipped.push(Skipped::info(
             name,
             "its frustum holds no geometry: no rays traced",
@@ -513,7 +525,7 @@ fn note_left_out(setup: &LightSetup, name: &str, skipped: &mut Vec<Skipped>) {
             ),
         ));
     }
-    let left_out = reach.left_out_triangles as usize + setup.top.left_out_triangles();
+    let left_out = reach.left_out_triangles as usize + setup.extent.left_out_triangles;
     if left_out > 0 {
         skipped.push(Skipped::info(
             name,
@@ -579,7 +591,7 @@ fn trace_grid_and_refine(
         refine_rays: 0,
         refine_seconds: 0.0,
     };
-    if config.refine_samples > 0 || config.refine_density > 0 {
+    if config.refines() {
         let refine_started = Instant::now();
         let (refined, refine_rays) = match cache {
             Some(cache) => cache.refine(

@@ -19,8 +19,8 @@ use crate::light::{GridError, TexelGrid};
 use crate::progress::{Counter, Phase, Progress};
 use crate::scene::Scene;
 use crate::trace::{
-    transform_box, BottomLevels, PartsFrom, PlacedBlock, PlacedPart, TopLevel, TraceMode,
-    TraceTriangle, Tracer,
+    transform_box, BottomLevels, Extent, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel,
+    TraceMode, TraceTriangle, Tracer,
 };
 use glam::DVec3;
 use rayon::prelude::*;
@@ -98,6 +98,33 @@ fn model_space_triangles(scene: &Scene, m: usize) -> Vec<TraceTriangle> {
     out
 }
 
+/// `parts` (indices into [`BakeWorld::parts`]) as the top level places
+/// them.
+fn placed_parts<'w>(world: &'w BakeWorld, parts: &'w [u32]) -> impl PlacedParts + 'w {
+    PartsFrom {
+        count: parts.len(),
+        part: move |i| {
+            let part = &world.parts[parts[i] as usize];
+            PlacedPart {
+                model: part.model as u32,
+                world: world.scene.instances[part.instance].world,
+                first_caster: part.first_caster,
+            }
+        },
+    }
+}
+
+/// Terrain `blocks` as the top level places them.
+fn placed_blocks<'w>(
+    world: &'w BakeWorld,
+    blocks: &'w [u32],
+) -> impl ExactSizeIterator<Item = PlacedBlock> + 'w {
+    blocks.iter().map(|&block| PlacedBlock {
+        block,
+        caster: world.casters.of_block[block as usize],
+    })
+}
+
 /// What lies in one light's reach, and what was left out.
 #[derive(Debug, Default, Clone)]
 pub struct Reach {
@@ -144,6 +171,10 @@ pub struct LightSetup {
     pub index: usize,
     pub grid: TexelGrid,
     pub reach: Reach,
+    /// What a top level over the whole reach bounds and leaves out,
+    /// whether `top` holds all of it or, for a cached bake, only what the
+    /// cells it traces again can meet ([`LightSetup::build_top`]).
+    pub extent: Extent,
     pub top: TopLevel,
     pub passes: Passes,
     /// The tiles of the grid whose rays can hit anything in `top`.
@@ -160,50 +191,75 @@ impl LightSetup {
         config: &BakeConfig,
         index: usize,
     ) -> Result<LightSetup, NoSetup> {
+        let mut setup = LightSetup::without_top(world, config, index)?;
+        setup.build_top(world, None);
+        Ok(setup)
+    }
+
+    /// Light `index`'s grid, reach and extent; its top level empty until
+    /// [`LightSetup::build_top`].
+    pub fn without_top(
+        world: &BakeWorld,
+        config: &BakeConfig,
+        index: usize,
+    ) -> Result<LightSetup, NoSetup> {
         let light = &config.lights[index];
         let bounds = world.bounds.ok_or(NoSetup::NoGeometry)?;
         let grid = TexelGrid::new(light, bounds)?.with_offset(config.grid_offset);
         let started = Instant::now();
         let reach = reach(world, &grid);
-        let reach_seconds = started.elapsed().as_secs_f64();
-        let started = Instant::now();
-        let scene = world.scene;
-        let top = TopLevel::build(
+        let reference = grid.reference_point();
+        let extent = Extent::of(
             &world.bottom,
-            &PartsFrom {
-                count: reach.parts.len(),
-                part: |i| {
-                    let part = &world.parts[reach.parts[i] as usize];
-                    PlacedPart {
-                        model: part.model as u32,
-                        world: scene.instances[part.instance].world,
-                        first_caster: part.first_caster,
-                    }
-                },
-            },
-            reach.blocks.iter().map(|&block| PlacedBlock {
-                block,
-                caster: world.casters.of_block[block as usize],
-            }),
-            grid.reference_point(),
+            &placed_parts(world, &reach.parts),
+            placed_blocks(world, &reach.blocks),
+            reference,
         );
-        let top_seconds = started.elapsed().as_secs_f64();
+        let reach_seconds = started.elapsed().as_secs_f64();
         let passes = if reach.reaches_alpha_tested {
             Passes::AllAndOpaque
         } else {
             Passes::AllOnly
         };
-        let tiles = TileReach::new(&grid, &top);
+        let tiles = TileReach::of_extent(&grid, &extent);
+        let top = TopLevel::build(
+            &world.bottom,
+            &placed_parts(world, &[]),
+            placed_blocks(world, &[]),
+            reference,
+        );
         Ok(LightSetup {
             index,
             tiles,
             grid,
             reach,
+            extent,
             top,
             passes,
             reach_seconds,
-            top_seconds,
+            top_seconds: 0.0,
         })
+    }
+
+    /// Builds the top level over the whole reach, or over `only` its
+    /// parts (ascending indices into [`BakeWorld::parts`]) and blocks:
+    /// enough for rays that can meet nothing else (a cached bake's cells
+    /// traced again; `bake::cells` says what each cell can meet).
+    pub fn build_top(&mut self, world: &BakeWorld, only: Option<(&[u32], &[u32])>) {
+        let started = Instant::now();
+        let (parts, blocks) = only.unwrap_or((&self.reach.parts, &self.reach.blocks));
+        self.top = TopLevel::build(
+            &world.bottom,
+            &placed_parts(world, parts),
+            placed_blocks(world, blocks),
+            self.grid.reference_point(),
+        );
+        self.top_seconds = started.elapsed().as_secs_f64();
+    }
+
+    /// Nothing in reach can be hit: no ray of the light meets anything.
+    pub fn is_empty(&self) -> bool {
+        self.extent.bounds.is_none()
     }
 
     /// [`LightSetup::new`] as [`Phase::TopLevel`] of `progress`: finding

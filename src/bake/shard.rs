@@ -556,7 +556,7 @@ pub fn bake_shard_cached(
         };
         let rays_of_light = setup
             .as_ref()
-            .filter(|s| !s.top.is_empty())
+            .filter(|s| !s.is_empty())
             .map(|s| s.rays(world, config));
         let unit_rays = |unit: &Unit| -> u64 {
             let Some(setup) = &setup else { return 0 };

@@ -102,8 +102,18 @@ pub struct TileReach {
 
 impl TileReach {
     pub fn new(grid: &TexelGrid, top: &crate::trace::TopLevel) -> TileReach {
+        TileReach::of_bounds(grid, top.bounds())
+    }
+
+    /// The reach of a top level of extent `extent` (built or not).
+    pub fn of_extent(grid: &TexelGrid, extent: &crate::trace::Extent) -> TileReach {
+        TileReach::of_bounds(grid, extent.bounds)
+    }
+
+    /// The reach of light-relative `bounds` (a top level's).
+    fn of_bounds(grid: &TexelGrid, bounds: Option<(glam::Vec3, glam::Vec3)>) -> TileReach {
         let reference = grid.reference_point();
-        let bounds = top.bounds().map(|(lo, hi)| {
+        let bounds = bounds.map(|(lo, hi)| {
             let (lo, hi) = (lo.as_dvec3(), hi.as_dvec3());
             (
                 reference + lo,

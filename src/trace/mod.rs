@@ -44,7 +44,7 @@ pub use bvh::Bvh;
 pub use heightfield::{HeightField, HeightGrid};
 pub use instance::ToModel;
 pub use packet::{PacketScratch, PACKET_RAYS};
-pub use tlas::{transform_box, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel};
+pub use tlas::{transform_box, Extent, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel};
 pub use triangle::{intersect, PreparedRay};
 
 use glam::Vec3;

@@ -237,6 +237,53 @@ fn relative_box(min: DVec3, max: DVec3, reference: DVec3) -> Option<(Vec3, Vec3)
     ))
 }
 
+/// What a top level over some parts and blocks would bound: the
+/// light-relative box of every entry ([`TopLevel::bounds`]) and the
+/// triangles it would leave out ([`TopLevel::left_out_triangles`]),
+/// without building it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Extent {
+    pub bounds: Option<(Vec3, Vec3)>,
+    pub left_out_triangles: usize,
+}
+
+impl Extent {
+    /// The extent of the parts and blocks a [`TopLevel::build`] with the
+    /// same arguments would place (coincident copies share their box).
+    pub fn of(
+        bottom: &BottomLevels,
+        parts: &(impl PlacedParts + ?Sized),
+        blocks: impl Iterator<Item = PlacedBlock>,
+        reference: DVec3,
+    ) -> Extent {
+        let mut extent = Extent::default();
+        for index in 0..parts.count() {
+            let part = parts.part(index);
+            match part_box(bottom, &part, reference) {
+                Some(b) => extent.add(Vec3::from(b.min), Vec3::from(b.max)),
+                None => extent.left_out_triangles += bottom.model_triangles(part.model as usize),
+            }
+        }
+        for placed in blocks {
+            let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
+                continue;
+            };
+            match block_box(grid, field, reference) {
+                Some((lo, hi)) => extent.add(lo, hi),
+                None => extent.left_out_triangles += 2 * grid.cells_x * grid.cells_z,
+            }
+        }
+        extent
+    }
+
+    fn add(&mut self, lo: Vec3, hi: Vec3) {
+        self.bounds = Some(
+            self.bounds
+                .map_or((lo, hi), |(min, max)| (min.min(lo), max.max(hi))),
+        );
+    }
+}
+
 impl TopLevel {
     pub fn build(
         bottom: &BottomLevels,
