@@ -23,7 +23,8 @@ use crate::digest::Digest;
 use crate::files::{self, Stamp};
 use crate::scene::Scene;
 use rayon::prelude::*;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeSet, HashMap};
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
@@ -244,11 +245,17 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
         return Err(NotRecorded::Problems);
     }
     let recorded_at_ns = now_ns();
-    let chunks: BTreeMap<&Path, Key> = baked.chunks.iter().copied().collect();
+    // By their bytes: the paths come from the same places, and comparing
+    // paths component by component costs seconds on a large world.
+    let chunks: HashMap<&OsStr, Key> = baked
+        .chunks
+        .iter()
+        .map(|&(path, key)| (path.as_os_str(), key))
+        .collect();
     let expected: Vec<(&Path, Expected)> = scene
         .inputs
         .iter()
-        .map(|input| match chunks.get(input.path.as_path()) {
+        .map(|input| match chunks.get(input.path.as_os_str()) {
             Some(key) => (input.path.as_path(), Expected::Key(*key)),
             None => (input.path.as_path(), Expected::Digest(input.digest)),
         })
@@ -256,10 +263,10 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
     // A file the last record holds with a stamp that proves it unchanged
     // since is what this bake read: its key is reused, not read again.
     let previous = cache.get(Kind::World, key).and_then(|value| decode(&value));
-    let unchanged: BTreeMap<&Path, &FileEntry> = previous
+    let unchanged: HashMap<&OsStr, &FileEntry> = previous
         .iter()
         .flat_map(|record| &record.files)
-        .map(|entry| (entry.path.as_path(), entry))
+        .map(|entry| (entry.path.as_os_str(), entry))
         .collect();
     let previous_at = previous.as_ref().map_or(0, |record| record.recorded_at_ns);
     let files: Vec<FileEntry> = expected
@@ -267,7 +274,7 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
         .map(|&(path, expected)| {
             let changed = || NotRecorded::Changed(path.to_path_buf());
             let stamp = files::stamp(path).ok_or_else(changed)?;
-            if let Some(&entry) = unchanged.get(path) {
+            if let Some(&entry) = unchanged.get(path.as_os_str()) {
                 if entry.stamp == stamp && trusted(&stamp, previous_at) {
                     return Ok(entry.clone());
                 }
