@@ -183,7 +183,7 @@ struct LightCells {
     /// grid pass ran here (a merge has only the shards' answers).
     values: Option<Vec<Vec<u32>>>,
     /// Per cell, what the cache held for it when the light's setup was
-    /// built over the cells it lacks ([`BakeCache::light_setup`]).
+    /// built over the cells it lacks (its `GridSource::build_setup`).
     held: Option<Vec<Held>>,
 }
 
@@ -278,30 +278,6 @@ impl<'c> BakeCache<'c> {
             values: None,
             held: None,
         }
-    }
-
-    /// Light `index`'s setup for a bake with this cache, as
-    /// [`Phase::TopLevel`] of `progress`: its cells' keys and the values
-    /// the cache holds for them, read now, and a top level over only what
-    /// the cells it lacks can meet (the whole reach with `--refine`, whose
-    /// rays go beyond the cells traced again). Tracing a cell over it
-    /// gives what tracing it over the whole reach gives: a cell's rays can
-    /// meet only its reach (`bake::cells`).
-    pub fn light_setup(
-        &self,
-        world: &BakeWorld,
-        config: &BakeConfig,
-        index: usize,
-        progress: &dyn Progress,
-    ) -> Result<LightSetup, NoSetup> {
-        let name = Some(config.lights[index].name.as_str());
-        let counter = Counter::begin(progress, Phase::TopLevel, name, 1);
-        let setup = self.setup_over_missing(world, config, index);
-        if setup.is_ok() {
-            counter.add(1);
-        }
-        counter.finish();
-        setup
     }
 
     fn setup_over_missing(
@@ -862,6 +838,13 @@ impl GridSource for BakeCache<'_> {
         lock(&self.kept).take_if(|setup| setup.index == index)
     }
 
+    /// Light `index`'s setup for a bake with this cache, as
+    /// [`Phase::TopLevel`] of `progress`: its cells' keys and the values
+    /// the cache holds for them, read now, and a top level over only what
+    /// the cells it lacks can meet (the whole reach with `--refine`, whose
+    /// rays go beyond the cells traced again). Tracing a cell over it
+    /// gives what tracing it over the whole reach gives: a cell's rays can
+    /// meet only its reach (`bake::cells`).
     fn build_setup(
         &self,
         world: &BakeWorld,
@@ -869,7 +852,9 @@ impl GridSource for BakeCache<'_> {
         index: usize,
         progress: &dyn Progress,
     ) -> Result<LightSetup, NoSetup> {
-        self.light_setup(world, config, index, progress)
+        LightSetup::in_phase(config, index, progress, || {
+            self.setup_over_missing(world, config, index)
+        })
     }
 }
 

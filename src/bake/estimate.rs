@@ -285,7 +285,7 @@ fn plan_light(
 ) -> Result<(LightPlan, Option<LightSetup>), BakeError> {
     let mut plan = LightPlan::before_setup(config, index);
     let built = match cache {
-        Some(cache) => cache.light_setup(world, config, index, progress),
+        Some(cache) => cache.build_setup(world, config, index, progress),
         None => LightSetup::new_with_progress(world, config, index, progress),
     };
     let setup = match built {

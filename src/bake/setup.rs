@@ -271,9 +271,22 @@ impl LightSetup {
         index: usize,
         progress: &dyn Progress,
     ) -> Result<LightSetup, NoSetup> {
+        LightSetup::in_phase(config, index, progress, || {
+            LightSetup::new(world, config, index)
+        })
+    }
+
+    /// Light `index`'s setup made by `build`, as [`Phase::TopLevel`] of
+    /// `progress`.
+    pub fn in_phase(
+        config: &BakeConfig,
+        index: usize,
+        progress: &dyn Progress,
+        build: impl FnOnce() -> Result<LightSetup, NoSetup>,
+    ) -> Result<LightSetup, NoSetup> {
         let light = Some(config.lights[index].name.as_str());
         let counter = Counter::begin(progress, Phase::TopLevel, light, 1);
-        let setup = LightSetup::new(world, config, index);
+        let setup = build();
         if setup.is_ok() {
             counter.add(1);
         }
