@@ -21,7 +21,6 @@ use super::trace_light::CasterSet;
 use crate::cache::codec::{Decoder, Encoder};
 use crate::cache::{Cache, Key, KeyHasher, Kind};
 use crate::scene::SceneKeys;
-use rayon::prelude::*;
 
 /// An input of the cache's keys, for the tests that leave one out and
 /// check that a bake then goes wrong (every input is needed).
@@ -74,20 +73,11 @@ impl KeyInput {
     ];
 }
 
-/// The keys of a world's parts and blocks, computed once per bake and
-/// shared by its lights.
+/// The keys of a world's blocks and what its parts' keys are made of,
+/// computed once per bake and shared by its lights.
 #[derive(Debug, Clone)]
 pub struct WorldKeys {
     pub scene: SceneKeys,
-    /// Per part (`BakeWorld::parts` order): what a ray can meet of it, its
-    /// model's content, world transform and `castsShadow` (the mirrored
-    /// flag follows from the transform). Its chunk, element and resource
-    /// name are not: where a value names it, its place in a reach is the
-    /// part this key's reach holds there.
-    pub parts: Vec<Key>,
-    /// Per part: its chunk, element, part, resource name, transform and
-    /// flags, without its model's content (a manifest's words).
-    pub placements: Vec<Key>,
     /// Per terrain block: its content key and origin.
     pub blocks: Vec<Key>,
     /// Per terrain block: its chunk (into `Scene::chunks`).
@@ -100,47 +90,10 @@ pub struct WorldKeys {
 }
 
 impl WorldKeys {
-    /// The keys of `world`'s parts and blocks from its scene's content
-    /// keys `scene`.
+    /// The keys of `world`'s blocks from its scene's content keys `scene`.
     pub fn new(world: &BakeWorld, scene: SceneKeys, left_out: Option<KeyInput>) -> WorldKeys {
         let s = world.scene;
         let keep = |input: KeyInput| left_out != Some(input);
-        let parts = world
-            .parts
-            .par_iter()
-            .map(|part| {
-                let instance = &s.instances[part.instance];
-                let mut h = KeyHasher::content("part");
-                if keep(KeyInput::PartModel) {
-                    h.key(&scene.models[part.model]);
-                }
-                if keep(KeyInput::PartTransform) {
-                    for v in instance.world.to_cols_array() {
-                        h.f64(v);
-                    }
-                }
-                if keep(KeyInput::PartCastsShadow) {
-                    h.bool(instance.casts_shadow);
-                }
-                h.finish()
-            })
-            .collect();
-        let placements = world
-            .parts
-            .par_iter()
-            .map(|part| {
-                let instance = &s.instances[part.instance];
-                let mut h = KeyHasher::content("placement");
-                h.str(&s.chunks[instance.chunk].name)
-                    .u64(instance.index as u64)
-                    .u64(part.part as u64)
-                    .str(&s.models[part.model].resource);
-                for v in instance.world.to_cols_array() {
-                    h.f64(v);
-                }
-                h.bool(instance.casts_shadow).finish()
-            })
-            .collect();
         let mut block_chunks = vec![0; s.terrain.len()];
         for (index, chunk) in s.chunks.iter().enumerate() {
             if let Some(block) = chunk.terrain {
@@ -163,13 +116,42 @@ impl WorldKeys {
         let ground = GroundNear::of(world);
         WorldKeys {
             scene,
-            parts,
-            placements,
             blocks,
             block_chunks,
             ground,
             left_out,
         }
+    }
+
+    /// Appends what a ray can meet of part `p` (`BakeWorld::parts` order)
+    /// to `out`: its model's content key, world transform and
+    /// `castsShadow` (the mirrored flag follows from the transform), the
+    /// same number of bytes for every part of a bake. Its chunk, element
+    /// and resource name are not: where a value names it, its place in a
+    /// reach is the part this content's reach holds there. Cells hash
+    /// their parts' bytes in one run rather than a key per part: a whole
+    /// world's parts are too many for a hash each on every bake.
+    pub fn part_content(&self, world: &BakeWorld, p: u32, out: &mut Vec<u8>) {
+        let part = &world.parts[p as usize];
+        let instance = &world.scene.instances[part.instance];
+        if self.keeps(KeyInput::PartModel) {
+            out.extend_from_slice(&self.scene.models[part.model].0);
+        }
+        if self.keeps(KeyInput::PartTransform) {
+            for v in instance.world.to_cols_array() {
+                out.extend_from_slice(&v.to_bits().to_le_bytes());
+            }
+        }
+        if self.keeps(KeyInput::PartCastsShadow) {
+            out.push(u8::from(instance.casts_shadow));
+        }
+    }
+
+    /// The key of part `p`'s [`WorldKeys::part_content`].
+    pub fn part_key(&self, world: &BakeWorld, p: u32) -> Key {
+        let mut content = Vec::new();
+        self.part_content(world, p, &mut content);
+        KeyHasher::content("part").bytes(&content).finish()
     }
 
     pub fn keeps(&self, input: KeyInput) -> bool {
@@ -250,7 +232,13 @@ impl LightKey {
 }
 
 /// The key of cell `cell` of a light whose key is `light`.
-pub fn cell_key(light: &LightKey, cell: u64, reach: &CellReach, keys: &WorldKeys) -> Key {
+pub fn cell_key(
+    light: &LightKey,
+    cell: u64,
+    reach: &CellReach,
+    world: &BakeWorld,
+    keys: &WorldKeys,
+) -> Key {
     let c = cell as usize;
     let mut h = KeyHasher::content("cell");
     h.key(&light.key);
@@ -258,9 +246,11 @@ pub fn cell_key(light: &LightKey, cell: u64, reach: &CellReach, keys: &WorldKeys
         h.u64(cell);
     }
     h.u64(reach.parts[c].len() as u64);
+    let mut parts = Vec::new();
     for &p in &reach.parts[c] {
-        h.key(&keys.parts[p as usize]);
+        keys.part_content(world, p, &mut parts);
     }
+    h.bytes(&parts);
     h.u64(reach.blocks[c].len() as u64);
     for &b in &reach.blocks[c] {
         h.key(&keys.blocks[b as usize]);

@@ -268,7 +268,9 @@ impl<'c> BakeCache<'c> {
         let reach = CellReach::of(world, setup, &cells, halo, &self.keys.ground);
         let keys = (0..cells.count())
             .into_par_iter()
-            .map(|cell| (!reach.is_empty(cell)).then(|| cell_key(&key, cell, &reach, &self.keys)))
+            .map(|cell| {
+                (!reach.is_empty(cell)).then(|| cell_key(&key, cell, &reach, world, &self.keys))
+            })
             .collect();
         LightCells {
             key,
@@ -623,7 +625,7 @@ impl<'c> BakeCache<'c> {
         if unchanged && report.cells.computed == 0 {
             return report;
         }
-        let records = manifest::records(world, &self.keys, &light.reach, &light.keys);
+        let records = manifest::records(world, &self.keys, &light.reach, &light.keys, old.as_ref());
         let mut counted: BTreeMap<Because, u64> = BTreeMap::new();
         for (cell, outcome) in outcomes.iter().enumerate() {
             if let CellOutcome::Computed { .. } = outcome {
@@ -966,7 +968,7 @@ impl<'r> Refining<'r> {
                     }
                     match owner_of(world, m.caster) {
                         Owned::Part(p, group) => {
-                            h.key(&keys.parts[p as usize]).u64(u64::from(group))
+                            h.key(&keys.part_key(world, p)).u64(u64::from(group))
                         }
                         Owned::Block(b) => h.key(&keys.blocks[b as usize]),
                     };

@@ -107,17 +107,25 @@ pub fn manifest_key(space: &str, name: &str) -> Key {
         .finish()
 }
 
-/// The records of every cell of a light (in cell order).
+/// The records of every cell of a light (in cell order). A cell whose key
+/// is the one `old` recorded keeps its record: the same key holds the
+/// same placements, models and blocks, and a world's parts are too many
+/// to describe again on every bake.
 pub fn records(
     world: &BakeWorld,
     keys: &WorldKeys,
     reach: &CellReach,
     cell_keys: &[Option<Key>],
+    old: Option<&Manifest>,
 ) -> Vec<CellRecord> {
     let scene = world.scene;
     (0..cell_keys.len())
         .into_par_iter()
         .map(|c| {
+            let recorded = old.and_then(|old| old.cells.get(c));
+            if let Some(record) = recorded.filter(|r| r.key.is_some() && r.key == cell_keys[c]) {
+                return record.clone();
+            }
             let mut record = CellRecord {
                 key: cell_keys[c],
                 ..CellRecord::default()
@@ -130,7 +138,7 @@ pub fn records(
                 chunks
                     .entry(chunk)
                     .or_insert_with(|| KeyHasher::content("chunk placements"))
-                    .key(&keys.placements[p as usize]);
+                    .key(&placement_key(world, p));
                 models.insert(part.model, keys.scene.models[part.model].short());
             }
             record.chunks = chunks
@@ -158,6 +166,23 @@ pub fn records(
             record
         })
         .collect()
+}
+
+/// Part `p`'s chunk, element, part, resource name, transform and flags,
+/// without its model's content (a manifest's words).
+fn placement_key(world: &BakeWorld, p: u32) -> Key {
+    let scene = world.scene;
+    let part = &world.parts[p as usize];
+    let instance = &scene.instances[part.instance];
+    let mut h = KeyHasher::content("placement");
+    h.str(&scene.chunks[instance.chunk].name)
+        .u64(instance.index as u64)
+        .u64(part.part as u64)
+        .str(&scene.models[part.model].resource);
+    for v in instance.world.to_cols_array() {
+        h.f64(v);
+    }
+    h.bool(instance.casts_shadow).finish()
 }
 
 /// Why cell `cell` (now `record`) was traced again, given the manifest of

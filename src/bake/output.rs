@@ -309,6 +309,9 @@ impl ChunkOutputs<'_> {
         if let Some(cache) = self.cache {
             let key = output_key(cache, &content);
             match cache.fetch(Kind::Output, &key) {
+                Fetched::Value(value) if self.as_baked(index, &value) => {
+                    return self.kept_as_is(chunk, content, Vec::new(), &original);
+                }
                 Fetched::Value(value) => match decode_shadows(&value) {
                     Some(written) => {
                         let unchanged =
@@ -401,6 +404,28 @@ impl ChunkOutputs<'_> {
         if shadows != *written {
             return Ok(None);
         }
+        self.kept_as_is(chunk, content, kept, original).map(Some)
+    }
+
+    /// Whether the chunk's bytes were written with exactly the bake's
+    /// masks (`value`, their entry, as [`encode_shadows`] wrote it): then
+    /// they hold no bit of another light to keep and stay as they are,
+    /// found without decoding the entry (one encoding per shadows).
+    fn as_baked(&self, index: usize, value: &[u8]) -> bool {
+        let result = self.result;
+        let shadows = chunk_shadows_of(self.scene, &result.casters, index, |id| result.masks[id]);
+        encode_shadows(&shadows) == value
+    }
+
+    /// The output of a chunk whose bytes (of content key `content`; read
+    /// into `original` unless baked in place) stay as they are.
+    fn kept_as_is(
+        &self,
+        chunk: &crate::scene::Chunk,
+        content: Key,
+        kept: Vec<(u32, u32)>,
+        original: &Option<Vec<u8>>,
+    ) -> Result<Made> {
         let output = match original {
             Some(bytes) => self.output(chunk, bytes, bytes.clone(), content)?,
             None => ChunkOutput {
@@ -411,12 +436,12 @@ impl ChunkOutputs<'_> {
                 changed: false,
             },
         };
-        Ok(Some(Made {
+        Ok(Made {
             output,
             kept,
             parsed: false,
             damaged: false,
-        }))
+        })
     }
 
     /// The chunk's new `<shadow>`s: the bake's bits, the others of each

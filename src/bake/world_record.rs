@@ -23,7 +23,7 @@ use crate::digest::Digest;
 use crate::files::{self, Stamp};
 use crate::scene::Scene;
 use rayon::prelude::*;
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeSet, HashMap, HashSet};
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
@@ -328,8 +328,13 @@ pub fn record(cache: &Cache, key: &Key, baked: &Baked) -> Result<(), NotRecorded
 /// appear).
 fn looked_through<'p>(paths: impl Iterator<Item = &'p Path>, roots: &[PathBuf]) -> Vec<PathBuf> {
     let mut folders = BTreeSet::new();
+    // A space's files share a few folders: each is looked through once.
+    let mut seen: HashSet<&OsStr> = HashSet::new();
     for path in paths {
         let Some(dir) = path.parent() else { continue };
+        if !seen.insert(dir.as_os_str()) {
+            continue;
+        }
         folders.insert(dir.to_path_buf());
         let Some(relative) = roots.iter().find_map(|r| dir.strip_prefix(r).ok()) else {
             continue;

@@ -462,7 +462,9 @@ impl Cache {
             }
         }
         let mut total: u64 = entries.iter().map(|f| f.bytes).sum();
-        entries.sort_by(|a, b| a.modified.cmp(&b.modified).then(a.path.cmp(&b.path)));
+        entries.sort_by(|a, b| {
+            (a.modified.cmp(&b.modified)).then(a.path.as_os_str().cmp(b.path.as_os_str()))
+        });
         let mut removed = 0;
         for entry in entries {
             if total <= self.max_bytes {

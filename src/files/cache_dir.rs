@@ -6,6 +6,7 @@
 //! is checked is `cache`'s business.
 
 use crate::error::{Error, Result};
+use rayon::prelude::*;
 use std::fs;
 use std::io::{ErrorKind, Read as _, Write as _};
 use std::path::{Path, PathBuf};
@@ -99,38 +100,55 @@ pub fn remove_cache_file(path: &Path) -> Result<()> {
 /// Every file under the cache folder `dir` (none when it does not exist),
 /// sorted by path. Links and other special files are not followed.
 pub fn list_cache_files(dir: &Path) -> Result<Vec<CacheFile>> {
+    // Folder by folder in parallel, each entry's metadata read through
+    // its folder: a large world's cache holds a few hundred thousand.
     let mut files = Vec::new();
     let mut pending = vec![dir.to_path_buf()];
-    while let Some(folder) = pending.pop() {
-        let entries = match fs::read_dir(&folder) {
-            Ok(entries) => entries,
-            Err(err) if err.kind() == ErrorKind::NotFound => continue,
-            Err(err) => return Err(Error::io(&folder, "list the cache folder", err)),
-        };
-        for entry in entries {
-            let entry = entry.map_err(|e| Error::io(&folder, "list the cache folder", e))?;
-            let path = entry.path();
-            let meta = match fs::symlink_metadata(&path) {
-                Ok(meta) => meta,
-                Err(_) => continue,
-            };
-            if meta.is_dir() {
-                pending.push(path);
-            } else if meta.is_file() {
-                let temporary = path
-                    .file_name()
-                    .is_some_and(|n| n.to_string_lossy().ends_with(TEMPORARY_SUFFIX));
-                files.push(CacheFile {
-                    modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
-                    bytes: meta.len(),
-                    path,
-                    temporary,
-                });
-            }
+    while !pending.is_empty() {
+        let listed: Vec<(Vec<PathBuf>, Vec<CacheFile>)> = pending
+            .par_iter()
+            .map(|f| list_folder(f))
+            .collect::<Result<_>>()?;
+        pending = Vec::new();
+        for (folders, found) in listed {
+            pending.extend(folders);
+            files.extend(found);
         }
     }
-    files.sort_by(|a, b| a.path.cmp(&b.path));
+    files.sort_unstable_by(|a, b| a.path.as_os_str().cmp(b.path.as_os_str()));
     Ok(files)
+}
+
+/// The sub-folders and files of one folder of the cache (none if it is
+/// gone).
+fn list_folder(folder: &Path) -> Result<(Vec<PathBuf>, Vec<CacheFile>)> {
+    let (mut folders, mut files) = (Vec::new(), Vec::new());
+    let entries = match fs::read_dir(folder) {
+        Ok(entries) => entries,
+        Err(err) if err.kind() == ErrorKind::NotFound => return Ok((folders, files)),
+        Err(err) => return Err(Error::io(folder, "list the cache folder", err)),
+    };
+    for entry in entries {
+        let entry = entry.map_err(|e| Error::io(folder, "list the cache folder", e))?;
+        let Ok(meta) = entry.metadata() else {
+            continue;
+        };
+        let path = entry.path();
+        if meta.is_dir() {
+            folders.push(path);
+        } else if meta.is_file() {
+            let temporary = path
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy().ends_with(TEMPORARY_SUFFIX));
+            files.push(CacheFile {
+                modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+                bytes: meta.len(),
+                path,
+                temporary,
+            });
+        }
+    }
+    Ok((folders, files))
 }
 
 /// Removes the empty folders under `dir` (left by eviction or `clear`).

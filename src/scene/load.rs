@@ -389,9 +389,9 @@ impl Loader<'_> {
         let mut usage: BTreeMap<String, Usage> = BTreeMap::new();
         let mut proxies: BTreeMap<String, Option<(String, Option<ParametricTree>)>> =
             BTreeMap::new();
-        let mut need = |name: String, source: ModelSource, chunk: &str| {
+        let mut need = |name: String, placements: usize, source: ModelSource, chunk: &str| {
             let used = usage.entry(name.clone()).or_default();
-            used.placements += 1;
+            used.placements += placements;
             used.chunks.insert(chunk.to_string());
             sources.entry(name).or_insert(source);
         };
@@ -399,10 +399,16 @@ impl Loader<'_> {
             let first = || ModelSource::Resource {
                 referenced_by: path.clone(),
             };
+            // Counted per chunk first: a large world places millions of
+            // parts but names few models in a chunk.
+            let mut resources: BTreeMap<String, usize> = BTreeMap::new();
             for instance in &file.instances {
                 for resource in &instance.resources {
-                    need(files::normalise(resource), first(), chunk);
+                    *resources.entry(files::normalise(resource)).or_default() += 1;
                 }
+            }
+            for (name, placements) in resources {
+                need(name, placements, first(), chunk);
             }
             for tree in &file.speedtrees {
                 let spt = files::normalise(&tree.spt);
@@ -411,7 +417,7 @@ impl Loader<'_> {
                     .or_insert_with_key(|spt| proxy_model(&self.config.speedtrees, spt));
                 if let Some((name, shape)) = proxy {
                     let source = shape.map_or_else(first, ModelSource::Parametric);
-                    need(name.clone(), source, chunk);
+                    need(name.clone(), 1, source, chunk);
                 }
             }
         }
@@ -420,13 +426,15 @@ impl Loader<'_> {
 
     /// Every chunk with its world transform and its instances placed in
     /// the world (those that cannot be placed are problems), and the
-    /// terrain blocks to read.
+    /// terrain blocks to read. Chunks are placed in parallel, a batch at a
+    /// time so that only one batch's instances are ever held twice.
     fn place_chunks(
         &mut self,
         by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
         settings: &space_settings::SpaceSettings,
         model_names: &BTreeMap<String, usize>,
     ) -> Placed {
+        const BATCH: usize = 256;
         let mut chunks = Vec::new();
         let mut instances = Vec::new();
         let mut terrain_jobs = Vec::new();
@@ -438,53 +446,55 @@ impl Loader<'_> {
                 .map(|(_, f, _)| f.instances.len() + f.speedtrees.len())
                 .sum(),
         );
-        for (name, (path, file, key)) in by_name {
-            for (kind, &count) in &file.items {
-                let item = items.entry(kind).or_insert_with(|| ItemCount {
-                    kind: kind.clone(),
-                    count: 0,
-                    chunks: 0,
-                });
-                item.count += count;
-                item.chunks += 1;
-            }
-            let grid = space_settings::parse_outdoor_chunk_name(name);
-            let transform = self.chunk_transform(path, file, grid, settings.chunk_size);
-            let chunk_index = chunks.len();
-            let first_instance = instances.len();
-            for element in &file.instances {
-                if let Some(instance) =
-                    self.place_instance(path, chunk_index, transform, element, model_names)
-                {
-                    instances.push(instance);
+        let placing = Placing {
+            speedtrees: &self.config.speedtrees,
+            model_names,
+            chunk_size: settings.chunk_size,
+        };
+        let named: Vec<(&String, &(PathBuf, ChunkFile, Key))> = by_name.iter().collect();
+        for batch in named.chunks(BATCH) {
+            let first_index = chunks.len();
+            let placed: Vec<PlacedChunk> = batch
+                .par_iter()
+                .enumerate()
+                .map(|(i, (name, (path, file, _)))| {
+                    placing.chunk(first_index + i, name, path, file)
+                })
+                .collect();
+            for (&(name, (path, file, key)), placed) in batch.iter().zip(placed) {
+                for (kind, &count) in &file.items {
+                    let item = items.entry(kind).or_insert_with(|| ItemCount {
+                        kind: kind.clone(),
+                        count: 0,
+                        chunks: 0,
+                    });
+                    item.count += count;
+                    item.chunks += 1;
                 }
-            }
-            for element in &file.speedtrees {
-                if let Some(tree) =
-                    self.place_speedtree(path, chunk_index, transform, element, model_names)
-                {
-                    instances.push(tree);
+                self.problems.extend(placed.problems);
+                let chunk_index = chunks.len();
+                let first_instance = instances.len();
+                instances.extend(placed.instances);
+                if let Some(element) = &file.terrain {
+                    terrain_jobs.push(TerrainJob {
+                        chunk: chunk_index,
+                        chunk_path: path.clone(),
+                        resource: element.resource.clone(),
+                        transform: placed.transform,
+                    });
                 }
-            }
-            if let Some(element) = &file.terrain {
-                terrain_jobs.push(TerrainJob {
-                    chunk: chunk_index,
-                    chunk_path: path.clone(),
-                    resource: element.resource.clone(),
-                    transform,
+                chunks.push(Chunk {
+                    name: name.clone(),
+                    file: path.clone(),
+                    file_key: Some(*key),
+                    grid: placed.grid,
+                    transform: placed.transform,
+                    instances: first_instance..instances.len(),
+                    instance_elements: file.instances.len(),
+                    speedtree_elements: file.speedtrees.len(),
+                    terrain: None,
                 });
             }
-            chunks.push(Chunk {
-                name: name.clone(),
-                file: path.clone(),
-                file_key: Some(*key),
-                grid,
-                transform,
-                instances: first_instance..instances.len(),
-                instance_elements: file.instances.len(),
-                speedtree_elements: file.speedtrees.len(),
-                terrain: None,
-            });
         }
         Placed {
             chunks,
@@ -492,130 +502,6 @@ impl Loader<'_> {
             terrain_jobs,
             items: items.into_values().collect(),
         }
-    }
-
-    /// A chunk's world transform: an indoor chunk's own, else its place on
-    /// the outdoor grid (identity, and a problem, for neither).
-    fn chunk_transform(
-        &mut self,
-        path: &Path,
-        file: &ChunkFile,
-        grid: Option<(i32, i32)>,
-        chunk_size: f64,
-    ) -> DMat4 {
-        match (grid, file.transform) {
-            (_, Some(indoor)) => indoor,
-            (Some((x, z)), None) => DMat4::from_translation(DVec3::new(
-                x as f64 * chunk_size,
-                0.0,
-                z as f64 * chunk_size,
-            )),
-            (None, None) => {
-                self.problems.push(Problem {
-                    what: path.display().to_string(),
-                    why: "indoor chunk without <transform>; identity used".into(),
-                });
-                DMat4::IDENTITY
-            }
-        }
-    }
-
-    /// One chunk element placed in the world, or a problem when its
-    /// transform is not finite or singular, or it names no resource.
-    fn place_instance(
-        &mut self,
-        chunk_path: &Path,
-        chunk_index: usize,
-        chunk_transform: DMat4,
-        element: &chunk::InstanceElement,
-        model_names: &BTreeMap<String, usize>,
-    ) -> Option<Instance> {
-        let what = format!("{} <{}>", chunk_path.display(), element.path);
-        let (world, determinant) =
-            self.world_transform(&what, chunk_transform * element.transform)?;
-        if element.resources.is_empty() {
-            self.problems.push(Problem {
-                what,
-                why: "no <resource>; instance left out".into(),
-            });
-            return None;
-        }
-        let parts: Vec<Option<usize>> = element
-            .resources
-            .iter()
-            .map(|r| model_names.get(&files::normalise(r)).copied())
-            .collect();
-        Some(Instance {
-            chunk: chunk_index,
-            index: element.index,
-            kind: element.kind,
-            resources: element.resources.clone(),
-            parts,
-            world,
-            mirrored: determinant < 0.0,
-            casts_shadow: element.casts_shadow,
-        })
-    }
-
-    /// A chunk's `<speedtree>` placed in the world with its proxy as its
-    /// one part (none when no rule matches its `.spt`), or a problem when
-    /// its transform is not finite or singular, or it names no `.spt`.
-    fn place_speedtree(
-        &mut self,
-        chunk_path: &Path,
-        chunk_index: usize,
-        chunk_transform: DMat4,
-        element: &chunk::SpeedTreeElement,
-        model_names: &BTreeMap<String, usize>,
-    ) -> Option<Instance> {
-        let what = format!("{} <{}>", chunk_path.display(), element.path);
-        let (world, determinant) =
-            self.world_transform(&what, chunk_transform * element.transform)?;
-        let spt = files::normalise(&element.spt);
-        if spt.is_empty() {
-            self.problems.push(Problem {
-                what,
-                why: "no <spt>; speedtree left out".into(),
-            });
-            return None;
-        }
-        let parts = match proxy_model(&self.config.speedtrees, &spt) {
-            Some((name, _)) => vec![model_names.get(&name).copied()],
-            None => Vec::new(),
-        };
-        Some(Instance {
-            chunk: chunk_index,
-            index: element.index,
-            kind: InstanceKind::SpeedTree,
-            resources: vec![element.spt.trim().to_string()],
-            parts,
-            world,
-            mirrored: determinant < 0.0,
-            casts_shadow: true,
-        })
-    }
-
-    /// An element's world transform and its determinant, or a problem
-    /// about `what` when it is not finite or singular.
-    fn world_transform(&mut self, what: &str, world: DMat4) -> Option<(DMat4, f64)> {
-        if !world.is_finite() {
-            self.problems.push(Problem {
-                what: what.to_string(),
-                why: "transform holds NaN or infinite values; instance left out".into(),
-            });
-            return None;
-        }
-        let determinant = world.determinant();
-        if determinant.abs() < SINGULAR_DETERMINANT {
-            self.problems.push(Problem {
-                what: what.to_string(),
-                why: format!(
-                    "singular transform (determinant {determinant:e}, zero scale); instance left out"
-                ),
-            });
-            return None;
-        }
-        Some((world, determinant))
     }
 
     /// The chunks' terrain blocks, read in parallel; each kept block is
@@ -663,6 +549,172 @@ impl Loader<'_> {
         }
         terrain
     }
+}
+
+/// What placing a chunk's elements reads: the proxies of speedtrees,
+/// the loaded models by name, the outdoor grid's chunk size.
+struct Placing<'a> {
+    speedtrees: &'a SpeedTreeProxies,
+    model_names: &'a BTreeMap<String, usize>,
+    chunk_size: f64,
+}
+
+/// One chunk's place and instances, and the problems placing it found.
+struct PlacedChunk {
+    grid: Option<(i32, i32)>,
+    transform: DMat4,
+    instances: Vec<Instance>,
+    problems: Vec<Problem>,
+}
+
+impl Placing<'_> {
+    /// Chunk `name` (file `path`, parsed `file`), to be chunk `index`.
+    fn chunk(&self, index: usize, name: &str, path: &Path, file: &ChunkFile) -> PlacedChunk {
+        let mut problems = Vec::new();
+        let grid = space_settings::parse_outdoor_chunk_name(name);
+        let transform = chunk_transform(path, file, grid, self.chunk_size, &mut problems);
+        let mut instances = Vec::with_capacity(file.instances.len() + file.speedtrees.len());
+        for element in &file.instances {
+            instances.extend(self.instance(path, index, transform, element, &mut problems));
+        }
+        for element in &file.speedtrees {
+            instances.extend(self.speedtree(path, index, transform, element, &mut problems));
+        }
+        PlacedChunk {
+            grid,
+            transform,
+            instances,
+            problems,
+        }
+    }
+
+    /// One chunk element placed in the world, or a problem when its
+    /// transform is not finite or singular, or it names no resource.
+    fn instance(
+        &self,
+        chunk_path: &Path,
+        chunk_index: usize,
+        chunk_transform: DMat4,
+        element: &chunk::InstanceElement,
+        problems: &mut Vec<Problem>,
+    ) -> Option<Instance> {
+        let what = || format!("{} <{}>", chunk_path.display(), element.path);
+        let (world, determinant) =
+            world_transform(what, chunk_transform * element.transform, problems)?;
+        if element.resources.is_empty() {
+            problems.push(Problem {
+                what: what(),
+                why: "no <resource>; instance left out".into(),
+            });
+            return None;
+        }
+        let parts: Vec<Option<usize>> = element
+            .resources
+            .iter()
+            .map(|r| self.model_names.get(&files::normalise(r)).copied())
+            .collect();
+        Some(Instance {
+            chunk: chunk_index,
+            index: element.index,
+            kind: element.kind,
+            resources: element.resources.clone(),
+            parts,
+            world,
+            mirrored: determinant < 0.0,
+            casts_shadow: element.casts_shadow,
+        })
+    }
+
+    /// A chunk's `<speedtree>` placed in the world with its proxy as its
+    /// one part (none when no rule matches its `.spt`), or a problem when
+    /// its transform is not finite or singular, or it names no `.spt`.
+    fn speedtree(
+        &self,
+        chunk_path: &Path,
+        chunk_index: usize,
+        chunk_transform: DMat4,
+        element: &chunk::SpeedTreeElement,
+        problems: &mut Vec<Problem>,
+    ) -> Option<Instance> {
+        let what = || format!("{} <{}>", chunk_path.display(), element.path);
+        let (world, determinant) =
+            world_transform(what, chunk_transform * element.transform, problems)?;
+        let spt = files::normalise(&element.spt);
+        if spt.is_empty() {
+            problems.push(Problem {
+                what: what(),
+                why: "no <spt>; speedtree left out".into(),
+            });
+            return None;
+        }
+        let parts = match proxy_model(self.speedtrees, &spt) {
+            Some((name, _)) => vec![self.model_names.get(&name).copied()],
+            None => Vec::new(),
+        };
+        Some(Instance {
+            chunk: chunk_index,
+            index: element.index,
+            kind: InstanceKind::SpeedTree,
+            resources: vec![element.spt.trim().to_string()],
+            parts,
+            world,
+            mirrored: determinant < 0.0,
+            casts_shadow: true,
+        })
+    }
+}
+
+/// A chunk's world transform: an indoor chunk's own, else its place on
+/// the outdoor grid (identity, and a problem, for neither).
+fn chunk_transform(
+    path: &Path,
+    file: &ChunkFile,
+    grid: Option<(i32, i32)>,
+    chunk_size: f64,
+    problems: &mut Vec<Problem>,
+) -> DMat4 {
+    match (grid, file.transform) {
+        (_, Some(indoor)) => indoor,
+        (Some((x, z)), None) => DMat4::from_translation(DVec3::new(
+            x as f64 * chunk_size,
+            0.0,
+            z as f64 * chunk_size,
+        )),
+        (None, None) => {
+            problems.push(Problem {
+                what: path.display().to_string(),
+                why: "indoor chunk without <transform>; identity used".into(),
+            });
+            DMat4::IDENTITY
+        }
+    }
+}
+
+/// An element's world transform and its determinant, or a problem about
+/// `what` when it is not finite or singular.
+fn world_transform(
+    what: impl Fn() -> String,
+    world: DMat4,
+    problems: &mut Vec<Problem>,
+) -> Option<(DMat4, f64)> {
+    if !world.is_finite() {
+        problems.push(Problem {
+            what: what(),
+            why: "transform holds NaN or infinite values; instance left out".into(),
+        });
+        return None;
+    }
+    let determinant = world.determinant();
+    if determinant.abs() < SINGULAR_DETERMINANT {
+        problems.push(Problem {
+            what: what(),
+            why: format!(
+                "singular transform (determinant {determinant:e}, zero scale); instance left out"
+            ),
+        });
+        return None;
+    }
+    Some((world, determinant))
 }
 
 fn chunk_name(path: &Path) -> String {
