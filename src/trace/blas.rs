@@ -7,6 +7,7 @@ use super::heightfield::{HeightField, HeightGrid};
 use super::{Bvh, TraceTriangle};
 use glam::Vec3;
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 pub struct BottomLevels<'a> {
     pub(crate) models: Vec<Bvh>,
@@ -17,7 +18,36 @@ pub struct BottomLevels<'a> {
     /// casters a ray entering a placement of it can meet, each with the
     /// box of its triangles.
     pub(crate) model_groups: Vec<Vec<ModelGroup>>,
-    pub(crate) terrain: Vec<(HeightGrid<'a>, HeightField)>,
+    pub(crate) terrain: Vec<TerrainLevel<'a>>,
+}
+
+/// One terrain block's bottom level. Its pyramid is built by the first
+/// ray that reaches the block: a re-bake with a cache traces a few of a
+/// world's blocks, and its top levels need only the blocks' height
+/// ranges.
+pub(crate) struct TerrainLevel<'a> {
+    pub(crate) grid: HeightGrid<'a>,
+    range: (f32, f32),
+    field: OnceLock<HeightField>,
+}
+
+impl<'a> TerrainLevel<'a> {
+    fn new(grid: HeightGrid<'a>) -> TerrainLevel<'a> {
+        TerrainLevel {
+            range: HeightField::height_range_of(&grid),
+            grid,
+            field: OnceLock::new(),
+        }
+    }
+
+    pub(crate) fn field(&self) -> &HeightField {
+        self.field.get_or_init(|| HeightField::build(&self.grid))
+    }
+
+    /// [`HeightField::height_range`] of its pyramid, built or not.
+    pub(crate) fn height_range(&self) -> (f32, f32) {
+        self.range
+    }
 }
 
 /// One group of a model's triangles: its index within the model and the
@@ -77,13 +107,7 @@ impl<'a> BottomLevels<'a> {
             })
             .unzip();
         let (models_left_out, model_groups) = models_left_out.into_iter().unzip();
-        let terrain = terrain
-            .into_par_iter()
-            .map(|grid| {
-                let field = HeightField::build(&grid);
-                (grid, field)
-            })
-            .collect();
+        let terrain = terrain.into_par_iter().map(TerrainLevel::new).collect();
         BottomLevels {
             models,
             models_left_out,
@@ -117,8 +141,11 @@ impl<'a> BottomLevels<'a> {
         self.models.iter().map(Bvh::heap_bytes).sum()
     }
 
-    /// Heap bytes of the terrain blocks' min/max pyramids.
+    /// Heap bytes of the terrain blocks' min/max pyramids, built or not.
     pub fn terrain_bytes(&self) -> usize {
-        self.terrain.iter().map(|(_, f)| f.heap_bytes()).sum()
+        self.terrain
+            .iter()
+            .map(|level| HeightField::heap_bytes_of(&level.grid))
+            .sum()
     }
 }

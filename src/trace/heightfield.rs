@@ -261,6 +261,23 @@ impl Quantizer {
     }
 }
 
+/// The lowest and highest of a block's samples (∞, −∞ for none).
+fn extremes(grid: &HeightGrid) -> (f32, f32) {
+    let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
+    for &h in grid.heights {
+        (low, high) = (low.min(h), high.max(h));
+    }
+    (low, high)
+}
+
+/// A block's height range from its extremes: (0, 0) for no sample.
+fn range_of(low: f32, high: f32) -> (f32, f32) {
+    if low > high {
+        return (0.0, 0.0);
+    }
+    (low, high)
+}
+
 impl HeightField {
     pub fn build(grid: &HeightGrid) -> HeightField {
         let tiles_x = grid.cells_x.div_ceil(TILE_CELLS);
@@ -270,10 +287,7 @@ impl HeightField {
         // pushes could double the allocation of a large part of a big
         // world's terrain memory.
         let entries = (4 * side * side - 1) / 3;
-        let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
-        for &h in grid.heights {
-            (low, high) = (low.min(h), high.max(h));
-        }
+        let (low, high) = extremes(grid);
         let quantizer = Quantizer::new(low, high);
         let mut ranges = Vec::with_capacity(entries);
         ranges.resize(side * side, EMPTY);
@@ -323,14 +337,27 @@ impl HeightField {
 
     /// Lowest and highest chunk-local height of the block (holes included).
     pub fn height_range(&self) -> (f32, f32) {
-        if self.low > self.high {
-            return (0.0, 0.0);
-        }
-        (self.low, self.high)
+        range_of(self.low, self.high)
+    }
+
+    /// [`HeightField::height_range`] of the field `grid` would build,
+    /// without building it.
+    pub fn height_range_of(grid: &HeightGrid) -> (f32, f32) {
+        let (low, high) = extremes(grid);
+        range_of(low, high)
     }
 
     pub fn heap_bytes(&self) -> usize {
         self.ranges.len() * std::mem::size_of::<[u16; 2]>() + self.level_start.len() * 8
+    }
+
+    /// [`HeightField::heap_bytes`] of the field `grid` would build.
+    pub fn heap_bytes_of(grid: &HeightGrid) -> usize {
+        let tiles_x = grid.cells_x.div_ceil(TILE_CELLS);
+        let tiles_z = grid.cells_z.div_ceil(TILE_CELLS);
+        let side = tiles_x.max(tiles_z).max(1).next_power_of_two();
+        let levels = side.trailing_zeros() as usize + 1;
+        (4 * side * side - 1) / 3 * std::mem::size_of::<[u16; 2]>() + levels * 8
     }
 
     /// Every hit of the ray on the block's surface within `[t_min, t_max]`,
@@ -675,6 +702,42 @@ mod tests {
         holes[5 * cells + 7] = true;
         holes[20 * cells + 31] = true;
         (heights, holes, DVec3::new(1.0e5, 12.0, -3.0e4))
+    }
+
+    /// What a top level and the memory model read of a block without its
+    /// pyramid (its height range, the pyramid's bytes) is what the built
+    /// pyramid says, for blocks of every size the tiles cut unevenly, flat
+    /// ones and ones without a sample.
+    #[test]
+    fn a_pyramids_range_and_bytes_are_known_before_it_is_built() {
+        let (bumpy, holes, origin) = block();
+        let flat = vec![7.5f32; 33 * 33];
+        for (cells, heights) in [(32, &bumpy[..]), (32, &flat[..]), (0, &[][..])] {
+            for (cells_x, cells_z) in [(cells, cells), (cells, cells / 3), (cells / 5, cells)] {
+                let samples = (cells_x + 1) * (cells_z + 1);
+                let grid = HeightGrid {
+                    origin,
+                    chunk_size: 100.0,
+                    cells_x,
+                    cells_z,
+                    heights: &heights[..samples.min(heights.len())],
+                    holes: &holes,
+                    alternating: true,
+                };
+                let field = HeightField::build(&grid);
+                let what = format!("{cells_x} × {cells_z} cells");
+                assert_eq!(
+                    HeightField::height_range_of(&grid),
+                    field.height_range(),
+                    "{what}"
+                );
+                assert_eq!(
+                    HeightField::heap_bytes_of(&grid),
+                    field.heap_bytes(),
+                    "{what}"
+                );
+            }
+        }
     }
 
     /// Single rays along the cells' path ([`HeightField::row_walk`]) and

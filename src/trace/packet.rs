@@ -785,8 +785,9 @@ impl TopLevel {
                 })
             }
             Entry::Block { block, .. } => {
-                let (grid, field) = &bottom.terrain[block as usize];
-                let Some((lo, hi)) = block_box(grid, field, self.reference) else {
+                let level = &bottom.terrain[block as usize];
+                let Some((lo, hi)) = block_box(&level.grid, level.height_range(), self.reference)
+                else {
                     return true;
                 };
                 let test = BoxRay::new(ray, self.tree.magnitude);
@@ -868,7 +869,8 @@ impl TopLevel {
     ) {
         // The top level's beam: its padding covers the tile
         // corners' rounding, as the single-ray node test's does.
-        let (grid, field) = &bottom.terrain[block as usize];
+        let level = &bottom.terrain[block as usize];
+        let (grid, field) = (&level.grid, level.field());
         let reference = self.reference;
         field.walk(grid, reference, light.direction(), |step| match step {
             Step::Tile(min, max) => beam.touches(min, max),

@@ -1306,7 +1306,7 @@ mod two_level {
                     .map(|t| placed(part, t, reference)),
             );
         }
-        let (grid, _) = &bottom.terrain[0];
+        let grid = &bottom.terrain[0].grid;
         for cz in 0..8 {
             for cx in 0..8 {
                 let pair = grid.cell_trace_triangles((cx, cz), reference, 1);

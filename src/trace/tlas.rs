@@ -11,7 +11,7 @@
 use super::blas::{BottomLevels, ModelGroup};
 use super::boxtree::BoxRay;
 use super::boxtree::BoxTree;
-use super::heightfield::{HeightField, HeightGrid};
+use super::heightfield::HeightGrid;
 use super::instance::ToModel;
 use super::triangle::{report_hit, PreparedRay};
 use super::{DropsRepeat, Hit, TraceRay, TraceTriangle, MAX_COORDINATE};
@@ -265,12 +265,12 @@ impl Extent {
             }
         }
         for placed in blocks {
-            let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
+            let Some(level) = bottom.terrain.get(placed.block as usize) else {
                 continue;
             };
-            match block_box(grid, field, reference) {
+            match block_box(&level.grid, level.height_range(), reference) {
                 Some((lo, hi)) => extent.add(lo, hi),
-                None => extent.left_out_triangles += 2 * grid.cells_x * grid.cells_z,
+                None => extent.left_out_triangles += 2 * level.grid.cells_x * level.grid.cells_z,
             }
         }
         extent
@@ -316,11 +316,11 @@ impl TopLevel {
             sources.retain(|s| !matches!(s, Source::Part(index) if coincident.is_copy(*index)));
         }
         for placed in blocks {
-            let Some((grid, field)) = bottom.terrain.get(placed.block as usize) else {
+            let Some(level) = bottom.terrain.get(placed.block as usize) else {
                 continue;
             };
-            let Some(b) = block_box(grid, field, reference) else {
-                left_out_triangles += 2 * grid.cells_x * grid.cells_z;
+            let Some(b) = block_box(&level.grid, level.height_range(), reference) else {
+                left_out_triangles += 2 * level.grid.cells_x * level.grid.cells_z;
                 continue;
             };
             boxes.push(Aabb::new(Vec3A::from(b.0), Vec3A::from(b.1)));
@@ -502,7 +502,8 @@ impl TopLevel {
                     t_max
                 }
                 Entry::Block { block, caster } => {
-                    let (grid, field) = &bottom.terrain[block as usize];
+                    let level = &bottom.terrain[block as usize];
+                    let (grid, field) = (&level.grid, level.field());
                     let mut relay =
                         |hit: Hit| match grid.hit_triangle(hit.triangle, reference, caster) {
                             Some(triangle) => on_hit(hit, &triangle),
@@ -566,7 +567,8 @@ impl TopLevel {
                 }
             }
             Entry::Block { block, caster } => {
-                let (grid, field) = &bottom.terrain[block as usize];
+                let level = &bottom.terrain[block as usize];
+                let (grid, field) = (&level.grid, level.field());
                 match test {
                     EntryTest::Oracle => {
                         grid.brute_force_hits(self.reference, ray, caster, t_max, on_hit)
@@ -705,16 +707,16 @@ impl Coincident {
 /// A block's light-relative box, as the top level holds it.
 pub(crate) fn block_box(
     grid: &HeightGrid,
-    field: &HeightField,
+    height_range: (f32, f32),
     reference: DVec3,
 ) -> Option<(Vec3, Vec3)> {
-    let (lo, hi) = grid_bounds(grid, field);
+    let (lo, hi) = grid_bounds(grid, height_range);
     relative_box(lo, hi, reference)
 }
 
-/// World box of a block's visible vertices.
-fn grid_bounds(grid: &HeightGrid, field: &HeightField) -> (DVec3, DVec3) {
-    let (lo, hi) = field.height_range();
+/// World box of a block's visible vertices, chunk-local heights within
+/// `(lo, hi)`.
+fn grid_bounds(grid: &HeightGrid, (lo, hi): (f32, f32)) -> (DVec3, DVec3) {
     let o = grid.origin;
     let min = DVec3::new(o.x, o.y + f64::from(lo), o.z);
     let max = DVec3::new(
