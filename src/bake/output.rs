@@ -161,19 +161,34 @@ fn masks_held(
 
 /// One chunk file's new content and where it goes (or, under `--out`,
 /// the space's `space.settings`: [`space_settings_output`]).
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct ChunkOutput {
     pub source: PathBuf,
     pub target: PathBuf,
-    /// The target's new content; `None` for a chunk baked in place whose
-    /// bytes stay as they are, and for every chunk of a bake that writes
-    /// nothing ([`OutputBytes::Dropped`]): not held, since a large world's
-    /// chunks would fill memory.
-    pub bytes: Option<Vec<u8>>,
+    /// The target's new content, where it waits for [`write_outputs`].
+    pub content: Content,
     /// The content key of what the target holds after writing.
     pub key: Key,
     /// The target would hold different bytes after writing.
     pub changed: bool,
+}
+
+/// Where an output's new bytes wait to be written.
+#[derive(Debug)]
+pub enum Content {
+    /// Not held: the target keeps its bytes (a chunk baked in place that
+    /// stays as it is), or the bake writes nothing
+    /// ([`OutputBytes::Dropped`]).
+    None,
+    /// In memory (the space's settings under `--out`).
+    Held(Vec<u8>),
+    /// In a synced temporary file beside the target, written as the
+    /// output was prepared: a large world's rewritten chunks would fill
+    /// memory.
+    Staged(files::Staged),
+    /// The target may not be replaced: why ([`write_outputs`] refuses the
+    /// batch, naming every such target).
+    Refused(String),
 }
 
 /// Where chunk outputs go, and whether their bytes are wanted.
@@ -188,14 +203,15 @@ pub struct Destination<'a> {
 /// Whether an output's bytes are kept once compared with its target.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum OutputBytes {
-    /// Kept for writing.
+    /// Kept for writing: staged beside the target ([`Content::Staged`]).
     Kept,
     /// Dropped: the bake writes nothing (`--dry-run`, `--check`).
     Dropped,
 }
 
-/// Computes every chunk's new content, in memory, before anything is
-/// written: a failure in one chunk leaves every file untouched.
+/// Computes every chunk's new content, each staged beside its target as
+/// it is made, before anything is replaced: a failure in one chunk
+/// leaves every file untouched.
 /// `out_dir`: write under it at the path relative to the chunk's res root
 /// instead of in place.
 ///
@@ -431,7 +447,7 @@ impl ChunkOutputs<'_> {
             None => ChunkOutput {
                 source: chunk.file.clone(),
                 target: chunk.file.clone(),
-                bytes: None,
+                content: Content::None,
                 key: content,
                 changed: false,
             },
@@ -498,13 +514,19 @@ impl ChunkOutputs<'_> {
                 .map(|old| old != bytes)
                 .unwrap_or(true),
         };
-        // In place, bytes that stay are not held.
-        let keeps_its_bytes = self.out_dir.is_none() && !changed;
-        let wanted = self.bytes == OutputBytes::Kept && !keeps_its_bytes;
+        // Only what changes a target is staged: bytes that stay are not
+        // held.
+        let content = match self.bytes == OutputBytes::Kept && changed {
+            true => match files::stage(&target, &bytes)? {
+                files::Staging::Staged(staged) => Content::Staged(staged),
+                files::Staging::Refused(why) => Content::Refused(why),
+            },
+            false => Content::None,
+        };
         Ok(ChunkOutput {
             source: chunk.file.clone(),
             target,
-            bytes: wanted.then_some(bytes),
+            content,
             key,
             changed,
         })
@@ -623,31 +645,59 @@ pub fn space_settings_output(
         source,
         target,
         key: content_key(&bytes),
-        bytes: Some(bytes),
+        content: Content::Held(bytes),
         changed,
     })
 }
 
 /// Writes the outputs that change something, as one batch
-/// ([`files::write_files_beside`]): every target is checked before
-/// anything is written (a read-only chunk fails the batch, naming every such
-/// file), all temporary files are written and synced before the first
-/// rename, each counted in [`Phase::Writing`] of `progress`, and stale
-/// temporary files of killed runs are removed beside every output,
-/// unchanged ones too. Returns how many files were written.
+/// ([`files::commit_staged`]): a target refused when its output was
+/// prepared (a read-only chunk) fails the batch, naming every such file,
+/// before anything is replaced; every new content is in a synced
+/// temporary file before the first rename (the chunks' since they were
+/// prepared, held bytes staged now), each rename counted in
+/// [`Phase::Writing`] of `progress`, and stale temporary files of killed
+/// runs are removed beside every output, unchanged ones too. Returns how
+/// many files were written.
 pub fn write_outputs<'a>(
     outputs: impl IntoIterator<Item = &'a ChunkOutput>,
     progress: &dyn Progress,
 ) -> Result<usize> {
     let (changed, unchanged): (Vec<&ChunkOutput>, Vec<&ChunkOutput>) =
         outputs.into_iter().partition(|o| o.changed);
-    let batch: Vec<(&Path, &[u8])> = changed
+    let mut refused = Vec::new();
+    let mut staged_now = Vec::with_capacity(changed.len());
+    for output in &changed {
+        staged_now.push(match &output.content {
+            Content::Held(bytes) => match files::stage(&output.target, bytes)? {
+                files::Staging::Staged(staged) => Some(staged),
+                files::Staging::Refused(why) => {
+                    refused.push((output.target.clone(), why));
+                    None
+                }
+            },
+            Content::Refused(why) => {
+                refused.push((output.target.clone(), why.clone()));
+                None
+            }
+            Content::None | Content::Staged(_) => None,
+        });
+    }
+    let batch: Vec<&files::Staged> = changed
         .iter()
-        .filter_map(|o| Some((o.target.as_path(), o.bytes.as_deref()?)))
+        .zip(&staged_now)
+        .filter_map(|(output, now)| match (&output.content, now) {
+            (Content::Staged(staged), _) => Some(staged),
+            (_, now) => now.as_ref(),
+        })
         .collect();
+    if !refused.is_empty() {
+        batch.iter().for_each(|staged| staged.discard());
+        return Err(Error::Refused { files: refused });
+    }
     let unchanged: Vec<&Path> = unchanged.iter().map(|o| o.target.as_path()).collect();
     let counter = Counter::begin(progress, Phase::Writing, None, batch.len() as u64);
-    files::write_files_beside(&batch, &unchanged, &mut || counter.add(1))?;
+    files::commit_staged(&batch, &unchanged, &mut || counter.add(1))?;
     counter.finish();
     Ok(batch.len())
 }

@@ -33,7 +33,10 @@ pub use stamp::{exists, folder_names, is_folder, stamp, Stamp};
 pub use temporaries::STALE_TEMPORARY_AGE;
 pub use typed::{read_bake_settings, read_partial, write_partial, write_png};
 pub use walk::{find_files, find_files_in, walk, Walk};
-pub use write::{write_atomic, write_atomic_streamed, write_files, write_files_beside, write_tree};
+pub use write::{
+    commit_staged, stage, write_atomic, write_atomic_streamed, write_files, write_files_beside,
+    write_tree, Staged, Staging,
+};
 
 use std::path::{Path, PathBuf};
 

@@ -7,10 +7,12 @@ use super::replaceable::plan_target;
 use super::temporaries::{remove_stale_temporaries, temporary_folder, temporary_path};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
+use std::ffi::OsStr;
 use std::fs::{self, File, Metadata};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Replaces `path` atomically (see [`write_files`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -135,6 +137,127 @@ pub fn write_files_beside(
     Ok(())
 }
 
+/// A file's new bytes waiting beside it in a synced temporary file
+/// ([`stage`]), renamed over it by [`commit_staged`]; dropped without
+/// that, the temporary is removed. A large batch is staged file by file
+/// as its bytes are made, so it is never held whole in memory, and still
+/// replaces nothing until every file is staged.
+#[derive(Debug)]
+pub struct Staged {
+    /// As the caller named it (for messages).
+    target: PathBuf,
+    /// The file itself: a symbolic link's target, resolved.
+    real: PathBuf,
+    folder: PathBuf,
+    temp: PathBuf,
+    /// Renamed over its target, or removed: nothing left to clean.
+    done: AtomicBool,
+}
+
+impl Staged {
+    /// Removes its temporary file now (a batch that failed).
+    pub fn discard(&self) {
+        if !self.done.swap(true, Ordering::Relaxed) {
+            let _ = fs::remove_file(&self.temp);
+        }
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.done.load(Ordering::Relaxed) {
+            let _ = fs::remove_file(&self.temp);
+        }
+    }
+}
+
+/// What [`stage`] made of a target.
+#[derive(Debug)]
+pub enum Staging {
+    Staged(Staged),
+    /// The target may not be replaced (not regular, read-only, not
+    /// writable): why. Nothing was written.
+    Refused(String),
+}
+
+/// Checks `target` as a batch's first step does and writes `bytes` to a
+/// synced temporary file beside it (creating its folder), keeping the
+/// mode and owner of the file it will replace.
+pub fn stage(target: &Path, bytes: &[u8]) -> Result<Staging> {
+    let (real, existing) = match plan_target(target) {
+        Ok(planned) => planned,
+        Err(why) => return Ok(Staging::Refused(why)),
+    };
+    let folder = folder_of(&real);
+    fs::create_dir_all(&folder).map_err(|e| Error::io(&folder, "create folder", e))?;
+    let temp = temporary_path(&real);
+    if let Err(err) = write_temporary(&temp, bytes, existing.as_ref()) {
+        let _ = fs::remove_file(&temp);
+        return Err(err);
+    }
+    Ok(Staging::Staged(Staged {
+        target: target.to_path_buf(),
+        real,
+        folder,
+        temp,
+        done: AtomicBool::new(false),
+    }))
+}
+
+/// Steps 2, 4 and 5 of [`write_files`] for files already staged: every
+/// target checked again (it may have changed since it was staged) and
+/// two that are one file refused, with every staged file discarded and
+/// nothing replaced; stale temporaries swept beside them and beside
+/// `unchanged`; each renamed over its target in order (`renamed` called
+/// after each); the folders synced.
+pub fn commit_staged(
+    staged: &[&Staged],
+    unchanged: &[&Path],
+    renamed: &mut dyn FnMut(),
+) -> Result<()> {
+    let mut claimed: HashMap<&OsStr, usize> = HashMap::new();
+    let mut refused = Vec::new();
+    for (index, file) in staged.iter().enumerate() {
+        if let Err(why) = plan_target(&file.target) {
+            refused.push((file.target.clone(), why));
+            continue;
+        }
+        let first = *claimed.entry(file.real.as_os_str()).or_insert(index);
+        if first != index {
+            refused.push((
+                file.target.clone(),
+                format!(
+                    "is the same file as {}: two outputs would replace it",
+                    staged[first].target.display()
+                ),
+            ));
+        }
+    }
+    if !refused.is_empty() {
+        staged.iter().for_each(|file| file.discard());
+        return Err(Error::Refused { files: refused });
+    }
+    let mut folders: Vec<&Path> = staged.iter().map(|f| f.folder.as_path()).collect();
+    folders.sort_unstable_by(|a, b| a.as_os_str().cmp(b.as_os_str()));
+    folders.dedup_by(|a, b| a.as_os_str() == b.as_os_str());
+    sweep_beside(&folders, unchanged);
+    for (index, file) in staged.iter().enumerate() {
+        if let Err(e) = fs::rename(&file.temp, &file.real) {
+            staged[index..].iter().for_each(|left| left.discard());
+            let action = if index == 0 {
+                "replace (nothing was replaced)"
+            } else {
+                "replace (files before it were replaced; run again to complete)"
+            };
+            return Err(Error::io(&file.real, action, e));
+        }
+        file.done.store(true, Ordering::Relaxed);
+        renamed();
+    }
+    sync_folders(&folders);
+    Ok(())
+}
+
 /// Step 1: every target checked, and two targets that are one file (links
 /// to it) refused, before anything is written.
 fn plan_batch<'a>(files: &[(&Path, &'a [u8])]) -> Result<Vec<Planned<'a>>> {
@@ -182,6 +305,13 @@ fn prepare_folders<'a>(planned: &'a [Planned], unchanged: &[&Path]) -> Result<Ve
     for folder in &folders {
         fs::create_dir_all(folder).map_err(|e| Error::io(*folder, "create folder", e))?;
     }
+    sweep_beside(&folders, unchanged);
+    Ok(folders)
+}
+
+/// Removes stale temporary files from `folders` and the folders of the
+/// `unchanged` targets.
+fn sweep_beside(folders: &[&Path], unchanged: &[&Path]) {
     // A large world's chunks share few folders: sorted by their bytes (a
     // path comparison by components costs seconds there), each swept once.
     let mut swept: Vec<PathBuf> = unchanged.par_iter().map(|t| temporary_folder(t)).collect();
@@ -191,7 +321,6 @@ fn prepare_folders<'a>(planned: &'a [Planned], unchanged: &[&Path]) -> Result<Ve
     for folder in &swept {
         remove_stale_temporaries(folder);
     }
-    Ok(folders)
 }
 
 /// Step 3: every temporary file written and synced, in batch order; on a
@@ -251,6 +380,81 @@ mod tests {
     use super::*;
     use crate::files::names;
     use crate::files::temporaries::temporary_path;
+
+    fn staged(target: &Path, bytes: &[u8]) -> Staged {
+        match stage(target, bytes).unwrap() {
+            Staging::Staged(staged) => staged,
+            Staging::Refused(why) => panic!("{} refused: {why}", target.display()),
+        }
+    }
+
+    fn make_read_only(path: &Path) {
+        let mut permissions = std::fs::metadata(path).unwrap().permissions();
+        permissions.set_readonly(true);
+        std::fs::set_permissions(path, permissions).unwrap();
+    }
+
+    /// Staged files replace nothing until committed; committed, every
+    /// target holds its new bytes and no temporary is left; dropped
+    /// uncommitted, their temporaries go and the targets stay.
+    #[test]
+    fn staged_files_replace_their_targets_only_when_committed() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.chunk"), dir.path().join("sub/b.chunk"));
+        write_atomic(&a, b"old").unwrap();
+        let (one, two) = (staged(&a, b"new a"), staged(&b, b"new b"));
+        assert_eq!(fs::read(&a).unwrap(), b"old");
+        assert!(!b.exists());
+        assert_eq!(names(dir.path()).len(), 3, "a, its temporary, sub");
+        drop((one, two));
+        assert_eq!(names(dir.path()), ["a.chunk", "sub"]);
+        assert!(names(&dir.path().join("sub")).is_empty());
+        let (one, two) = (staged(&a, b"new a"), staged(&b, b"new b"));
+        let mut renamed = 0;
+        commit_staged(&[&one, &two], &[], &mut || renamed += 1).unwrap();
+        drop((one, two));
+        assert_eq!(renamed, 2);
+        assert_eq!(fs::read(&a).unwrap(), b"new a");
+        assert_eq!(fs::read(&b).unwrap(), b"new b");
+        assert_eq!(names(dir.path()), ["a.chunk", "sub"]);
+        assert_eq!(names(&dir.path().join("sub")), ["b.chunk"]);
+    }
+
+    /// A target read-only when staged is refused with nothing written; one
+    /// made read-only after it was staged fails the commit, every staged
+    /// file discarded and nothing replaced.
+    #[test]
+    fn a_target_refused_before_or_after_staging_replaces_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.chunk"), dir.path().join("b.chunk"));
+        for path in [&a, &b] {
+            write_atomic(path, b"old").unwrap();
+        }
+        make_read_only(&b);
+        match stage(&b, b"new").unwrap() {
+            Staging::Refused(why) => assert!(why.contains("read-only"), "{why}"),
+            Staging::Staged(_) => panic!("a read-only target was staged"),
+        }
+        assert_eq!(names(dir.path()), ["a.chunk", "b.chunk"]);
+        let mut permissions = fs::metadata(&b).unwrap().permissions();
+        #[allow(clippy::permissions_set_readonly_false)]
+        permissions.set_readonly(false);
+        fs::set_permissions(&b, permissions).unwrap();
+        let (one, two) = (staged(&a, b"new"), staged(&b, b"new"));
+        make_read_only(&b);
+        let message = commit_staged(&[&one, &two], &[], &mut || {})
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("b.chunk: is read-only"), "{message}");
+        assert_eq!(
+            names(dir.path()),
+            ["a.chunk", "b.chunk"],
+            "temporaries gone"
+        );
+        for path in [&a, &b] {
+            assert_eq!(fs::read(path).unwrap(), b"old");
+        }
+    }
 
     #[test]
     fn a_read_only_file_fails_the_whole_batch_before_any_write() {
