@@ -356,7 +356,11 @@ impl ChunkOutputs<'_> {
         let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
             .map_err(|e| e.in_file(&chunk.file))?;
         let key = content_key(&bytes);
-        if let Some(cache) = self.cache {
+        // New bytes a bake does not write (`--dry-run`, `--check`) are in
+        // no file a later bake reads: their entries would only fill the
+        // cache.
+        let written = bytes == original || self.bytes == OutputBytes::Kept;
+        if let Some(cache) = self.cache.filter(|_| written) {
             cache.put(
                 Kind::Output,
                 &output_key(cache, &key),
@@ -366,7 +370,7 @@ impl ChunkOutputs<'_> {
                 self.keep_items(cache, chunk, &root, &key);
                 // Written in place, the old bytes are gone: so is any use
                 // of their entry.
-                if self.out_dir.is_none() && self.bytes == OutputBytes::Kept {
+                if self.out_dir.is_none() {
                     cache.forget(Kind::Chunk, &chunk_cache::key(cache, &content));
                 }
             }

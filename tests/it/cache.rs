@@ -1419,11 +1419,26 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     assert_eq!(chunk_counts(&second).reused, chunks);
     assert_eq!(scene_text(&read_back), scene_text(&parsed));
 
+    // A dry run writes nothing: it stores no entry for bytes no file
+    // holds.
+    let config = BakeConfig::from_settings(&settings);
+    let res_paths = ResPaths::new(settings.res_paths.clone());
+    let mut dry = bake::bake(&read_back, &config, &Silent).unwrap();
+    let to = output::Destination {
+        out_dir: None,
+        bytes: output::OutputBytes::Dropped,
+    };
+    let (outputs, _) =
+        output::chunk_outputs_cached(&read_back, &mut dry, &res_paths, to, &Silent, Some(&second))
+            .unwrap();
+    assert!(outputs.iter().all(|o| o.changed), "every chunk gains masks");
+    let cache_dir = dir.path().join("cache");
+    assert_eq!(entries(&cache_dir, "chunk").len() as u64, chunks);
+    assert!(entries(&cache_dir, "output").is_empty());
+
     // A bake in place writes masks into every chunk; the entries it stores
     // for the bytes it wrote load the scene a parse of them loads.
-    let config = BakeConfig::from_settings(&settings);
     let mut result = bake::bake(&read_back, &config, &Silent).unwrap();
-    let res_paths = ResPaths::new(settings.res_paths.clone());
     let to = output::Destination {
         out_dir: None,
         bytes: output::OutputBytes::Kept,
