@@ -110,7 +110,7 @@ impl TerrainBlock {
             }
         }
 
-        let mut cell_holes = vec![false; cells_x * cells_z];
+        let mut cell_holes = Vec::new();
         if let Some(map) = &data.holes {
             if map.width.checked_mul(map.height) != Some(map.holes.len()) {
                 return Err(format!(
@@ -120,8 +120,10 @@ impl TerrainBlock {
                     map.holes.len()
                 ));
             }
-            // An empty map means no holes (the engine's noHoles()).
-            if map.width > 0 && map.height > 0 {
+            // An empty map means no holes (the engine's noHoles()); a map
+            // without a hole (most blocks) is not mapped cell by cell.
+            if map.width > 0 && map.height > 0 && map.holes.contains(&true) {
+                cell_holes = vec![false; cells_x * cells_z];
                 for cz in 0..cells_z {
                     let hz = hole_index(cz, cells_z, map.height);
                     for cx in 0..cells_x {

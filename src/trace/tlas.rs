@@ -17,6 +17,7 @@ use super::triangle::{report_hit, PreparedRay};
 use super::{DropsRepeat, Hit, TraceRay, TraceTriangle, MAX_COORDINATE};
 use glam::{DMat4, DVec3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
+use rayon::prelude::*;
 
 /// One model part of a placed instance, as the bake hands it over.
 #[derive(Clone, Copy, Debug)]
@@ -252,18 +253,31 @@ impl Extent {
     /// same arguments would place (coincident copies share their box).
     pub fn of(
         bottom: &BottomLevels,
-        parts: &(impl PlacedParts + ?Sized),
+        parts: &(impl PlacedParts + Sync + ?Sized),
         blocks: impl Iterator<Item = PlacedBlock>,
         reference: DVec3,
     ) -> Extent {
-        let mut extent = Extent::default();
-        for index in 0..parts.count() {
-            let part = parts.part(index);
-            match part_box(bottom, &part, reference) {
-                Some(b) => extent.add(Vec3::from(b.min), Vec3::from(b.max)),
-                None => extent.left_out_triangles += bottom.model_triangles(part.model as usize),
-            }
-        }
+        // In parallel: a whole world's parts each need an inverse, and
+        // bounds and counts come out the same in any order.
+        let mut extent = (0..parts.count())
+            .into_par_iter()
+            .fold(Extent::default, |mut extent, index| {
+                let part = parts.part(index);
+                match part_box(bottom, &part, reference) {
+                    Some(b) => extent.add(Vec3::from(b.min), Vec3::from(b.max)),
+                    None => {
+                        extent.left_out_triangles += bottom.model_triangles(part.model as usize)
+                    }
+                }
+                extent
+            })
+            .reduce(Extent::default, |mut a, b| {
+                if let Some((lo, hi)) = b.bounds {
+                    a.add(lo, hi);
+                }
+                a.left_out_triangles += b.left_out_triangles;
+                a
+            });
         for placed in blocks {
             let Some(level) = bottom.terrain.get(placed.block as usize) else {
                 continue;
