@@ -180,8 +180,6 @@ pub enum Content {
     /// stays as it is), or the bake writes nothing
     /// ([`OutputBytes::Dropped`]).
     None,
-    /// In memory (the space's settings under `--out`).
-    Held(Vec<u8>),
     /// In a synced temporary file beside the target, written as the
     /// output was prepared: a large world's rewritten chunks would fill
     /// memory.
@@ -189,6 +187,16 @@ pub enum Content {
     /// The target may not be replaced: why ([`write_outputs`] refuses the
     /// batch, naming every such target).
     Refused(String),
+}
+
+impl Content {
+    /// `bytes` staged beside `target`, or why `target` is refused.
+    fn staged(target: &Path, bytes: &[u8]) -> Result<Content> {
+        Ok(match files::stage(target, bytes)? {
+            files::Staging::Staged(staged) => Content::Staged(staged),
+            files::Staging::Refused(why) => Content::Refused(why),
+        })
+    }
 }
 
 /// Where chunk outputs go, and whether their bytes are wanted.
@@ -521,10 +529,7 @@ impl ChunkOutputs<'_> {
         // Only what changes a target is staged: bytes that stay are not
         // held.
         let content = match self.bytes == OutputBytes::Kept && changed {
-            true => match files::stage(&target, &bytes)? {
-                files::Staging::Staged(staged) => Content::Staged(staged),
-                files::Staging::Refused(why) => Content::Refused(why),
-            },
+            true => Content::staged(&target, &bytes)?,
             false => Content::None,
         };
         Ok(ChunkOutput {
@@ -629,7 +634,8 @@ fn var_mask(d: &mut Decoder) -> Option<u32> {
 /// The space's `space.settings` copied under `out_dir` beside the chunks
 /// (the same bytes, at its path relative to its res root), so the copy is
 /// a res root of the space: with the original root after it in the res
-/// paths, it is found first and its chunks are the ones read.
+/// paths, it is found first and its chunks are the ones read. Staged
+/// beside its target when it changes it, as the chunks are.
 pub fn space_settings_output(
     scene: &Scene,
     res_paths: &ResPaths,
@@ -645,11 +651,15 @@ pub fn space_settings_output(
     })?;
     let target = out_dir.join(relative);
     let changed = files::read_file(&target).map_or(true, |old| old != bytes);
+    let content = match changed {
+        true => Content::staged(&target, &bytes)?,
+        false => Content::None,
+    };
     Ok(ChunkOutput {
         source,
         target,
         key: content_key(&bytes),
-        content: Content::Held(bytes),
+        content,
         changed,
     })
 }
@@ -658,8 +668,7 @@ pub fn space_settings_output(
 /// ([`files::commit_staged`]): a target refused when its output was
 /// prepared (a read-only chunk) fails the batch, naming every such file,
 /// before anything is replaced; every new content is in a synced
-/// temporary file before the first rename (the chunks' since they were
-/// prepared, held bytes staged now), each rename counted in
+/// temporary file since its output was made, each rename counted in
 /// [`Phase::Writing`] of `progress`, and stale temporary files of killed
 /// runs are removed beside every output, unchanged ones too. Returns how
 /// many files were written.
@@ -669,32 +678,14 @@ pub fn write_outputs<'a>(
 ) -> Result<usize> {
     let (changed, unchanged): (Vec<&ChunkOutput>, Vec<&ChunkOutput>) =
         outputs.into_iter().partition(|o| o.changed);
-    let mut refused = Vec::new();
-    let mut staged_now = Vec::with_capacity(changed.len());
+    let (mut batch, mut refused) = (Vec::new(), Vec::new());
     for output in &changed {
-        staged_now.push(match &output.content {
-            Content::Held(bytes) => match files::stage(&output.target, bytes)? {
-                files::Staging::Staged(staged) => Some(staged),
-                files::Staging::Refused(why) => {
-                    refused.push((output.target.clone(), why));
-                    None
-                }
-            },
-            Content::Refused(why) => {
-                refused.push((output.target.clone(), why.clone()));
-                None
-            }
-            Content::None | Content::Staged(_) => None,
-        });
+        match &output.content {
+            Content::Staged(staged) => batch.push(staged),
+            Content::Refused(why) => refused.push((output.target.clone(), why.clone())),
+            Content::None => {}
+        }
     }
-    let batch: Vec<&files::Staged> = changed
-        .iter()
-        .zip(&staged_now)
-        .filter_map(|(output, now)| match (&output.content, now) {
-            (Content::Staged(staged), _) => Some(staged),
-            (_, now) => now.as_ref(),
-        })
-        .collect();
     if !refused.is_empty() {
         batch.iter().for_each(|staged| staged.discard());
         return Err(Error::Refused { files: refused });

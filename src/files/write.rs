@@ -7,8 +7,7 @@ use super::replaceable::plan_target;
 use super::temporaries::{remove_stale_temporaries, temporary_folder, temporary_path};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
-use std::collections::{BTreeMap, HashMap};
-use std::ffi::OsStr;
+use std::collections::HashMap;
 use std::fs::{self, File, Metadata};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -165,9 +164,7 @@ impl Staged {
 
 impl Drop for Staged {
     fn drop(&mut self) {
-        if !self.done.load(Ordering::Relaxed) {
-            let _ = fs::remove_file(&self.temp);
-        }
+        self.discard();
     }
 }
 
@@ -215,45 +212,36 @@ pub fn commit_staged(
     unchanged: &[&Path],
     renamed: &mut dyn FnMut(),
 ) -> Result<()> {
-    let mut claimed: HashMap<&OsStr, usize> = HashMap::new();
+    let mut claims = Claims::default();
     let mut refused = Vec::new();
-    for (index, file) in staged.iter().enumerate() {
-        if let Err(why) = plan_target(&file.target) {
-            refused.push((file.target.clone(), why));
-            continue;
-        }
-        let first = *claimed.entry(file.real.as_os_str()).or_insert(index);
-        if first != index {
-            refused.push((
-                file.target.clone(),
-                format!(
-                    "is the same file as {}: two outputs would replace it",
-                    staged[first].target.display()
-                ),
-            ));
-        }
+    for file in staged {
+        let why = plan_target(&file.target)
+            .err()
+            .or_else(|| claims.refuse_second(&file.real, &file.target));
+        refused.extend(why.map(|why| (file.target.clone(), why)));
     }
     if !refused.is_empty() {
         staged.iter().for_each(|file| file.discard());
         return Err(Error::Refused { files: refused });
     }
-    let mut folders: Vec<&Path> = staged.iter().map(|f| f.folder.as_path()).collect();
-    folders.sort_unstable_by(|a, b| a.as_os_str().cmp(b.as_os_str()));
-    folders.dedup_by(|a, b| a.as_os_str() == b.as_os_str());
+    let folders = distinct(staged.iter().map(|f| f.folder.as_path()).collect());
     sweep_beside(&folders, unchanged);
+    let pairs: Vec<(&Path, &Path)> = staged
+        .iter()
+        .map(|f| (f.temp.as_path(), f.real.as_path()))
+        .collect();
+    let outcome = rename_each(&pairs, renamed);
+    let renamed_count = outcome
+        .as_ref()
+        .err()
+        .map_or(staged.len(), |(index, _)| *index);
     for (index, file) in staged.iter().enumerate() {
-        if let Err(e) = fs::rename(&file.temp, &file.real) {
-            staged[index..].iter().for_each(|left| left.discard());
-            let action = if index == 0 {
-                "replace (nothing was replaced)"
-            } else {
-                "replace (files before it were replaced; run again to complete)"
-            };
-            return Err(Error::io(&file.real, action, e));
+        match index < renamed_count {
+            true => file.done.store(true, Ordering::Relaxed),
+            false => file.discard(),
         }
-        file.done.store(true, Ordering::Relaxed);
-        renamed();
     }
+    outcome.map_err(|(_, err)| err)?;
     sync_folders(&folders);
     Ok(())
 }
@@ -263,21 +251,14 @@ pub fn commit_staged(
 fn plan_batch<'a>(files: &[(&Path, &'a [u8])]) -> Result<Vec<Planned<'a>>> {
     let mut planned: Vec<Planned> = Vec::with_capacity(files.len());
     let mut refused = Vec::new();
-    let mut claimed: BTreeMap<PathBuf, &Path> = BTreeMap::new();
+    let mut claims = Claims::default();
     for &(target, bytes) in files {
         match plan_target(target) {
             Ok((real, existing)) => {
-                if let Some(first) = claimed.get(&real) {
-                    refused.push((
-                        target.to_path_buf(),
-                        format!(
-                            "is the same file as {}: two outputs would replace it",
-                            first.display()
-                        ),
-                    ));
+                if let Some(why) = claims.refuse_second(&real, target) {
+                    refused.push((target.to_path_buf(), why));
                     continue;
                 }
-                claimed.insert(real.clone(), target);
                 planned.push(Planned {
                     folder: folder_of(&real),
                     real,
@@ -299,9 +280,7 @@ fn plan_batch<'a>(files: &[(&Path, &'a [u8])]) -> Result<Vec<Planned<'a>>> {
 /// folders of `unchanged` targets swept of stale temporary files; returns
 /// the folders written in, sorted.
 fn prepare_folders<'a>(planned: &'a [Planned], unchanged: &[&Path]) -> Result<Vec<&'a Path>> {
-    let mut folders: Vec<&Path> = planned.iter().map(|p| p.folder.as_path()).collect();
-    folders.sort();
-    folders.dedup();
+    let folders = distinct(planned.iter().map(|p| p.folder.as_path()).collect());
     for folder in &folders {
         fs::create_dir_all(folder).map_err(|e| Error::io(*folder, "create folder", e))?;
     }
@@ -312,13 +291,11 @@ fn prepare_folders<'a>(planned: &'a [Planned], unchanged: &[&Path]) -> Result<Ve
 /// Removes stale temporary files from `folders` and the folders of the
 /// `unchanged` targets.
 fn sweep_beside(folders: &[&Path], unchanged: &[&Path]) {
-    // A large world's chunks share few folders: sorted by their bytes (a
-    // path comparison by components costs seconds there), each swept once.
-    let mut swept: Vec<PathBuf> = unchanged.par_iter().map(|t| temporary_folder(t)).collect();
-    swept.extend(folders.iter().map(|f| f.to_path_buf()));
-    swept.sort_unstable_by(|a, b| a.as_os_str().cmp(b.as_os_str()));
-    swept.dedup_by(|a, b| a.as_os_str() == b.as_os_str());
-    for folder in &swept {
+    // A large world's chunks share few folders: each is swept once.
+    let owned: Vec<PathBuf> = unchanged.par_iter().map(|t| temporary_folder(t)).collect();
+    let mut swept: Vec<&Path> = owned.iter().map(PathBuf::as_path).collect();
+    swept.extend(folders);
+    for folder in distinct(swept) {
         remove_stale_temporaries(folder);
     }
 }
@@ -346,20 +323,69 @@ fn write_temporaries(planned: &[Planned], written: &mut dyn FnMut()) -> Result<V
 /// the temporary files not yet renamed and says whether any target was
 /// replaced.
 fn rename_over_targets(planned: &[Planned], temporaries: &[PathBuf]) -> Result<()> {
-    for (index, (file, temp)) in planned.iter().zip(temporaries).enumerate() {
-        if let Err(e) = fs::rename(temp, &file.real) {
-            for temp in &temporaries[index..] {
-                let _ = fs::remove_file(temp);
-            }
+    let pairs: Vec<(&Path, &Path)> = temporaries
+        .iter()
+        .zip(planned)
+        .map(|(temp, file)| (temp.as_path(), file.real.as_path()))
+        .collect();
+    rename_each(&pairs, &mut || {}).map_err(|(index, err)| {
+        for temp in &temporaries[index..] {
+            let _ = fs::remove_file(temp);
+        }
+        err
+    })
+}
+
+/// Renames each `(temporary, target)` in order, calling `renamed` after
+/// each; on a failure, how many were renamed and the error, which says
+/// whether any target was replaced (the caller removes the temporaries
+/// left).
+fn rename_each(
+    pairs: &[(&Path, &Path)],
+    renamed: &mut dyn FnMut(),
+) -> std::result::Result<(), (usize, Error)> {
+    for (index, &(temp, real)) in pairs.iter().enumerate() {
+        if let Err(e) = fs::rename(temp, real) {
             let action = if index == 0 {
                 "replace (nothing was replaced)"
             } else {
                 "replace (files before it were replaced; run again to complete)"
             };
-            return Err(Error::io(&file.real, action, e));
+            return Err((index, Error::io(real, action, e)));
         }
+        renamed();
     }
     Ok(())
+}
+
+/// The targets of one batch by the file each resolves to: two that are
+/// one file (links to it) may not both replace it.
+#[derive(Default)]
+struct Claims(HashMap<PathBuf, PathBuf>);
+
+impl Claims {
+    /// Claims `real` for `target`; why `target` is refused when another
+    /// target claimed it first.
+    fn refuse_second(&mut self, real: &Path, target: &Path) -> Option<String> {
+        match self.0.get(real) {
+            Some(first) => Some(format!(
+                "is the same file as {}: two outputs would replace it",
+                first.display()
+            )),
+            None => {
+                self.0.insert(real.to_path_buf(), target.to_path_buf());
+                None
+            }
+        }
+    }
+}
+
+/// `folders` without repeats, sorted by their bytes (a path comparison by
+/// components costs seconds on a large world's chunks).
+fn distinct(mut folders: Vec<&Path>) -> Vec<&Path> {
+    folders.sort_unstable_by(|a, b| a.as_os_str().cmp(b.as_os_str()));
+    folders.dedup_by(|a, b| a.as_os_str() == b.as_os_str());
+    folders
 }
 
 /// Step 5: makes the renames durable. Not every file system can sync a
