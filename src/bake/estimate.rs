@@ -29,9 +29,10 @@ use std::time::Instant;
 /// Tiles (32×32 texels) of each light traced to measure the ray rate.
 pub const SAMPLE_TILES: u64 = 48;
 
-/// Assumed write rate for the chunk files (bytes per second), with their
-/// temporaries and syncs; small next to tracing on every world measured.
-const WRITE_BYTES_PER_SECOND: f64 = 50e6;
+/// Chunk-file bytes one thread reads back, rewrites and stages per second
+/// in the output phase, temporaries and syncs included; the phase runs on
+/// every thread and was measured to scale with them.
+const OUTPUT_BYTES_PER_THREAD_SECOND: f64 = 40e6;
 
 /// What the caller measured before planning.
 #[derive(Debug, Clone, Copy, Default)]
@@ -42,8 +43,11 @@ pub struct Baseline {
     pub peak_resident_bytes: u64,
     /// Seconds spent so far (loading, bottom levels).
     pub elapsed_seconds: f64,
-    /// Bytes of every chunk file of the space (read, rewritten in memory).
+    /// Bytes of every chunk file of the space (each read back and rewritten).
     pub chunk_file_bytes: u64,
+    /// Bytes of the largest chunk file: each thread of the output holds one
+    /// chunk read, parsed and rewritten at a time.
+    pub largest_chunk_file_bytes: u64,
     /// Worker threads.
     pub threads: usize,
 }
@@ -243,7 +247,8 @@ pub fn plan_with(
     let calibration_seconds = started.elapsed().as_secs_f64();
     let casters = world.casters.len();
     let masks = casters as u64 * 4;
-    let output = baseline.chunk_file_bytes * 3;
+    let threads = baseline.threads.max(1);
+    let output = threads as u64 * baseline.largest_chunk_file_bytes * 3;
     let light_peak = lights.iter().map(|l| l.estimated_bytes).max().unwrap_or(0);
     let estimated_peak_bytes = baseline
         .peak_resident_bytes
@@ -257,7 +262,7 @@ pub fn plan_with(
         + calibration_seconds
         + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
         - kept_setup_seconds
-        + output as f64 / WRITE_BYTES_PER_SECOND;
+        + baseline.chunk_file_bytes as f64 / (OUTPUT_BYTES_PER_THREAD_SECOND * threads as f64);
     if let Some(cache) = cache {
         cache.keep_setup(kept.take());
     }

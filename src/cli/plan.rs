@@ -117,11 +117,13 @@ pub fn make_plan(
     cache: Option<&BakeCache>,
 ) -> Result<Plan> {
     let memory = files::resident_memory();
+    let chunk_files = files::file_sizes(scene.chunks.iter().map(|c| c.file.as_path()));
     let baseline = Baseline {
         resident_bytes: memory.resident,
         peak_resident_bytes: memory.peak,
         elapsed_seconds: started.elapsed().as_secs_f64(),
-        chunk_file_bytes: files::total_size(scene.chunks.iter().map(|c| c.file.as_path())),
+        chunk_file_bytes: chunk_files.total,
+        largest_chunk_file_bytes: chunk_files.largest,
         threads: rayon::current_num_threads(),
     };
     Ok(estimate::plan_with(
@@ -219,7 +221,7 @@ fn total_line(plan: &Plan) -> String {
             "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
              Time is a calibration: up to {} cells per light that the cache does not hold, traced on this \
              machine in {:.2} s and stored (the bake reuses them); memory is what this process holds now \
-             plus the largest light's top level and tracing, the masks and the chunk files",
+             plus the largest light's top level and tracing, the masks and a chunk file per thread",
             plan.estimated_seconds,
             human_bytes(plan.estimated_peak_bytes),
             plan.casters,
@@ -232,7 +234,7 @@ fn total_line(plan: &Plan) -> String {
         "plan: total est. {:.1} s and peak memory {} for the whole bake ({} casters; bottom levels {}). \
          Time is a calibration: {} tiles of 32×32 texels per light and their neighbours traced on this machine in {:.2} s; \
          memory is what this process holds now plus the largest light's top level and tracing, the masks \
-         and the chunk files",
+         and a chunk file per thread",
         plan.estimated_seconds,
         human_bytes(plan.estimated_peak_bytes),
         plan.casters,

@@ -24,8 +24,8 @@ pub use process::{
     ResidentMemory,
 };
 pub use read::{
-    read_file, read_report_bytes, size_cap, total_size, DEFAULT_SIZE_CAP, REPORT_SIZE_CAP,
-    SIZE_CAPS,
+    file_sizes, read_file, read_report_bytes, size_cap, FileSizes, DEFAULT_SIZE_CAP,
+    REPORT_SIZE_CAP, SIZE_CAPS,
 };
 pub use replaceable::check_replaceable;
 pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};

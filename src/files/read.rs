@@ -122,13 +122,23 @@ fn read_at_most(reader: impl Read, cap: u64, size_hint: u64) -> std::io::Result<
     Ok(bytes)
 }
 
-/// The summed sizes of files (for estimates; a file that cannot be
-/// examined counts 0).
-pub fn total_size<'a>(paths: impl Iterator<Item = &'a Path>) -> u64 {
-    paths
+/// The total and the largest size of the files at `paths` (those that
+/// cannot be looked at count nothing).
+pub fn file_sizes<'a>(paths: impl Iterator<Item = &'a Path>) -> FileSizes {
+    let sizes = paths
         .filter_map(|p| std::fs::metadata(p).ok())
-        .map(|m| m.len())
-        .sum()
+        .map(|m| m.len());
+    sizes.fold(FileSizes::default(), |sizes, len| FileSizes {
+        total: sizes.total + len,
+        largest: sizes.largest.max(len),
+    })
+}
+
+/// What [`file_sizes`] found.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FileSizes {
+    pub total: u64,
+    pub largest: u64,
 }
 
 /// Reads a whole regular file (following symbolic links), refusing FIFOs,

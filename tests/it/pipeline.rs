@@ -617,7 +617,9 @@ fn plan_max_memory_exits_1_naming_the_estimate_and_the_limit() {
 /// pays for cold caches, so one plan against one bake measures the noise
 /// as much as the estimate: plan and bake alternate three times and the
 /// medians are compared, as the README's figures are.
-fn plan_within_a_factor_two(dir: &TempDir) {
+/// `allowance_seconds` is how far apart the two times may be whatever
+/// their ratio.
+fn plan_within_a_factor_two(dir: &TempDir, allowance_seconds: f64) {
     let rounds: Vec<[f64; 4]> = (0..3).map(|_| plan_and_bake(dir)).collect();
     let median = |field: usize| {
         let mut values: Vec<f64> = rounds.iter().map(|r| r[field]).collect();
@@ -631,8 +633,9 @@ fn plan_within_a_factor_two(dir: &TempDir) {
     eprintln!(
         "medians of 3: plan {seconds:.2} s / measured {measured_seconds:.2} s; plan {bytes} B / measured {measured_bytes} B ({rounds:?})"
     );
+    let within_noise = (seconds - measured_seconds).abs() <= allowance_seconds;
     assert!(
-        (0.5..=2.0).contains(&time_ratio),
+        (0.5..=2.0).contains(&time_ratio) || within_noise,
         "time: plan {seconds} s, measured {measured_seconds} s (medians of {rounds:?})"
     );
     assert!(
@@ -640,6 +643,13 @@ fn plan_within_a_factor_two(dir: &TempDir) {
         "memory: plan {bytes} B, measured {measured_bytes} B (medians of {rounds:?})"
     );
 }
+
+/// A fixture bakes in a few hundredths of a second, where the clock's
+/// hundredths and a loaded machine's scheduling move both figures by more
+/// than the estimate's own error (0.15 s measured against 0.33 s planned has
+/// been seen with every test running at once): within this the ratio says
+/// nothing, and `bench`, baking for longer, checks it without allowance.
+const SCHEDULING_NOISE_SECONDS: f64 = 0.25;
 
 /// One plan and one timed bake: [estimated s, estimated B, measured s, measured B].
 fn plan_and_bake(dir: &TempDir) -> [f64; 4] {
@@ -682,8 +692,8 @@ fn plan_estimates_are_within_a_factor_two_on_the_fixtures() {
         "{} needs /usr/bin/time (Debian package `time`)",
         "plan_estimates_are_within_a_factor_two_on_the_fixtures"
     );
-    plan_within_a_factor_two(&world(Preset::Small));
-    plan_within_a_factor_two(&world(Preset::Village));
+    plan_within_a_factor_two(&world(Preset::Small), SCHEDULING_NOISE_SECONDS);
+    plan_within_a_factor_two(&world(Preset::Village), SCHEDULING_NOISE_SECONDS);
 }
 
 #[test]
@@ -697,7 +707,7 @@ fn plan_estimates_are_within_a_factor_two_on_bench() {
         "{} needs /usr/bin/time (Debian package `time`)",
         "plan_estimates_are_within_a_factor_two_on_bench"
     );
-    plan_within_a_factor_two(&world(Preset::Bench));
+    plan_within_a_factor_two(&world(Preset::Bench), 0.0);
 }
 
 // ---------------------------------------------------------------------------
