@@ -8,7 +8,7 @@
 //! there is nothing to load, trace or write.
 //!
 //! A file counts as unchanged by its stamp alone only when its times are
-//! older than the record by [`RACY_NANOSECONDS`] (git's rule for racily
+//! older than the record by [`crate::cache::RACY_NANOSECONDS`] (git's rule for racily
 //! clean entries: a write within the file system's time resolution could
 //! leave the same stamp); otherwise it is read and its content key
 //! compared. A folder is trusted the same way or by its entry names, so a
@@ -18,7 +18,7 @@
 //! ordinary path, which reports it.
 
 use crate::cache::codec::{Decoder, Encoder};
-use crate::cache::{content_key, Cache, Key, KeyHasher, Kind, RACY_NANOSECONDS};
+use crate::cache::{content_key, trusted, Cache, Key, KeyHasher, Kind, KnownFiles};
 use crate::digest::Digest;
 use crate::files::{self, Stamp};
 use crate::scene::Scene;
@@ -98,12 +98,6 @@ fn now_ns() -> u64 {
         .map_or(0, |d| d.as_nanos() as u64)
 }
 
-/// Whether a stamp equal to the recorded one proves its file or folder
-/// unchanged since a record made at `recorded_at_ns`.
-fn trusted(stamp: &Stamp, recorded_at_ns: u64) -> bool {
-    stamp.latest_ns().saturating_add(RACY_NANOSECONDS) < recorded_at_ns
-}
-
 /// The hash of a folder's sorted entry names.
 fn names_key(dir: &Path) -> Option<Key> {
     let names = files::folder_names(dir).ok()?;
@@ -130,12 +124,40 @@ fn chunk_list(space_dir: &Path, recursive: bool) -> Option<(Key, usize)> {
     Some((hasher.finish(), walk.files.len()))
 }
 
-/// Checks `cache`'s record under `key`: `Some` when every file, folder
-/// and the chunk list are as recorded (the record is refreshed when files
-/// had to be read, so the next check reads none), `None` otherwise.
-pub fn check(cache: &Cache, key: &Key) -> Option<UpToDate> {
+/// What [`check`] found.
+#[derive(Debug)]
+pub enum Checked {
+    /// Every file, folder and the chunk list are as recorded.
+    UpToDate(UpToDate),
+    /// Something differs: the recorded files, whose stamps tell which of
+    /// them need not be read again.
+    Changed(KnownFiles),
+    /// No record (or one that cannot be read).
+    NoRecord,
+}
+
+/// Checks `cache`'s record under `key` (refreshing it when files had to
+/// be read, so the next check reads none).
+pub fn check(cache: &Cache, key: &Key) -> Checked {
+    let Some(record) = cache.get(Kind::World, key).and_then(|value| decode(&value)) else {
+        return Checked::NoRecord;
+    };
+    match up_to_date(cache, key, &record) {
+        Some(found) => Checked::UpToDate(found),
+        None => Checked::Changed(KnownFiles::new(
+            record
+                .files
+                .iter()
+                .map(|f| (f.path.as_path(), f.stamp, f.key)),
+            record.recorded_at_ns,
+        )),
+    }
+}
+
+/// `Some` when every file, folder and the chunk list of `record` (under
+/// `key`) are as recorded.
+fn up_to_date(cache: &Cache, key: &Key, record: &Record) -> Option<UpToDate> {
     let started = now_ns();
-    let record = decode(&cache.get(Kind::World, key)?)?;
     let files: Vec<(FileEntry, bool)> = record
         .files
         .par_iter()
@@ -164,7 +186,10 @@ pub fn check(cache: &Cache, key: &Key) -> Option<UpToDate> {
             recorded_at_ns: started,
             files: files.into_iter().map(|(entry, _)| entry).collect(),
             folders: folders.into_iter().map(|(entry, _)| entry).collect(),
-            ..record
+            space_dir: record.space_dir.clone(),
+            chunk_list: record.chunk_list,
+            lights: record.lights.clone(),
+            ..*record
         };
         cache.put(Kind::World, key, &encode(&refreshed));
     }
@@ -484,17 +509,6 @@ mod tests {
         for cut in 0..bytes.len() {
             assert_eq!(decode(&bytes[..cut]), None, "cut at {cut}");
         }
-    }
-
-    #[test]
-    fn a_stamp_is_trusted_only_when_older_than_the_record_by_the_margin() {
-        let stamp = Stamp::from_array([0, 0, 0, 1_000, 5_000]);
-        assert!(trusted(&stamp, 5_000 + RACY_NANOSECONDS + 1));
-        assert!(!trusted(&stamp, 5_000 + RACY_NANOSECONDS));
-        assert!(
-            !trusted(&stamp, 1_000 + RACY_NANOSECONDS + 1),
-            "status change counts"
-        );
     }
 
     #[test]

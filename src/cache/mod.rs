@@ -11,6 +11,9 @@
 //! recently used entries.
 
 pub mod codec;
+mod known;
+
+pub use known::{trusted, KnownFiles};
 
 use crate::files::{self, CacheFile};
 use std::path::{Path, PathBuf};

@@ -13,8 +13,9 @@ use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
 use shadowcull::bake::cached::BakeCache;
 use shadowcull::bake::setup::BakeWorld;
-use shadowcull::bake::world_record::{self, Baked};
+use shadowcull::bake::world_record::{self, Baked, Checked};
 use shadowcull::bake::{self, BakeConfig};
+use shadowcull::cache::KnownFiles;
 use shadowcull::cache::{Cache, Key};
 use shadowcull::formats::bake_settings::BakeSettings;
 use shadowcull::scene::SceneKeys;
@@ -64,14 +65,19 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
             args.output.out.is_none() && args.output.report.is_none() && args.output.html.is_none()
         })
         .map(|cache| world_record_key(cache, file, settings, config));
+    let mut known = KnownFiles::default();
     if let (Some(cache), Some(key)) = (&cache, &record_key) {
-        if let Some(found) = world_record::check(cache, key) {
-            super::cache::say_up_to_date(&found, &args.options, started, &reporter);
-            super::cache::finish(cache, &reporter);
-            return Ok(());
+        match world_record::check(cache, key) {
+            Checked::UpToDate(found) => {
+                super::cache::say_up_to_date(&found, &args.options, started, &reporter);
+                super::cache::finish(cache, &reporter);
+                return Ok(());
+            }
+            Checked::Changed(recorded) => known = recorded,
+            Checked::NoRecord => {}
         }
     }
-    let scene = load_scene_told(settings, &args.options, &reporter, cache.as_ref())?;
+    let scene = load_scene_told(settings, &args.options, &reporter, cache.as_ref(), &known)?;
     warn_locked_chunks(&scene, &args.output, &args.options);
     bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
     let world = BakeWorld::build(&scene, &reporter);

@@ -12,7 +12,7 @@ use anyhow::{Context, Result};
 use shadowcull::bake::cached::{CacheReport, PhaseCounts};
 use shadowcull::bake::world_record::LightLine;
 use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
-use shadowcull::cache::{Cache, Kind};
+use shadowcull::cache::{Cache, Kind, KnownFiles};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::bake_settings::{BakeSettings, FaceCulling};
 use shadowcull::scene::{self, Scene};
@@ -163,15 +163,17 @@ impl BakeOptions {
 }
 
 /// Loads the scene of `settings` with progress, says what it holds, and
-/// refuses it when it has problems (unless `--keep-going`).
+/// refuses it when it has problems (unless `--keep-going`). Chunk files
+/// `known` vouches for are read back from `cache` without being read.
 pub fn load_scene_told(
     settings: &BakeSettings,
     options: &BakeOptions,
     reporter: &Reporter,
     cache: Option<&Cache>,
+    known: &KnownFiles,
 ) -> Result<Scene> {
     let started = Instant::now();
-    let scene = scene::load_scene_cached(&load_config(settings), reporter, cache)?;
+    let scene = scene::load_scene_cached(&load_config(settings), reporter, cache, known)?;
     let keep_going = options.pipeline.keep_going;
     say_loaded(&scene, started, keep_going, reporter);
     if let Some(cache) = cache {

@@ -59,7 +59,13 @@ pub fn run(args: MergeArgs) -> Result<()> {
         }
         let cache = args.options.cache.open(&args.settings.settings)?;
         let reporter = Reporter::with_grid(&args.options.progress, GridAnswers::Merged);
-        let scene = load_scene_told(&settings, &args.options, &reporter, cache.as_ref())?;
+        let scene = load_scene_told(
+            &settings,
+            &args.options,
+            &reporter,
+            cache.as_ref(),
+            &shadowcull::cache::KnownFiles::default(),
+        )?;
         warn_locked_chunks(&scene, &args.output, &args.options);
         bake::validate_lights(&scene, &config)?;
         let world = BakeWorld::build(&scene, &reporter);

@@ -60,7 +60,12 @@ pub fn run(args: PlanArgs) -> Result<()> {
         let started = Instant::now();
         let reporter = Reporter::new(&args.progress);
         let cache = args.cache.open(&file)?;
-        let scene = scene::load_scene_cached(&load_config(&settings), &reporter, cache.as_ref())?;
+        let scene = scene::load_scene_cached(
+            &load_config(&settings),
+            &reporter,
+            cache.as_ref(),
+            &shadowcull::cache::KnownFiles::default(),
+        )?;
         for problem in &scene.problems {
             messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
         }

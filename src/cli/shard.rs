@@ -85,7 +85,13 @@ pub fn run(
     let started = Instant::now();
     let cache = options.cache.open(settings_file)?;
     let reporter = Reporter::new(&options.progress);
-    let scene = load_scene_told(settings, options, &reporter, cache.as_ref())?;
+    let scene = load_scene_told(
+        settings,
+        options,
+        &reporter,
+        cache.as_ref(),
+        &shadowcull::cache::KnownFiles::default(),
+    )?;
     bake::validate_lights(&scene, config)?;
     let world = BakeWorld::build(&scene, &reporter);
     let plan = Plan::new(&world, config, shard.count)?;

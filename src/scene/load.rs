@@ -11,7 +11,7 @@
 use super::chunk_cache::{self, ParsedChunk};
 use super::items::ItemCount;
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
-use crate::cache::{content_key, Cache, Fetched, Key, Kind};
+use crate::cache::{content_key, Cache, Fetched, Key, Kind, KnownFiles};
 use crate::digest::Digest;
 use crate::error::{Error, Result};
 use crate::files::{self, ResPaths};
@@ -88,21 +88,24 @@ pub fn load_scene(config: &LoadConfig) -> Result<Scene> {
 /// [`load_scene`], telling `progress` how many chunks, models and terrain
 /// blocks are done.
 pub fn load_scene_with(config: &LoadConfig, progress: &dyn Progress) -> Result<Scene> {
-    load_scene_cached(config, progress, None)
+    load_scene_cached(config, progress, None, &KnownFiles::default())
 }
 
 /// [`load_scene_with`], reading the items of chunks parsed before from
 /// `cache` (and storing the others'): the same scene, without parsing
-/// the XML of unchanged chunks.
+/// the XML of unchanged chunks. A chunk file `known` vouches for is not
+/// even read when the cache holds its items.
 pub fn load_scene_cached(
     config: &LoadConfig,
     progress: &dyn Progress,
     cache: Option<&Cache>,
+    known: &KnownFiles,
 ) -> Result<Scene> {
     let mut loader = Loader {
         config,
         progress,
         cache,
+        known,
         log: ReadLog::default(),
         problems: Vec::new(),
     };
@@ -146,6 +149,8 @@ struct Loader<'a> {
     progress: &'a dyn Progress,
     /// Where parsed chunks are kept between bakes.
     cache: Option<&'a Cache>,
+    /// Files whose content keys a record vouches for.
+    known: &'a KnownFiles,
     log: ReadLog,
     problems: Vec<Problem>,
 }
@@ -263,12 +268,15 @@ impl Loader<'_> {
                 },
             ));
         }
-        let (log, cache) = (&self.log, self.cache);
+        let (log, cache, known) = (&self.log, self.cache, self.known);
         let counter = Counter::begin(self.progress, Phase::Chunks, None, chunk_files.len() as u64);
         let parsed = chunk_files
             .par_iter()
             .map(|path| {
-                let chunk = read_chunk(path, log, cache);
+                let chunk = match cache {
+                    Some(cache) => read_chunk_cached(path, log, cache, known),
+                    None => read_chunk(path, log),
+                };
                 counter.add(1);
                 (path.clone(), chunk)
             })
@@ -744,32 +752,58 @@ type ReadChunk = (ChunkFile, Key);
 
 /// Reads a chunk, noting it in `log` with its masks zeroed: the bake
 /// ignores old `<shadow>` values, so writing masks does not change the
-/// chunk as an input. Its items come from `cache` when a bake before
-/// parsed the same bytes.
-fn read_chunk(path: &Path, log: &ReadLog, cache: Option<&Cache>) -> Result<ReadChunk> {
+/// chunk as an input.
+fn read_chunk(path: &Path, log: &ReadLog) -> Result<ReadChunk> {
+    let bytes = files::read_file(path)?;
+    let parsed = parse_chunk(path, &bytes)?;
+    log.record_digest(path, parsed.canonical);
+    Ok((parsed.chunk, content_key(&bytes)))
+}
+
+/// [`read_chunk`] with its items from `cache` when a bake before parsed
+/// the same bytes; a file `known` vouches for is not read at all then.
+fn read_chunk_cached(
+    path: &Path,
+    log: &ReadLog,
+    cache: &Cache,
+    known: &KnownFiles,
+) -> Result<ReadChunk> {
+    let vouched = known.key_of(path);
+    if let Some(key) = vouched {
+        if let Some(parsed) = cached_items(cache, &key) {
+            log.record_digest(path, parsed.canonical);
+            return Ok((parsed.chunk, key));
+        }
+    }
     let bytes = files::read_file(path)?;
     let key = content_key(&bytes);
-    let parsed = match cache {
-        Some(cache) => cached_chunk(cache, path, &bytes, &key)?,
-        None => parse_chunk(path, &bytes)?,
+    // A key just looked up in vain is not looked up twice.
+    let held = (vouched != Some(key)).then(|| cached_items(cache, &key));
+    let parsed = match held.flatten() {
+        Some(parsed) => parsed,
+        None => {
+            let parsed = parse_chunk(path, &bytes)?;
+            let entry = chunk_cache::key(cache, &key);
+            cache.put(Kind::Chunk, &entry, &chunk_cache::encode(&parsed));
+            parsed
+        }
     };
     log.record_digest(path, parsed.canonical);
     Ok((parsed.chunk, key))
 }
 
-/// The chunk file holding `bytes` (whose content key is `key`): read back
-/// from `cache`, or parsed and stored.
-fn cached_chunk(cache: &Cache, path: &Path, bytes: &[u8], key: &Key) -> Result<ParsedChunk> {
+/// The items of the chunk file whose content key is `key`, when `cache`
+/// holds them (a damaged entry is rejected).
+fn cached_items(cache: &Cache, key: &Key) -> Option<ParsedChunk> {
     let entry = chunk_cache::key(cache, key);
-    if let Fetched::Value(value) = cache.fetch(Kind::Chunk, &entry) {
-        match chunk_cache::decode(&value) {
-            Some(parsed) => return Ok(parsed),
-            None => cache.reject(Kind::Chunk, &entry),
-        }
+    let Fetched::Value(value) = cache.fetch(Kind::Chunk, &entry) else {
+        return None;
+    };
+    let parsed = chunk_cache::decode(&value);
+    if parsed.is_none() {
+        cache.reject(Kind::Chunk, &entry);
     }
-    let parsed = parse_chunk(path, bytes)?;
-    cache.put(Kind::Chunk, &entry, &chunk_cache::encode(&parsed));
-    Ok(parsed)
+    parsed
 }
 
 /// Parses chunk file `bytes` (read from `path`, which errors name).

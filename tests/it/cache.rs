@@ -1395,7 +1395,7 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     use shadowcull::bake::output;
     use shadowcull::cache::{Kind, KindCounts};
     use shadowcull::files::ResPaths;
-    use shadowcull::scene::{load_scene_cached, LoadConfig};
+    use shadowcull::scene::LoadConfig;
     let dir = tempfile::tempdir().unwrap();
     let settings_path = small_world(dir.path());
     let bytes = std::fs::read(&settings_path).unwrap();
@@ -1407,15 +1407,15 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     };
     let open = || Cache::open(dir.path().join("cache"), u64::MAX, content_key(b"a build"));
     let first = open();
-    let parsed = load_scene_cached(&load, &Silent, Some(&first)).unwrap();
+    let parsed = load_unvouched(&load, Some(&first)).unwrap();
     let chunks = parsed.chunks.len() as u64;
     assert_eq!(chunk_counts(&first).written, chunks);
-    let uncached = load_scene_cached(&load, &Silent, None).unwrap();
+    let uncached = load_unvouched(&load, None).unwrap();
     assert_eq!(scene_text(&parsed), scene_text(&uncached));
 
     // Read back: the same scene, and nothing parsed.
     let second = open();
-    let read_back = load_scene_cached(&load, &Silent, Some(&second)).unwrap();
+    let read_back = load_unvouched(&load, Some(&second)).unwrap();
     assert_eq!(chunk_counts(&second).reused, chunks);
     assert_eq!(scene_text(&read_back), scene_text(&parsed));
 
@@ -1461,11 +1461,53 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
         "the entries of the {changed} chunks' replaced bytes are gone"
     );
     let third = open();
-    let after = load_scene_cached(&load, &Silent, Some(&third)).unwrap();
+    let after = load_unvouched(&load, Some(&third)).unwrap();
     assert_eq!(chunk_counts(&third).reused, chunks, "nothing parsed again");
-    let parsed_after = load_scene_cached(&load, &Silent, None).unwrap();
+    let parsed_after = load_unvouched(&load, None).unwrap();
     assert_eq!(scene_text(&after), scene_text(&parsed_after));
     for (chunk, output) in after.chunks.iter().zip(&outputs) {
         assert_eq!(chunk.file_key, Some(output.key), "{}", chunk.name);
     }
+}
+
+/// A load that no record vouches for.
+fn load_unvouched(
+    load: &shadowcull::scene::LoadConfig,
+    cache: Option<&Cache>,
+) -> shadowcull::Result<shadowcull::scene::Scene> {
+    let known = shadowcull::cache::KnownFiles::default();
+    shadowcull::scene::load_scene_cached(load, &Silent, cache, &known)
+}
+
+#[test]
+fn a_chunk_file_whose_stamp_a_record_vouches_for_is_not_read() {
+    use shadowcull::cache::{KnownFiles, RACY_NANOSECONDS};
+    use shadowcull::files::stamp;
+    use shadowcull::scene::{load_scene_cached, LoadConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let settings_path = small_world(dir.path());
+    let bytes = std::fs::read(&settings_path).unwrap();
+    let settings = shadowcull::formats::bake_settings::from_bytes(&bytes, &settings_path).unwrap();
+    let load = LoadConfig::from_settings(&settings);
+    let cache = Cache::open(dir.path().join("cache"), u64::MAX, content_key(b"a build"));
+    let parsed = load_unvouched(&load, Some(&cache)).unwrap();
+    // A record that says chunk `a` holds chunk `b`'s bytes: believed only
+    // if `a` is not read.
+    let (a, b) = (&parsed.chunks[0], &parsed.chunks[1]);
+    assert_ne!(a.instances.len(), b.instances.len(), "chunks told apart");
+    let a_stamp = stamp(&a.file).unwrap();
+    let b_key = content_key(&std::fs::read(&b.file).unwrap());
+    let vouch = |at: u64| KnownFiles::new([(a.file.as_path(), a_stamp, b_key)].into_iter(), at);
+    let after_the_margin = a_stamp.latest_ns() + RACY_NANOSECONDS + 1;
+    let trusting = load_scene_cached(&load, &Silent, Some(&cache), &vouch(after_the_margin));
+    let trusting = trusting.unwrap();
+    assert_eq!(trusting.chunks[0].instances.len(), b.instances.len());
+    assert_eq!(trusting.chunks[0].file_key, Some(b_key));
+
+    // Stamped too close to the record, or written since: read.
+    let racy = load_scene_cached(&load, &Silent, Some(&cache), &vouch(after_the_margin - 2));
+    assert_eq!(scene_text(&racy.unwrap()), scene_text(&parsed));
+    std::fs::write(&a.file, std::fs::read(&a.file).unwrap()).unwrap();
+    let rewritten = load_scene_cached(&load, &Silent, Some(&cache), &vouch(after_the_margin));
+    assert_eq!(scene_text(&rewritten.unwrap()), scene_text(&parsed));
 }
