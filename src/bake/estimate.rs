@@ -255,6 +255,10 @@ pub fn plan_with(
         .max(baseline.resident_bytes + masks + light_peak.max(output));
     // The bake keeps the first light's setup, built during the
     // calibration, instead of building it again.
+    let output_share = match cache {
+        Some(_) => cached_output_share(&lights),
+        None => 1.0,
+    };
     let kept_setup_seconds = kept
         .as_ref()
         .map_or(0.0, |s: &LightSetup| s.reach_seconds + s.top_seconds);
@@ -262,7 +266,8 @@ pub fn plan_with(
         + calibration_seconds
         + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
         - kept_setup_seconds
-        + baseline.chunk_file_bytes as f64 / (OUTPUT_BYTES_PER_THREAD_SECOND * threads as f64);
+        + output_share * baseline.chunk_file_bytes as f64
+            / (OUTPUT_BYTES_PER_THREAD_SECOND * threads as f64);
     if let Some(cache) = cache {
         cache.keep_setup(kept.take());
     }
@@ -277,6 +282,18 @@ pub fn plan_with(
         unproxied_speedtrees: world.scene.unproxied_trees(),
         kept: KeptSetup(Mutex::new(kept)),
     })
+}
+
+/// The share of the chunk files a cached bake's output prepares: a chunk
+/// is prepared only when its masks may change, which takes a cell traced
+/// again, so the largest share of cells a light's cache lacks.
+fn cached_output_share(lights: &[LightPlan]) -> f64 {
+    let cached = lights
+        .iter()
+        .filter_map(|l| Some((l.cells?, l.cells_stored?)));
+    cached
+        .map(|(cells, stored)| cells.saturating_sub(stored) as f64 / cells.max(1) as f64)
+        .fold(0.0, f64::max)
 }
 
 /// One light's plan, and its setup when the light has something to trace.
@@ -519,6 +536,26 @@ mod tests {
     use crate::files::ResPaths;
     use crate::progress::Silent;
     use crate::scene::{load_scene, LoadConfig};
+
+    #[test]
+    fn a_cached_bake_prepares_the_share_of_chunks_its_most_missing_light_lacks() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/small");
+        let settings = crate::files::read_bake_settings(&root.join("bake.xml")).unwrap();
+        let config = BakeConfig::from_settings(&settings);
+        let light = |index, cells: Option<(u64, u64)>| LightPlan {
+            cells: cells.map(|c| c.0),
+            cells_stored: cells.map(|c| c.1),
+            ..LightPlan::before_setup(&config, index)
+        };
+        let every_cell_stored = [light(0, Some((10, 10))), light(1, Some((4, 4)))];
+        assert_eq!(cached_output_share(&every_cell_stored), 0.0);
+        let half_missing = [
+            light(0, Some((10, 9))),
+            light(1, Some((8, 4))),
+            light(2, None),
+        ];
+        assert_eq!(cached_output_share(&half_missing), 0.5);
+    }
 
     /// The plan's calibration tiles are not traced again by the bake that
     /// follows it ([`GridSource`] for [`Plan`]): its masks must be those of
