@@ -11,7 +11,8 @@
 //! ([`Owner::Unmodelled`]) that no ray can hit. Everything that needs a
 //! part's ids walks [`CasterTable::parts`].
 
-use crate::scene::Scene;
+use crate::scene::{Instance, Scene};
+use rayon::prelude::*;
 
 /// What a caster is. Indices are u32 (the caster ids themselves are):
 /// a table entry is 20 bytes, held for every group of every placed
@@ -88,56 +89,34 @@ pub struct CasterTable {
 
 impl CasterTable {
     pub fn new(scene: &Scene) -> CasterTable {
-        let mut table = CasterTable::default();
+        // An instance's first id is the sum of the counts before it: counted
+        // and filled in parallel (millions of instances on a large world),
+        // summed in order.
+        let counts: Vec<u32> = scene
+            .instances
+            .par_iter()
+            .map(|instance| caster_count(scene, instance))
+            .collect();
+        let mut first_of_instance = Vec::with_capacity(counts.len());
+        let mut next = 0u32;
+        for (instance, &count) in scene.instances.iter().zip(&counts) {
+            first_of_instance.push(instance.is_complete().then_some(next));
+            next += count;
+        }
         // Exact sizes: the table is held for the whole bake, and growing
         // by doubling left up to half of it unused.
-        let groups = |instance: &crate::scene::Instance| -> usize {
-            let models = instance.parts.iter().flatten();
-            models.map(|&m| scene.models[m].groups.len()).sum()
-        };
-        let complete = scene.instances.iter().filter(|i| i.is_complete());
-        let unmodelled = scene.unmodelled_casters();
-        table
-            .casters
-            .reserve_exact(complete.map(groups).sum::<usize>() + unmodelled + scene.terrain.len());
-        table.first_of_instance.reserve_exact(scene.instances.len());
-        table.of_block.reserve_exact(scene.terrain.len());
-        for (index, instance) in scene.instances.iter().enumerate() {
-            if !instance.is_complete() {
-                table.first_of_instance.push(None);
-                continue;
-            }
-            table
-                .first_of_instance
-                .push(Some(table.casters.len() as u32));
-            if instance.is_unmodelled() {
-                table.casters.push(Caster {
-                    owner: Owner::Unmodelled {
-                        instance: index as u32,
-                    },
-                    alpha_tested: false,
-                    double_sided: false,
-                    receiver_only: false,
-                });
-            }
-            for (part, model) in instance.parts.iter().flatten().enumerate() {
-                for (group, flags) in scene.models[*model].groups.iter().enumerate() {
-                    table.casters.push(Caster {
-                        owner: Owner::Group {
-                            instance: index as u32,
-                            part: part as u32,
-                            group: group as u32,
-                        },
-                        alpha_tested: flags.alpha_tested,
-                        double_sided: flags.double_sided,
-                        receiver_only: !instance.casts_shadow,
-                    });
-                }
-            }
-        }
+        let mut casters = Vec::with_capacity(next as usize + scene.terrain.len());
+        casters.par_extend(
+            scene
+                .instances
+                .par_iter()
+                .enumerate()
+                .flat_map_iter(|(index, instance)| instance_casters(scene, index, instance)),
+        );
+        let mut of_block = Vec::with_capacity(scene.terrain.len());
         for block in 0..scene.terrain.len() {
-            table.of_block.push(table.casters.len() as u32);
-            table.casters.push(Caster {
+            of_block.push(casters.len() as u32);
+            casters.push(Caster {
                 owner: Owner::Terrain {
                     block: block as u32,
                 },
@@ -146,17 +125,20 @@ impl CasterTable {
                 receiver_only: false,
             });
         }
-        table.double_sided = vec![0; table.casters.len().div_ceil(64)];
-        table.receiver_only = vec![0; table.casters.len().div_ceil(64)];
-        for (id, caster) in table.casters.iter().enumerate() {
-            if caster.double_sided {
-                table.double_sided[id / 64] |= 1 << (id % 64);
-            }
-            if caster.receiver_only {
-                table.receiver_only[id / 64] |= 1 << (id % 64);
-            }
+        let bits = |flag: fn(&Caster) -> bool| -> Vec<u64> {
+            let words = casters.par_chunks(64).map(|word| {
+                let set = word.iter().enumerate().filter(|(_, c)| flag(c));
+                set.fold(0u64, |bits, (bit, _)| bits | 1 << bit)
+            });
+            words.collect()
+        };
+        CasterTable {
+            double_sided: bits(|c| c.double_sided),
+            receiver_only: bits(|c| c.receiver_only),
+            casters,
+            first_of_instance,
+            of_block,
         }
-        table
     }
 
     pub fn len(&self) -> usize {
@@ -229,6 +211,51 @@ impl CasterTable {
     pub fn real_casters(&self) -> usize {
         self.casters.iter().filter(|c| !c.receiver_only).count()
     }
+}
+
+/// How many ids `instance` takes: none when left out of the bake, one for
+/// an unmodelled speedtree, else one per group of each part.
+fn caster_count(scene: &Scene, instance: &Instance) -> u32 {
+    if !instance.is_complete() {
+        return 0;
+    }
+    let groups = instance.parts.iter().flatten();
+    let groups: usize = groups.map(|&m| scene.models[m].groups.len()).sum();
+    (groups + usize::from(instance.is_unmodelled())) as u32
+}
+
+/// The casters of instance `index`, in id order.
+fn instance_casters<'a>(
+    scene: &'a Scene,
+    index: usize,
+    instance: &'a Instance,
+) -> impl Iterator<Item = Caster> + 'a {
+    let complete = instance.is_complete();
+    let unmodelled = (complete && instance.is_unmodelled()).then_some(Caster {
+        owner: Owner::Unmodelled {
+            instance: index as u32,
+        },
+        alpha_tested: false,
+        double_sided: false,
+        receiver_only: false,
+    });
+    let parts = instance.parts.iter().flatten().enumerate();
+    let groups = parts
+        .filter(move |_| complete)
+        .flat_map(move |(part, &model)| {
+            let groups = scene.models[model].groups.iter().enumerate();
+            groups.map(move |(group, flags)| Caster {
+                owner: Owner::Group {
+                    instance: index as u32,
+                    part: part as u32,
+                    group: group as u32,
+                },
+                alpha_tested: flags.alpha_tested,
+                double_sided: flags.double_sided,
+                receiver_only: !instance.casts_shadow,
+            })
+        });
+    unmodelled.into_iter().chain(groups)
 }
 
 #[cfg(test)]

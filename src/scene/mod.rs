@@ -15,6 +15,7 @@ use crate::cache::Key;
 use crate::formats::chunk::InstanceKind;
 use crate::formats::space_settings::SpaceSettings;
 use glam::{DMat4, DVec3, Vec3};
+use rayon::prelude::*;
 use std::ops::Range;
 use std::path::PathBuf;
 
@@ -302,6 +303,69 @@ pub struct Stats {
     pub speedtree_proxies: usize,
 }
 
+/// [`Scene::stats`]'s counts over some of the instances, and which models
+/// they place as models and as speedtree proxies.
+struct InstanceCounts {
+    stats: Stats,
+    used: Vec<bool>,
+    proxies: Vec<bool>,
+}
+
+impl InstanceCounts {
+    fn new(models: usize) -> InstanceCounts {
+        InstanceCounts {
+            stats: Stats::default(),
+            used: vec![false; models],
+            proxies: vec![false; models],
+        }
+    }
+
+    fn add(&mut self, scene: &Scene, instance: &Instance) {
+        let stats = &mut self.stats;
+        if instance.kind == InstanceKind::SpeedTree {
+            stats.speedtrees += 1;
+            stats.speedtrees_without_proxy += usize::from(instance.is_unmodelled());
+            for &part in instance.parts.iter().flatten() {
+                self.proxies[part] = true;
+            }
+            return;
+        }
+        stats.instances += 1;
+        if !instance.casts_shadow {
+            stats.receiver_only_instances += 1;
+        }
+        for &part in instance.parts.iter().flatten() {
+            self.used[part] = true;
+            let model = &scene.models[part];
+            stats.groups += model.groups.len();
+            stats.triangles += model.triangles.len();
+            for group in &model.groups {
+                stats.alpha_tested_groups += usize::from(group.alpha_tested);
+                stats.double_sided_groups += usize::from(group.double_sided);
+            }
+        }
+    }
+
+    fn merge(mut self, other: InstanceCounts) -> InstanceCounts {
+        let (a, b) = (&mut self.stats, &other.stats);
+        a.instances += b.instances;
+        a.groups += b.groups;
+        a.triangles += b.triangles;
+        a.alpha_tested_groups += b.alpha_tested_groups;
+        a.double_sided_groups += b.double_sided_groups;
+        a.receiver_only_instances += b.receiver_only_instances;
+        a.speedtrees += b.speedtrees;
+        a.speedtrees_without_proxy += b.speedtrees_without_proxy;
+        for (used, other) in self.used.iter_mut().zip(&other.used) {
+            *used |= other;
+        }
+        for (proxy, other) in self.proxies.iter_mut().zip(&other.proxies) {
+            *proxy |= other;
+        }
+        self
+    }
+}
+
 impl Scene {
     /// Where the space's instances may lie (see [`SpaceRegion`]).
     pub fn region(&self) -> SpaceRegion {
@@ -312,39 +376,25 @@ impl Scene {
     /// and triangles twice; `models` counts distinct resources in use
     /// (speedtrees and their proxies are counted apart).
     pub fn stats(&self) -> Stats {
-        let mut stats = Stats {
-            chunks: self.chunks.len(),
-            terrain_blocks: self.terrain.len(),
-            ..Stats::default()
-        };
-        let mut used = vec![false; self.models.len()];
-        let mut proxies = vec![false; self.models.len()];
-        for instance in &self.instances {
-            if instance.kind == InstanceKind::SpeedTree {
-                stats.speedtrees += 1;
-                stats.speedtrees_without_proxy += usize::from(instance.is_unmodelled());
-                for &part in instance.parts.iter().flatten() {
-                    proxies[part] = true;
-                }
-                continue;
-            }
-            stats.instances += 1;
-            if !instance.casts_shadow {
-                stats.receiver_only_instances += 1;
-            }
-            for &part in instance.parts.iter().flatten() {
-                used[part] = true;
-                let model = &self.models[part];
-                stats.groups += model.groups.len();
-                stats.triangles += model.triangles.len();
-                for group in &model.groups {
-                    stats.alpha_tested_groups += usize::from(group.alpha_tested);
-                    stats.double_sided_groups += usize::from(group.double_sided);
-                }
-            }
-        }
-        stats.models = used.iter().filter(|u| **u).count();
-        stats.speedtree_proxies = proxies.iter().filter(|u| **u).count();
+        let models = self.models.len();
+        // Instance by instance in parallel (millions on a large world), each
+        // split with its own model flags, merged in any order: sums and ORs.
+        let counted = self
+            .instances
+            .par_iter()
+            .fold(
+                || InstanceCounts::new(models),
+                |mut counts, instance| {
+                    counts.add(self, instance);
+                    counts
+                },
+            )
+            .reduce(|| InstanceCounts::new(models), InstanceCounts::merge);
+        let mut stats = counted.stats;
+        stats.chunks = self.chunks.len();
+        stats.terrain_blocks = self.terrain.len();
+        stats.models = counted.used.iter().filter(|u| **u).count();
+        stats.speedtree_proxies = counted.proxies.iter().filter(|u| **u).count();
         stats
     }
 }
