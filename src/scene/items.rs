@@ -7,6 +7,7 @@
 
 use super::{Instance, Scene};
 use crate::formats::chunk::InstanceKind;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -218,7 +219,13 @@ impl Scene {
     /// The speedtrees without a proxy, per `.spt` (sorted by name).
     pub fn unproxied_trees(&self) -> Vec<UnproxiedTrees> {
         let mut by_spt: BTreeMap<&str, (usize, BTreeSet<usize>)> = BTreeMap::new();
-        for tree in self.instances.iter().filter(|i| i.is_unmodelled()) {
+        // Found in parallel: a large world places millions of instances.
+        let trees: Vec<&Instance> = self
+            .instances
+            .par_iter()
+            .filter(|i| i.is_unmodelled())
+            .collect();
+        for tree in trees {
             let entry = by_spt.entry(spt_of(tree)).or_default();
             entry.0 += 1;
             entry.1.insert(tree.chunk);
@@ -236,7 +243,10 @@ impl Scene {
     /// How many casters the bake cannot model: speedtree placements
     /// without a proxy.
     pub fn unmodelled_casters(&self) -> usize {
-        self.instances.iter().filter(|i| i.is_unmodelled()).count()
+        self.instances
+            .par_iter()
+            .filter(|i| i.is_unmodelled())
+            .count()
     }
 
     /// The item kinds the bake leaves out (chunk data is not an item) and
