@@ -101,35 +101,51 @@ pub fn load_scene_cached(
     cache: Option<&Cache>,
     known: &KnownFiles,
 ) -> Result<Scene> {
+    let log = ReadLog::default();
     let mut loader = Loader {
         config,
         progress,
         cache,
         known,
-        log: ReadLog::default(),
+        log: &log,
         problems: Vec::new(),
     };
     let (space_dir, settings) = loader.read_space_settings()?;
     let parsed = loader.parse_chunk_files(&space_dir, &settings)?;
     let by_name = loader.keep_chunks_by_name(parsed, &space_dir, &settings)?;
-    let (models, model_names) = loader.load_models(&by_name);
+    // The terrain is decoded while the models load and the chunks are
+    // placed, which leave a core idle at times.
+    let reading = TerrainReading {
+        config,
+        log: &log,
+        progress,
+        space_dir: &space_dir,
+        chunk_size: settings.chunk_size,
+    };
+    let jobs = terrain_jobs(&by_name, settings.chunk_size);
+    let ((models, placed), blocks) = rayon::join(
+        || {
+            let (models, model_names) = loader.load_models(&by_name);
+            (
+                models,
+                loader.place_chunks(&by_name, &settings, &model_names),
+            )
+        },
+        || reading.decode(jobs),
+    );
     let Placed {
         mut chunks,
         mut instances,
-        terrain_jobs,
         items,
-    } = loader.place_chunks(&by_name, &settings, &model_names);
+    } = placed;
     // Freeing millions of parsed items takes a thread a fifth of a second
-    // on a large world; the terrain is read meanwhile.
+    // on a large world.
     std::thread::spawn(move || drop(by_name));
     let region = SpaceRegion::of(&settings);
-    let terrain =
-        loader.load_terrain_blocks(terrain_jobs, &space_dir, &settings, &region, &mut chunks);
+    let terrain = loader.keep_terrain_blocks(blocks, &region, &mut chunks);
     // Instances are held to the terrain's heights, known only now.
     let region = region.around_terrain(&terrain);
-    let Loader {
-        log, mut problems, ..
-    } = loader;
+    let Loader { mut problems, .. } = loader;
     drop_strays(&mut chunks, &mut instances, &models, &region, &mut problems);
     problems.sort();
     Ok(Scene {
@@ -154,16 +170,14 @@ struct Loader<'a> {
     cache: Option<&'a Cache>,
     /// Files whose content keys a record vouches for.
     known: &'a KnownFiles,
-    log: ReadLog,
+    log: &'a ReadLog,
     problems: Vec<Problem>,
 }
 
-/// The chunks in name order with their instances placed in the world, and
-/// the terrain blocks still to read.
+/// The chunks in name order with their instances placed in the world.
 struct Placed {
     chunks: Vec<Chunk>,
     instances: Vec<Instance>,
-    terrain_jobs: Vec<TerrainJob>,
     items: Vec<ItemCount>,
 }
 
@@ -216,6 +230,57 @@ struct TerrainJob {
     transform: DMat4,
 }
 
+/// What decoding the terrain blocks reads, apart from the loader (it runs
+/// beside the models' load and the placing).
+struct TerrainReading<'a> {
+    config: &'a LoadConfig,
+    log: &'a ReadLog,
+    progress: &'a dyn Progress,
+    space_dir: &'a Path,
+    chunk_size: f64,
+}
+
+impl TerrainReading<'_> {
+    /// Each job's block, read and decoded in parallel, in job order.
+    fn decode(&self, jobs: Vec<TerrainJob>) -> Vec<(usize, Result<TerrainBlock>)> {
+        let (res_paths, log) = (&self.config.res_paths, self.log);
+        let counter = Counter::begin(self.progress, Phase::Terrain, None, jobs.len() as u64);
+        let blocks = jobs
+            .into_par_iter()
+            .map(|job| {
+                let folder = chunk_folder(&self.config.space, self.space_dir, &job.chunk_path);
+                let block = load_terrain(res_paths, log, &job, &folder, self.chunk_size);
+                counter.add(1);
+                (job.chunk, block)
+            })
+            .collect();
+        counter.finish();
+        blocks
+    }
+}
+
+/// The terrain block of every chunk that names one, by the chunk's index
+/// in name order (as the chunks are placed), with the chunk's transform;
+/// a chunk's transform problems are the placing's to report.
+fn terrain_jobs(
+    by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+    chunk_size: f64,
+) -> Vec<TerrainJob> {
+    let chunks = by_name.iter().enumerate();
+    let with_terrain = chunks.filter_map(|(chunk, (name, (path, file, _)))| {
+        let element = file.terrain.as_ref()?;
+        let grid = space_settings::parse_outdoor_chunk_name(name);
+        let transform = chunk_transform(path, file, grid, chunk_size, &mut Vec::new());
+        Some(TerrainJob {
+            chunk,
+            chunk_path: path.clone(),
+            resource: element.resource.clone(),
+            transform,
+        })
+    });
+    with_terrain.collect()
+}
+
 impl Loader<'_> {
     /// The space's folder and its `space.settings`, found in the res paths.
     fn read_space_settings(&self) -> Result<(PathBuf, space_settings::SpaceSettings)> {
@@ -241,7 +306,7 @@ impl Loader<'_> {
             .parent()
             .map(Path::to_path_buf)
             .unwrap_or_default();
-        let settings = read_parsed(&settings_path, &self.log, space_settings::parse)?;
+        let settings = read_parsed(&settings_path, self.log, space_settings::parse)?;
         Ok((space_dir, settings))
     }
 
@@ -271,7 +336,7 @@ impl Loader<'_> {
                 },
             ));
         }
-        let (log, cache, known) = (&self.log, self.cache, self.known);
+        let (log, cache, known) = (self.log, self.cache, self.known);
         let counter = Counter::begin(self.progress, Phase::Chunks, None, chunk_files.len() as u64);
         let parsed = chunk_files
             .par_iter()
@@ -352,7 +417,7 @@ impl Loader<'_> {
         by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
     ) -> (Vec<Model>, BTreeMap<String, usize>) {
         let (sources, usage) = self.models_needed(by_name);
-        let (res_paths, log) = (&self.config.res_paths, &self.log);
+        let (res_paths, log) = (&self.config.res_paths, self.log);
         let counter = Counter::begin(self.progress, Phase::Models, None, sources.len() as u64);
         let loaded: Vec<(String, Result<Model>)> = sources
             .into_iter()
@@ -437,7 +502,7 @@ impl Loader<'_> {
 
     /// Every chunk with its world transform and its instances placed in
     /// the world (those that cannot be placed are problems), and the
-    /// terrain blocks to read. Chunks are placed in parallel, a batch at a
+    /// Chunks are placed in parallel, a batch at a
     /// time so that only one batch's instances are ever held twice.
     fn place_chunks(
         &mut self,
@@ -448,7 +513,6 @@ impl Loader<'_> {
         const BATCH: usize = 256;
         let mut chunks = Vec::new();
         let mut instances = Vec::new();
-        let mut terrain_jobs = Vec::new();
         let mut items: BTreeMap<&str, ItemCount> = BTreeMap::new();
         // Held for the whole bake: sized exactly rather than grown by doubling.
         instances.reserve_exact(
@@ -483,17 +547,8 @@ impl Loader<'_> {
                     item.chunks += 1;
                 }
                 self.problems.extend(placed.problems);
-                let chunk_index = chunks.len();
                 let first_instance = instances.len();
                 instances.extend(placed.instances);
-                if let Some(element) = &file.terrain {
-                    terrain_jobs.push(TerrainJob {
-                        chunk: chunk_index,
-                        chunk_path: path.clone(),
-                        resource: element.resource.clone(),
-                        transform: placed.transform,
-                    });
-                }
                 chunks.push(Chunk {
                     name: name.clone(),
                     file: path.clone(),
@@ -510,34 +565,19 @@ impl Loader<'_> {
         Placed {
             chunks,
             instances,
-            terrain_jobs,
             items: items.into_values().collect(),
         }
     }
 
-    /// The chunks' terrain blocks, read in parallel; each kept block is
-    /// linked from its chunk. Unreadable blocks and blocks outside
-    /// `region` are problems.
-    fn load_terrain_blocks(
+    /// The chunks' decoded terrain blocks (`blocks`, by chunk index),
+    /// each kept block linked from its chunk. Unreadable blocks and blocks
+    /// outside `region` are problems.
+    fn keep_terrain_blocks(
         &mut self,
-        jobs: Vec<TerrainJob>,
-        space_dir: &Path,
-        settings: &space_settings::SpaceSettings,
+        blocks: Vec<(usize, Result<TerrainBlock>)>,
         region: &SpaceRegion,
         chunks: &mut [Chunk],
     ) -> Vec<TerrainBlock> {
-        let (res_paths, log) = (&self.config.res_paths, &self.log);
-        let counter = Counter::begin(self.progress, Phase::Terrain, None, jobs.len() as u64);
-        let blocks: Vec<(usize, Result<TerrainBlock>)> = jobs
-            .into_par_iter()
-            .map(|job| {
-                let folder = chunk_folder(&self.config.space, space_dir, &job.chunk_path);
-                let block = load_terrain(res_paths, log, &job, &folder, settings.chunk_size);
-                counter.add(1);
-                (job.chunk, block)
-            })
-            .collect();
-        counter.finish();
         let mut terrain = Vec::new();
         for (chunk, block) in blocks {
             match block {
