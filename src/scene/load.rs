@@ -128,7 +128,7 @@ pub fn load_scene_cached(
             let (models, model_names) = loader.load_models(&by_name);
             (
                 models,
-                loader.place_chunks(&by_name, &settings, &model_names),
+                loader.place_chunks(by_name, &settings, &model_names),
             )
         },
         || reading.decode(jobs),
@@ -138,9 +138,6 @@ pub fn load_scene_cached(
         mut instances,
         items,
     } = placed;
-    // Freeing millions of parsed items takes a thread a fifth of a second
-    // on a large world.
-    std::thread::spawn(move || drop(by_name));
     let region = SpaceRegion::of(&settings);
     let terrain = loader.keep_terrain_blocks(blocks, &region, &mut chunks);
     // Instances are held to the terrain's heights, known only now.
@@ -256,6 +253,24 @@ impl TerrainReading<'_> {
             .collect();
         counter.finish();
         blocks
+    }
+}
+
+/// Adds a chunk `file`'s item counts to `items`, by kind.
+fn count_items(items: &mut BTreeMap<String, ItemCount>, file: &ChunkFile) {
+    for (kind, &count) in &file.items {
+        if !items.contains_key(kind) {
+            let item = ItemCount {
+                kind: kind.clone(),
+                count: 0,
+                chunks: 0,
+            };
+            items.insert(kind.clone(), item);
+        }
+        if let Some(item) = items.get_mut(kind) {
+            item.count += count;
+            item.chunks += 1;
+        }
     }
 }
 
@@ -506,14 +521,14 @@ impl Loader<'_> {
     /// time so that only one batch's instances are ever held twice.
     fn place_chunks(
         &mut self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+        by_name: BTreeMap<String, (PathBuf, ChunkFile, Key)>,
         settings: &space_settings::SpaceSettings,
         model_names: &BTreeMap<String, usize>,
     ) -> Placed {
         const BATCH: usize = 256;
-        let mut chunks = Vec::new();
+        let mut chunks = Vec::with_capacity(by_name.len());
         let mut instances = Vec::new();
-        let mut items: BTreeMap<&str, ItemCount> = BTreeMap::new();
+        let mut items: BTreeMap<String, ItemCount> = BTreeMap::new();
         // Held for the whole bake: sized exactly rather than grown by doubling.
         instances.reserve_exact(
             by_name
@@ -526,8 +541,12 @@ impl Loader<'_> {
             model_names,
             chunk_size: settings.chunk_size,
         };
-        let named: Vec<(&String, &(PathBuf, ChunkFile, Key))> = by_name.iter().collect();
-        for batch in named.chunks(BATCH) {
+        let mut named = by_name.into_iter().peekable();
+        while named.peek().is_some() {
+            // A batch's parsed items are freed once it is placed: they are
+            // not all held while the terrain is decoded beside.
+            let batch: Vec<(String, (PathBuf, ChunkFile, Key))> =
+                named.by_ref().take(BATCH).collect();
             let first_index = chunks.len();
             let placed: Vec<PlacedChunk> = batch
                 .par_iter()
@@ -536,23 +555,15 @@ impl Loader<'_> {
                     placing.chunk(first_index + i, name, path, file)
                 })
                 .collect();
-            for (&(name, (path, file, key)), placed) in batch.iter().zip(placed) {
-                for (kind, &count) in &file.items {
-                    let item = items.entry(kind).or_insert_with(|| ItemCount {
-                        kind: kind.clone(),
-                        count: 0,
-                        chunks: 0,
-                    });
-                    item.count += count;
-                    item.chunks += 1;
-                }
+            for ((name, (path, file, key)), placed) in batch.into_iter().zip(placed) {
+                count_items(&mut items, &file);
                 self.problems.extend(placed.problems);
                 let first_instance = instances.len();
                 instances.extend(placed.instances);
                 chunks.push(Chunk {
-                    name: name.clone(),
-                    file: path.clone(),
-                    file_key: Some(*key),
+                    name,
+                    file: path,
+                    file_key: Some(key),
                     grid: placed.grid,
                     transform: placed.transform,
                     instances: first_instance..instances.len(),
