@@ -1397,9 +1397,7 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     use shadowcull::files::ResPaths;
     use shadowcull::scene::LoadConfig;
     let dir = tempfile::tempdir().unwrap();
-    let settings_path = small_world(dir.path());
-    let bytes = std::fs::read(&settings_path).unwrap();
-    let settings = shadowcull::formats::bake_settings::from_bytes(&bytes, &settings_path).unwrap();
+    let settings = small_settings(dir.path());
     let load = LoadConfig::from_settings(&settings);
     let chunk_counts = |cache: &Cache| -> KindCounts {
         let counts = cache.counts().into_iter().find(|(k, _)| *k == Kind::Chunk);
@@ -1470,6 +1468,13 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     }
 }
 
+/// The `small` world written to `dir`, its settings read.
+fn small_settings(dir: &Path) -> shadowcull::formats::bake_settings::BakeSettings {
+    let settings_path = small_world(dir);
+    let bytes = std::fs::read(&settings_path).unwrap();
+    shadowcull::formats::bake_settings::from_bytes(&bytes, &settings_path).unwrap()
+}
+
 /// A load that no record vouches for.
 fn load_unvouched(
     load: &shadowcull::scene::LoadConfig,
@@ -1485,10 +1490,7 @@ fn a_chunk_file_whose_stamp_a_record_vouches_for_is_not_read() {
     use shadowcull::files::stamp;
     use shadowcull::scene::{load_scene_cached, LoadConfig};
     let dir = tempfile::tempdir().unwrap();
-    let settings_path = small_world(dir.path());
-    let bytes = std::fs::read(&settings_path).unwrap();
-    let settings = shadowcull::formats::bake_settings::from_bytes(&bytes, &settings_path).unwrap();
-    let load = LoadConfig::from_settings(&settings);
+    let load = LoadConfig::from_settings(&small_settings(dir.path()));
     let cache = Cache::open(dir.path().join("cache"), u64::MAX, content_key(b"a build"));
     let parsed = load_unvouched(&load, Some(&cache)).unwrap();
     // A record that says chunk `a` holds chunk `b`'s bytes: believed only
