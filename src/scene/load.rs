@@ -259,18 +259,13 @@ impl TerrainReading<'_> {
 /// Adds a chunk `file`'s item counts to `items`, by kind.
 fn count_items(items: &mut BTreeMap<String, ItemCount>, file: &ChunkFile) {
     for (kind, &count) in &file.items {
-        if !items.contains_key(kind) {
-            let item = ItemCount {
-                kind: kind.clone(),
-                count: 0,
-                chunks: 0,
-            };
-            items.insert(kind.clone(), item);
-        }
-        if let Some(item) = items.get_mut(kind) {
-            item.count += count;
-            item.chunks += 1;
-        }
+        let item = items.entry(kind.clone()).or_insert_with(|| ItemCount {
+            kind: kind.clone(),
+            count: 0,
+            chunks: 0,
+        });
+        item.count += count;
+        item.chunks += 1;
     }
 }
 
@@ -516,9 +511,9 @@ impl Loader<'_> {
     }
 
     /// Every chunk with its world transform and its instances placed in
-    /// the world (those that cannot be placed are problems), and the
-    /// Chunks are placed in parallel, a batch at a
-    /// time so that only one batch's instances are ever held twice.
+    /// the world (those that cannot be placed are problems). Chunks are
+    /// placed in parallel, a batch at a time so that only one batch's
+    /// instances are ever held twice.
     fn place_chunks(
         &mut self,
         by_name: BTreeMap<String, (PathBuf, ChunkFile, Key)>,
@@ -832,8 +827,11 @@ fn read_chunk_cached(
     let bytes = files::read_file(path)?;
     let key = content_key(&bytes);
     // A key just looked up in vain is not looked up twice.
-    let held = (vouched != Some(key)).then(|| cached_items(cache, &key));
-    let parsed = match held.flatten() {
+    let held = match vouched == Some(key) {
+        true => None,
+        false => cached_items(cache, &key),
+    };
+    let parsed = match held {
         Some(parsed) => parsed,
         None => {
             let parsed = parse_chunk(path, &bytes)?;

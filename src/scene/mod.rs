@@ -303,64 +303,57 @@ pub struct Stats {
     pub speedtree_proxies: usize,
 }
 
-/// [`Scene::stats`]'s counts over some of the instances, and which models
-/// they place as models and as speedtree proxies.
-struct InstanceCounts {
-    stats: Stats,
-    used: Vec<bool>,
-    proxies: Vec<bool>,
+/// [`Scene::stats`]'s tally over some of the instances: what depends on
+/// the instance, and how often each model is placed, as a model or as a
+/// speedtree's proxy (its groups and triangles are counted per model once).
+struct Tally {
+    instances: usize,
+    receiver_only_instances: usize,
+    speedtrees: usize,
+    speedtrees_without_proxy: usize,
+    placed: Vec<usize>,
+    proxies: Vec<usize>,
 }
 
-impl InstanceCounts {
-    fn new(models: usize) -> InstanceCounts {
-        InstanceCounts {
-            stats: Stats::default(),
-            used: vec![false; models],
-            proxies: vec![false; models],
+impl Tally {
+    fn new(models: usize) -> Tally {
+        Tally {
+            instances: 0,
+            receiver_only_instances: 0,
+            speedtrees: 0,
+            speedtrees_without_proxy: 0,
+            placed: vec![0; models],
+            proxies: vec![0; models],
         }
     }
 
-    fn add(&mut self, scene: &Scene, instance: &Instance) {
-        let stats = &mut self.stats;
-        if instance.kind == InstanceKind::SpeedTree {
-            stats.speedtrees += 1;
-            stats.speedtrees_without_proxy += usize::from(instance.is_unmodelled());
-            for &part in instance.parts.iter().flatten() {
-                self.proxies[part] = true;
-            }
-            return;
-        }
-        stats.instances += 1;
-        if !instance.casts_shadow {
-            stats.receiver_only_instances += 1;
-        }
+    fn add(mut self, instance: &Instance) -> Tally {
+        let speedtree = instance.kind == InstanceKind::SpeedTree;
+        let uses = if speedtree {
+            self.speedtrees += 1;
+            self.speedtrees_without_proxy += usize::from(instance.is_unmodelled());
+            &mut self.proxies
+        } else {
+            self.instances += 1;
+            self.receiver_only_instances += usize::from(!instance.casts_shadow);
+            &mut self.placed
+        };
         for &part in instance.parts.iter().flatten() {
-            self.used[part] = true;
-            let model = &scene.models[part];
-            stats.groups += model.groups.len();
-            stats.triangles += model.triangles.len();
-            for group in &model.groups {
-                stats.alpha_tested_groups += usize::from(group.alpha_tested);
-                stats.double_sided_groups += usize::from(group.double_sided);
-            }
+            uses[part] += 1;
         }
+        self
     }
 
-    fn merge(mut self, other: InstanceCounts) -> InstanceCounts {
-        let (a, b) = (&mut self.stats, &other.stats);
-        a.instances += b.instances;
-        a.groups += b.groups;
-        a.triangles += b.triangles;
-        a.alpha_tested_groups += b.alpha_tested_groups;
-        a.double_sided_groups += b.double_sided_groups;
-        a.receiver_only_instances += b.receiver_only_instances;
-        a.speedtrees += b.speedtrees;
-        a.speedtrees_without_proxy += b.speedtrees_without_proxy;
-        for (used, other) in self.used.iter_mut().zip(&other.used) {
-            *used |= other;
-        }
-        for (proxy, other) in self.proxies.iter_mut().zip(&other.proxies) {
-            *proxy |= other;
+    fn merge(mut self, other: Tally) -> Tally {
+        self.instances += other.instances;
+        self.receiver_only_instances += other.receiver_only_instances;
+        self.speedtrees += other.speedtrees;
+        self.speedtrees_without_proxy += other.speedtrees_without_proxy;
+        for (mine, theirs) in [
+            (&mut self.placed, &other.placed),
+            (&mut self.proxies, &other.proxies),
+        ] {
+            mine.iter_mut().zip(theirs).for_each(|(a, b)| *a += b);
         }
         self
     }
@@ -378,23 +371,33 @@ impl Scene {
     pub fn stats(&self) -> Stats {
         let models = self.models.len();
         // Instance by instance in parallel (millions on a large world), each
-        // split with its own model flags, merged in any order: sums and ORs.
-        let counted = self
+        // split with its own tally, merged in any order: sums.
+        let tally = self
             .instances
             .par_iter()
-            .fold(
-                || InstanceCounts::new(models),
-                |mut counts, instance| {
-                    counts.add(self, instance);
-                    counts
-                },
-            )
-            .reduce(|| InstanceCounts::new(models), InstanceCounts::merge);
-        let mut stats = counted.stats;
-        stats.chunks = self.chunks.len();
-        stats.terrain_blocks = self.terrain.len();
-        stats.models = counted.used.iter().filter(|u| **u).count();
-        stats.speedtree_proxies = counted.proxies.iter().filter(|u| **u).count();
+            .fold(|| Tally::new(models), Tally::add)
+            .reduce(|| Tally::new(models), Tally::merge);
+        let mut stats = Stats {
+            chunks: self.chunks.len(),
+            instances: tally.instances,
+            terrain_blocks: self.terrain.len(),
+            receiver_only_instances: tally.receiver_only_instances,
+            speedtrees: tally.speedtrees,
+            speedtrees_without_proxy: tally.speedtrees_without_proxy,
+            ..Stats::default()
+        };
+        for (model, &placed) in self.models.iter().zip(&tally.placed) {
+            if placed == 0 {
+                continue;
+            }
+            let groups = &model.groups;
+            stats.models += 1;
+            stats.groups += placed * groups.len();
+            stats.triangles += placed * model.triangles.len();
+            stats.alpha_tested_groups += placed * groups.iter().filter(|g| g.alpha_tested).count();
+            stats.double_sided_groups += placed * groups.iter().filter(|g| g.double_sided).count();
+        }
+        stats.speedtree_proxies = tally.proxies.iter().filter(|&&n| n > 0).count();
         stats
     }
 }
