@@ -8,7 +8,8 @@ use crate::cache::codec::{Decoder, Encoder};
 use crate::cache::{content_key, Cache, Fetched, Key, Kind};
 use crate::files::{self, ResPaths};
 use crate::formats::chunk::InstanceKind;
-use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow};
+use crate::formats::chunk::ChunkFile;
+use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow, ShadowSites};
 use crate::formats::Section;
 use crate::progress::{Counter, Phase, Progress};
 use crate::scene::chunk_cache::{self, ParsedChunk};
@@ -357,25 +358,20 @@ impl ChunkOutputs<'_> {
             Some(bytes) => bytes,
             None => files::read_file(&chunk.file)?,
         };
-        let root = crate::formats::parse_data_section(&original)
-            .map_err(|e| e.in_source(&chunk.file, &original))?;
-        let old = || old_masks(self.scene, &self.result.casters, chunk, &original, &root);
-        let (kept, shadows) = self.shadows(index, old)?;
-        let bytes = shadow_write::write_shadows_parsed(&original, &root, &shadows)
-            .map_err(|e| e.in_file(&chunk.file))?;
+        let (kept, shadows, bytes, written) = self.rewrite(index, chunk, &original)?;
         let key = content_key(&bytes);
         // New bytes a bake does not write (`--dry-run`, `--check`) are in
         // no file a later bake reads: their entries would only fill the
         // cache.
-        let written = bytes == original || self.bytes == OutputBytes::Kept;
-        if let Some(cache) = self.cache.filter(|_| written) {
+        let kept_by_target = bytes == original || self.bytes == OutputBytes::Kept;
+        if let Some(cache) = self.cache.filter(|_| kept_by_target) {
             cache.put(
                 Kind::Output,
                 &output_key(cache, &key),
                 &encode_shadows(&shadows),
             );
             if bytes != original {
-                self.keep_items(cache, chunk, &root, &key);
+                self.keep_items(cache, chunk, (&content, &key), written);
                 // Written in place, the old bytes are gone: so is any use
                 // of their entry.
                 if self.out_dir.is_none() {
@@ -392,27 +388,72 @@ impl ChunkOutputs<'_> {
         })
     }
 
+    /// The chunk's new `<shadow>`s (with the bits kept from the file) and
+    /// bytes, and what a later load reads of those bytes. Written at the
+    /// places the load found when `original` is the bytes it read and
+    /// holds no bit to keep; else parsed.
+    fn rewrite(
+        &self,
+        index: usize,
+        chunk: &crate::scene::Chunk,
+        original: &[u8],
+    ) -> Result<(Vec<(u32, u32)>, ChunkShadows, Vec<u8>, Written)> {
+        let keep = !self.result.baked_bits;
+        let loaded = || chunk.file_key == Some(content_key(original));
+        let sites = chunk.sites.as_ref().filter(|sites| {
+            sites.held().is_some_and(|held| held & keep == 0) && loaded()
+        });
+        if let Some(sites) = sites {
+            let (kept, shadows) = self.shadows(index, || Ok(Vec::new()))?;
+            let (bytes, moved) = sites
+                .write(original, &shadows)
+                .map_err(|e| e.in_file(&chunk.file))?;
+            return Ok((kept, shadows, bytes, Written::AtSites(moved)));
+        }
+        let root = crate::formats::parse_data_section(original)
+            .map_err(|e| e.in_source(&chunk.file, original))?;
+        let old = || old_masks(self.scene, &self.result.casters, chunk, original, &root);
+        let (kept, shadows) = self.shadows(index, old)?;
+        let (bytes, sites) = shadow_write::write_shadows_parsed(original, &root, &shadows)
+            .map_err(|e| e.in_file(&chunk.file))?;
+        let items = crate::formats::chunk::parse(&root).ok();
+        Ok((kept, shadows, bytes, Written::Parsed(items, sites)))
+    }
+
     /// Stores the chunk's items under the content key `key` of its new
     /// bytes: writing masks changes neither them nor the chunk as an input
     /// (`scene::chunk_cache`), so the next load reads them back instead of
-    /// parsing what this bake wrote.
-    fn keep_items(&self, cache: &Cache, chunk: &crate::scene::Chunk, root: &Section, key: &Key) {
-        let inputs = &self.scene.inputs;
-        let Ok(at) = inputs.binary_search_by(|f| f.path.as_path().cmp(&chunk.file)) else {
-            return;
+    /// parsing what this bake wrote. Written at places, the items are those
+    /// of the old bytes' entry (`content`).
+    fn keep_items(
+        &self,
+        cache: &Cache,
+        chunk: &crate::scene::Chunk,
+        (content, key): (&Key, &Key),
+        written: Written,
+    ) {
+        let parsed = match written {
+            Written::AtSites(sites) => cached_chunk(cache, content).map(|old| ParsedChunk {
+                sites: Some(sites),
+                ..old
+            }),
+            Written::Parsed(items, sites) => {
+                let inputs = &self.scene.inputs;
+                let at = inputs.binary_search_by(|f| f.path.as_path().cmp(&chunk.file));
+                items.zip(at.ok()).map(|(items, at)| ParsedChunk {
+                    chunk: items,
+                    canonical: inputs[at].digest,
+                    sites,
+                })
+            }
         };
-        let Ok(items) = crate::formats::chunk::parse(root) else {
-            return;
-        };
-        let parsed = ParsedChunk {
-            chunk: items,
-            canonical: inputs[at].digest,
-        };
-        cache.put(
-            Kind::Chunk,
-            &chunk_cache::key(cache, key),
-            &chunk_cache::encode(&parsed),
-        );
+        if let Some(parsed) = parsed {
+            cache.put(
+                Kind::Chunk,
+                &chunk_cache::key(cache, key),
+                &chunk_cache::encode(&parsed),
+            );
+        }
     }
 
     /// The chunk's output when its bytes (of content key `content`; read
@@ -540,6 +581,21 @@ impl ChunkOutputs<'_> {
             changed,
         })
     }
+}
+
+/// What a later load reads of a chunk's new bytes, as its output made
+/// them.
+enum Written {
+    /// Written at the places the load found: the places in the new bytes.
+    AtSites(ShadowSites),
+    /// Parsed: the items, and the places in the new bytes (text XML).
+    Parsed(Option<ChunkFile>, Option<ShadowSites>),
+}
+
+/// The entry of the chunk file whose content key is `content`, if the
+/// cache holds a sound one.
+fn cached_chunk(cache: &Cache, content: &Key) -> Option<ParsedChunk> {
+    chunk_cache::decode(&cache.get(Kind::Chunk, &chunk_cache::key(cache, content))?)
 }
 
 /// The key of the [`Kind::Output`] entry of chunk bytes whose content

@@ -66,7 +66,7 @@ impl Encoder {
 }
 
 /// Why a value could not be decoded.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("cache value ends early or holds a bad length at byte {at}")]
 pub struct DecodeError {
     pub at: usize,

@@ -314,6 +314,8 @@ pub fn write_results(
             false => output::OutputBytes::Kept,
         },
     };
+    // The load's counts: the output reads entries only to copy them.
+    let loaded = results.cache.map(|cache| PhaseCounts::of_kind(cache, Kind::Chunk));
     let (outputs, kept) =
         output::chunk_outputs_cached(scene, &mut result, &res_paths, to, reporter, results.cache)?;
     if let Some(cache) = results.cache {
@@ -322,7 +324,7 @@ pub fn write_results(
             ..CacheReport::default()
         });
         report.output = kept;
-        report.chunks = PhaseCounts::of_kind(cache, Kind::Chunk);
+        report.chunks = loaded.unwrap_or_default();
         reporter.say(
             "cache_output",
             &format!(

@@ -70,6 +70,11 @@ impl InstanceShadow {
         InstanceShadow { mask, render_sets }
     }
 
+    /// Every bit it holds: its mask and its group masks ORed.
+    pub fn bits(&self) -> u32 {
+        self.groups().fold(self.mask, |a, m| a | m)
+    }
+
     /// The group masks in output order (render set, geometry, group), as the
     /// report's `groups` lists them.
     pub fn groups(&self) -> impl Iterator<Item = u32> + '_ {
@@ -146,18 +151,21 @@ pub fn write_shadows(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>,
 }
 
 /// [`write_shadows`] for a caller that has parsed `original` already
-/// (`root`): text XML is not parsed again before its edits.
+/// (`root`): text XML is not parsed again before its edits. With the
+/// bytes, the places of the `<shadow>`s in them ([`ShadowSites`], text
+/// XML only).
 pub fn write_shadows_parsed(
     original: &[u8],
     root: &Section,
     shadows: &ChunkShadows,
-) -> Result<Vec<u8>, FormatError> {
+) -> Result<(Vec<u8>, Option<ShadowSites>), FormatError> {
     if original.starts_with(&packed_xml::MAGIC) {
-        return write_packed(original, shadows);
+        return Ok((write_packed(original, shadows)?, None));
     }
-    let out = edit_text(original, root, shadows)?;
+    targets(root, shadows)?;
+    let (out, sites) = ShadowSites::find(original, root)?.write(original, shadows)?;
     verify(&out, shadows)?;
-    Ok(out)
+    Ok((out, Some(sites)))
 }
 
 /// The chunk's bytes with every `<shadow>` the bake writes set to 0: what
@@ -295,8 +303,18 @@ enum Masks<'a> {
     Terrain(u32),
 }
 
+impl Masks<'_> {
+    fn bits(self) -> u32 {
+        match self {
+            Masks::Instance(shadow) => shadow.bits(),
+            Masks::Terrain(mask) => mask,
+        }
+    }
+}
+
 fn write_text(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
-    write_shadows_parsed(original, &xml::parse(original)?, shadows)
+    let (out, _) = write_shadows_parsed(original, &xml::parse(original)?, shadows)?;
+    Ok(out)
 }
 
 /// `original` with `shadows` put in (see [`write_shadows`]); `root` is
@@ -306,27 +324,418 @@ fn edit_text(
     root: &Section,
     shadows: &ChunkShadows,
 ) -> Result<Vec<u8>, FormatError> {
-    let eol = line_ending(original);
-    let mut edits: Vec<(Range<usize>, Vec<u8>)> = Vec::new();
-    for (position, masks) in targets(root, shadows)? {
-        element_edits(original, &root.children[position], masks, eol, &mut edits)?;
+    // Checked on the tree first, so errors name the element.
+    targets(root, shadows)?;
+    let (out, _) = ShadowSites::find(original, root)?.write(original, shadows)?;
+    Ok(out)
+}
+
+/// Where the `<shadow>`s of a text chunk go: for every element the bake
+/// writes into, the place [`write_shadows`] puts its `<shadow>`. Found
+/// once from the parsed file, they let the same bytes take their masks
+/// later without being parsed again (a large world's chunks are most of
+/// its output's time), and a write gives the places in its new bytes.
+/// Offsets are bytes into the file the places were found in (a chunk
+/// file is capped far below 4 GiB).
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct ShadowSites {
+    /// Tabs before the target elements' tags: their depth in the tree.
+    pub depth: u8,
+    /// One per `<model>`/`<shell>` element, in file order.
+    pub instances: Vec<Site>,
+    /// One per `<speedtree>` element, in file order.
+    pub speedtrees: Vec<Site>,
+    /// The first `<terrain>` element's.
+    pub terrain: Option<Site>,
+    /// Further direct `<shadow>` children, removed when their element is
+    /// written: (the element, by its place in the order instances,
+    /// speedtrees, terrain; the bytes, with their line when alone on it).
+    pub extras: Vec<(u32, Range<u32>)>,
+}
+
+/// Where one element's `<shadow>` goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Site {
+    pub place: Place,
+    pub start: u32,
+    /// Equal to `start` for an insertion.
+    pub end: u32,
+    /// Every bit the element's `<shadow>` holds now (its mask and group
+    /// masks ORed; 0 without one), `None` when a value there is not a
+    /// mask: what a bake that keeps other lights' bits must know.
+    pub held: Option<u32>,
+}
+
+/// How a `<shadow>` is put into its element (see [`write_shadows`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Place {
+    /// Replaces the element's first direct `<shadow>` (`start..end`).
+    Replace,
+    /// Expands the self-closing element (`start..end`, its tag).
+    Expand,
+    /// On a line of its own inserted at `start`, the start of the line
+    /// that holds only the closing tag's indentation and the tag.
+    OwnLine,
+    /// Inserted at `start`, the closing tag, which shares its line.
+    BeforeClose,
+}
+
+impl Place {
+    pub const ALL: [Place; 4] = [Place::Replace, Place::Expand, Place::OwnLine, Place::BeforeClose];
+}
+
+impl ShadowSites {
+    /// The places in `original` (text XML), `root` being it parsed.
+    pub fn find(original: &[u8], root: &Section) -> Result<ShadowSites, FormatError> {
+        let models = |tag: &str| InstanceKind::from_tag(tag).is_some_and(InstanceKind::names_models);
+        let of = |is_target: &dyn Fn(&str) -> bool| -> Vec<&Section> {
+            root.children.iter().filter(|c| is_target(&c.name)).collect()
+        };
+        let instances = of(&models);
+        let speedtrees = of(&|tag| tag == SPEEDTREE_TAG);
+        let terrain = root.children.iter().find(|c| c.name == "terrain");
+        let mut extras = Vec::new();
+        let mut target = 0u32;
+        let mut site_of = |element: &Section| -> Result<Site, FormatError> {
+            let (place, span) = element_site(original, element)?;
+            let held = match read_instance_shadow(element) {
+                Ok(shadow) => Some(shadow.as_ref().map_or(0, InstanceShadow::bits)),
+                Err(_) => None,
+            };
+            if place == Place::Replace {
+                for extra in element.children_named(SHADOW_TAG).skip(1) {
+                    let line = whole_line(original, extra.span.clone());
+                    extras.push((target, offset(line.start)?..offset(line.end)?));
+                }
+            }
+            target += 1;
+            Ok(Site {
+                place,
+                start: offset(span.start)?,
+                end: offset(span.end)?,
+                held,
+            })
+        };
+        let instances = instances.into_iter().map(&mut site_of).collect::<Result<_, _>>()?;
+        let speedtrees = speedtrees.into_iter().map(&mut site_of).collect::<Result<_, _>>()?;
+        let terrain = terrain.map(&mut site_of).transpose()?;
+        // Targets are the root's children: one depth for all.
+        let depth = root.path.matches('/').count() + 1;
+        Ok(ShadowSites {
+            depth: u8::try_from(depth)
+                .map_err(|_| root.error("chunk elements nested too deep for a <shadow>"))?,
+            instances,
+            speedtrees,
+            terrain,
+            extras,
+        })
     }
-    edits.sort_by_key(|(range, _)| (range.start, range.end));
-    let mut out =
-        Vec::with_capacity(original.len() + edits.iter().map(|e| e.1.len()).sum::<usize>());
+
+    /// Every bit the targets' `<shadow>`s hold now, `None` when one holds
+    /// a value that is not a mask.
+    pub fn held(&self) -> Option<u32> {
+        let sites = self.instances.iter().chain(&self.speedtrees).chain(&self.terrain);
+        sites.map(|site| site.held).try_fold(0, |all, held| Some(all | held?))
+    }
+
+    /// `original` (the bytes the places were found in) with `shadows`
+    /// put in, and the places in the new bytes. Errors as
+    /// [`write_shadows`]'s when `shadows` does not fit the chunk, and when
+    /// a place does not hold what it held when found (the bytes are not
+    /// the ones parsed): nothing is written then.
+    pub fn write(
+        &self,
+        original: &[u8],
+        shadows: &ChunkShadows,
+    ) -> Result<(Vec<u8>, ShadowSites), FormatError> {
+        let eol = line_ending(original);
+        let depth = usize::from(self.depth);
+        let written = self.targets(shadows)?;
+        let mut edits: Vec<Edit> = Vec::new();
+        for (target, site, masks) in &written {
+            let at = checked_span(original, site)?;
+            let shadow = shadow_text(*masks, depth + 1, eol);
+            let new = Written {
+                target: *target,
+                at: 0..shadow.len(),
+                held: masks.bits(),
+            };
+            edits.push(site_edit(original, at, site.place, depth, eol, (new, shadow)));
+            for (_, extra) in self.extras.iter().filter(|(t, _)| t == target) {
+                let range = extra.start as usize..extra.end as usize;
+                if !original.get(range.clone()).is_some_and(|b| find_last(b, b"<shadow").is_some()) {
+                    return Err(not_the_bytes(range.start));
+                }
+                edits.push(Edit {
+                    range,
+                    text: Vec::new(),
+                    shadow: None,
+                });
+            }
+        }
+        edits.sort_by_key(|e| (e.range.start, e.range.end));
+        let out = splice(original, &mut edits)?;
+        Ok((out, self.moved(&edits)))
+    }
+
+    /// Each target with masks to write: its place in the order instances,
+    /// speedtrees, terrain, its site and its masks; an error when
+    /// `shadows` does not fit the chunk.
+    fn targets<'s>(
+        &self,
+        shadows: &'s ChunkShadows,
+    ) -> Result<Vec<(u32, Site, Masks<'s>)>, FormatError> {
+        let mut out = Vec::new();
+        let mut target = 0u32;
+        for (sites, wanted, what) in [
+            (&self.instances, &shadows.instances, "<model>/<shell>"),
+            (&self.speedtrees, &shadows.speedtrees, "<speedtree>"),
+        ] {
+            if sites.len() != wanted.len() {
+                return Err(FormatError::whole_file(format!(
+                    "masks were given for {} instances but the chunk has {} {what} elements; \
+                     the file changed since it was read: bake again",
+                    wanted.len(),
+                    sites.len(),
+                )));
+            }
+            for (site, shadow) in sites.iter().zip(wanted) {
+                if let Some(shadow) = shadow {
+                    let or = shadow.groups().fold(0, |a, m| a | m);
+                    if !shadow.render_sets.is_empty() && or != shadow.mask {
+                        return Err(FormatError::at_byte(
+                            site.start as usize,
+                            format!(
+                                "instance mask {} is not the OR of its group masks ({or}); \
+                                 this is a bug in the caller of the shadow writer",
+                                shadow.mask
+                            ),
+                        ));
+                    }
+                    out.push((target, *site, Masks::Instance(shadow)));
+                }
+                target += 1;
+            }
+        }
+        if let Some(mask) = shadows.terrain {
+            let site = self.terrain.ok_or_else(|| {
+                FormatError::whole_file(
+                    "a terrain mask was given but the chunk has no <terrain> element",
+                )
+            })?;
+            out.push((target, site, Masks::Terrain(mask)));
+        }
+        Ok(out)
+    }
+
+    /// The places in the bytes `edits` made: a written target's is its new
+    /// `<shadow>`, every other place moves with the bytes before it.
+    fn moved(&self, edits: &[Edit]) -> ShadowSites {
+        // Bytes gained (or lost) by the edits that end at or before each
+        // position.
+        let mut gained = Vec::with_capacity(edits.len());
+        let mut total = 0i64;
+        for edit in edits {
+            total += edit.text.len() as i64 - edit.range.len() as i64;
+            gained.push((edit.range.end, total));
+        }
+        let shift = |at: u32| {
+            let before = gained.partition_point(|(end, _)| *end <= at as usize);
+            let by = before.checked_sub(1).map_or(0, |i| gained[i].1);
+            (i64::from(at) + by) as u32
+        };
+        let mut shadows: Vec<&Written> = edits.iter().filter_map(|e| e.shadow.as_ref()).collect();
+        shadows.sort_unstable_by_key(|w| w.target);
+        let written = |target: u32| {
+            let at = shadows.binary_search_by_key(&target, |w| w.target).ok()?;
+            Some(shadows[at])
+        };
+        let mut target = 0u32;
+        let mut place = |site: &Site| {
+            let new = match written(target) {
+                Some(w) => Site {
+                    place: Place::Replace,
+                    start: w.at.start as u32,
+                    end: w.at.end as u32,
+                    held: Some(w.held),
+                },
+                None => Site {
+                    place: site.place,
+                    start: shift(site.start),
+                    end: shift(site.end),
+                    held: site.held,
+                },
+            };
+            target += 1;
+            new
+        };
+        ShadowSites {
+            depth: self.depth,
+            instances: self.instances.iter().map(&mut place).collect(),
+            speedtrees: self.speedtrees.iter().map(&mut place).collect(),
+            terrain: self.terrain.as_ref().map(&mut place),
+            extras: self
+                .extras
+                .iter()
+                .filter(|(t, _)| written(*t).is_none())
+                .map(|(t, r)| (*t, shift(r.start)..shift(r.end)))
+                .collect(),
+        }
+    }
+}
+
+/// A byte offset into a chunk file as a place holds it.
+fn offset(at: usize) -> Result<u32, FormatError> {
+    u32::try_from(at).map_err(|_| FormatError::at_byte(at, "chunk file larger than 4 GiB"))
+}
+
+/// One change to a chunk's bytes: `range` replaced by `text`, and the
+/// `<shadow>` it writes, if any.
+struct Edit {
+    range: Range<usize>,
+    text: Vec<u8>,
+    shadow: Option<Written>,
+}
+
+/// A `<shadow>` an edit writes: its target (in the order instances,
+/// speedtrees, terrain), where in the edit's text it lies (once spliced:
+/// in the output), the bits it holds.
+struct Written {
+    target: u32,
+    at: Range<usize>,
+    held: u32,
+}
+
+/// Where an element's `<shadow>` goes in `original`, and the span its
+/// [`Place`] names.
+fn element_site(original: &[u8], element: &Section) -> Result<(Place, Range<usize>), FormatError> {
+    if let Some(first) = element.children_named(SHADOW_TAG).next() {
+        return Ok((Place::Replace, first.span.clone()));
+    }
+    let span = element.span.clone();
+    let text = original
+        .get(span.clone())
+        .ok_or_else(|| element.error("internal error: element span outside the file"))?;
+    if text.ends_with(b"/>") {
+        return Ok((Place::Expand, span));
+    }
+    let close = find_last(text, b"</")
+        .map(|i| span.start + i)
+        .ok_or_else(|| element.error("internal error: element without an end tag"))?;
+    let line_start = original
+        .get(..close)
+        .and_then(|before| before.iter().rposition(|&b| b == b'\n'))
+        .map_or(0, |i| i + 1);
+    let alone = line_start > span.start
+        && original
+            .get(line_start..close)
+            .is_some_and(|prefix| prefix.iter().all(|&b| b == b' ' || b == b'\t'));
+    Ok(match alone {
+        true => (Place::OwnLine, line_start..line_start),
+        false => (Place::BeforeClose, close..close),
+    })
+}
+
+/// The span `site` names in `original`, when the bytes there are what
+/// its place was found at (a cheap check that these are the bytes the
+/// places were found in).
+fn checked_span(original: &[u8], site: &Site) -> Result<Range<usize>, FormatError> {
+    let span = site.start as usize..site.end as usize;
+    let blank = |b: &u8| *b == b' ' || *b == b'\t';
+    let (Some(text), Some(after)) = (original.get(span.clone()), original.get(span.start..)) else {
+        return Err(not_the_bytes(span.start));
+    };
+    let fits = match site.place {
+        Place::Replace => text.starts_with(b"<shadow") && text.ends_with(b">"),
+        Place::Expand => text.starts_with(b"<") && text.ends_with(b"/>"),
+        Place::OwnLine => {
+            let at_line_start = span.start == 0 || original[span.start - 1] == b'\n';
+            let indent = after.iter().take_while(|b| blank(b)).count();
+            at_line_start && after[indent..].starts_with(b"</")
+        }
+        Place::BeforeClose => after.starts_with(b"</"),
+    };
+    match fits {
+        true => Ok(span),
+        false => Err(not_the_bytes(span.start)),
+    }
+}
+
+fn not_the_bytes(at: usize) -> FormatError {
+    FormatError::at_byte(
+        at,
+        "internal error: the chunk's bytes are not those its <shadow> places were found in; \
+         the file was not changed",
+    )
+}
+
+/// The edit that puts `shadow` (its text) at `span` of `original` as
+/// `place` says; elements sit `depth` tabs deep.
+fn site_edit(
+    original: &[u8],
+    span: Range<usize>,
+    place: Place,
+    depth: usize,
+    eol: &str,
+    (mut written, shadow): (Written, String),
+) -> Edit {
+    let indent = "\t".repeat(depth + 1);
+    let (before, after) = match place {
+        Place::Replace => (Vec::new(), String::new()),
+        Place::Expand => {
+            // The start tag's bytes are kept as they are (attributes need
+            // not be UTF-8); only `/>` becomes `>`.
+            let tag = &original[span.clone()];
+            let head = tag[..tag.len() - 2].trim_ascii_end();
+            let name_end = head[1..]
+                .iter()
+                .position(|&b| b.is_ascii_whitespace() || b == b'>')
+                .map_or(head.len(), |i| i + 1);
+            let mut before = head.to_vec();
+            before.extend_from_slice(format!(">{eol}{indent}").as_bytes());
+            let name = String::from_utf8_lossy(&head[1..name_end]);
+            (before, format!("{eol}{}</{name}>", "\t".repeat(depth)))
+        }
+        Place::OwnLine => (indent.into_bytes(), eol.to_string()),
+        Place::BeforeClose => (
+            format!("{eol}{indent}").into_bytes(),
+            format!("{eol}{}", "\t".repeat(depth)),
+        ),
+    };
+    let mut text = before;
+    let at = text.len();
+    text.extend_from_slice(shadow.as_bytes());
+    text.extend_from_slice(after.as_bytes());
+    written.at = at..at + shadow.len();
+    Edit {
+        range: span,
+        text,
+        shadow: Some(written),
+    }
+}
+
+/// `original` with `edits` (sorted, never overlapping) made; each edit's
+/// `shadow` becomes where its `<shadow>` lies in the output.
+fn splice(original: &[u8], edits: &mut [Edit]) -> Result<Vec<u8>, FormatError> {
+    let grown: usize = edits.iter().map(|e| e.text.len()).sum();
+    let mut out = Vec::with_capacity(original.len() + grown);
     let mut pos = 0;
-    for (range, text) in &edits {
-        let Some(kept) = original.get(pos..range.start) else {
+    for edit in edits.iter_mut() {
+        let Some(kept) = original.get(pos..edit.range.start) else {
             // Only possible if two edits overlap, which the element tree rules
             // out; refuse rather than write a damaged file.
             return Err(FormatError::at_byte(
-                range.start,
+                edit.range.start,
                 "internal error: overlapping <shadow> edits; the file was not changed",
             ));
         };
         out.extend_from_slice(kept);
-        out.extend_from_slice(text);
-        pos = range.end;
+        let at = out.len();
+        out.extend_from_slice(&edit.text);
+        if let Some(shadow) = &mut edit.shadow {
+            shadow.at = at + shadow.at.start..at + shadow.at.end;
+        }
+        pos = edit.range.end;
     }
     out.extend_from_slice(original.get(pos..).unwrap_or(&[]));
     Ok(out)
@@ -359,73 +768,6 @@ fn verify(out: &[u8], shadows: &ChunkShadows) -> Result<(), FormatError> {
     }
     if shadows.terrain.is_some() && shadows.terrain != back.terrain {
         return Err(internal("reads back another terrain mask".into()));
-    }
-    Ok(())
-}
-
-/// The edits that put `masks` into `element` (see [`write_shadows`]).
-fn element_edits(
-    original: &[u8],
-    element: &Section,
-    masks: Masks,
-    eol: &str,
-    edits: &mut Vec<(Range<usize>, Vec<u8>)>,
-) -> Result<(), FormatError> {
-    let depth = element.path.matches('/').count();
-    let indent = "\t".repeat(depth + 1);
-    let shadow = shadow_text(masks, depth + 1, eol);
-    let mut existing = element.children_named(SHADOW_TAG);
-    if let Some(first) = existing.next() {
-        edits.push((first.span.clone(), shadow.into_bytes()));
-        for extra in existing {
-            edits.push((whole_line(original, extra.span.clone()), Vec::new()));
-        }
-        return Ok(());
-    }
-    let span = element.span.clone();
-    let text = original
-        .get(span.clone())
-        .ok_or_else(|| element.error("internal error: element span outside the file"))?;
-    if text.ends_with(b"/>") {
-        // Self-closing: the span is the start tag alone. Its bytes are kept
-        // as they are (attributes need not be UTF-8); only `/>` becomes `>`.
-        let head = text
-            .get(..text.len() - 2)
-            .unwrap_or_default()
-            .trim_ascii_end();
-        let mut expanded = head.to_vec();
-        expanded.extend_from_slice(
-            format!(
-                ">{eol}{indent}{shadow}{eol}{}</{}>",
-                "\t".repeat(depth),
-                element.name
-            )
-            .as_bytes(),
-        );
-        edits.push((span, expanded));
-        return Ok(());
-    }
-    let close = find_last(text, b"</")
-        .map(|i| span.start + i)
-        .ok_or_else(|| element.error("internal error: element without an end tag"))?;
-    let line_start = original
-        .get(..close)
-        .and_then(|before| before.iter().rposition(|&b| b == b'\n'))
-        .map_or(0, |i| i + 1);
-    let alone = line_start > span.start
-        && original
-            .get(line_start..close)
-            .is_some_and(|prefix| prefix.iter().all(|&b| b == b' ' || b == b'\t'));
-    if alone {
-        edits.push((
-            line_start..line_start,
-            format!("{indent}{shadow}{eol}").into_bytes(),
-        ));
-    } else {
-        edits.push((
-            close..close,
-            format!("{eol}{indent}{shadow}{eol}{}", "\t".repeat(depth)).into_bytes(),
-        ));
     }
     Ok(())
 }
@@ -1132,6 +1474,56 @@ mod tests {
         }
         text.push_str(&format!("</{root}>{eol}"));
         (text, shadows, strict)
+    }
+
+    /// The places a write gives for its output are the places parsing
+    /// that output finds, so a chunk written with them can be written
+    /// again without a parse; written with places, the bytes are those of
+    /// a write that parses.
+    #[test]
+    fn places_from_a_write_are_those_its_output_parses_to() {
+        let mut rng = Rng::new(11);
+        let mut places = [0usize; 4];
+        for case in 0..400 {
+            let (text, shadows, _) = random_chunk(&mut rng);
+            let root = xml::parse(text.as_bytes()).unwrap();
+            let sites = ShadowSites::find(text.as_bytes(), &root).unwrap();
+            for site in sites.instances.iter().chain(&sites.speedtrees).chain(&sites.terrain) {
+                places[Place::ALL.iter().position(|p| *p == site.place).unwrap()] += 1;
+            }
+            let (out, moved) = sites.write(text.as_bytes(), &shadows).unwrap();
+            assert_eq!(out, write_shadows(text.as_bytes(), &shadows).unwrap(), "case {case}");
+            let found = ShadowSites::find(&out, &xml::parse(&out).unwrap()).unwrap();
+            assert_eq!(moved, found, "case {case}:\n{text}");
+            // Other masks into the written bytes, through the places alone.
+            let mut other = shadows.clone();
+            if let Some(t) = &mut other.terrain {
+                *t ^= 5;
+            }
+            let (twice, _) = moved.write(&out, &other).unwrap();
+            assert_eq!(twice, write_shadows(&out, &other).unwrap(), "case {case}");
+        }
+        assert!(places.iter().all(|&n| n > 20), "every place met: {places:?}");
+    }
+
+    #[test]
+    fn places_refuse_bytes_they_were_not_found_in() {
+        let text = BASIC.as_bytes();
+        let sites = ShadowSites::find(text, &xml::parse(text).unwrap()).unwrap();
+        let shadows = ChunkShadows {
+            instances: vec![Some(one(&[&[1]]))],
+            speedtrees: Vec::new(),
+            terrain: Some(1),
+        };
+        let other = BASIC.replace("<root>", "<root> ");
+        let err = sites.write(other.as_bytes(), &shadows).unwrap_err();
+        assert!(err.to_string().contains("not those its <shadow> places"), "{err}");
+        let shorter = &text[..40];
+        assert!(sites.write(shorter, &shadows).is_err());
+        let mut fewer = shadows.clone();
+        fewer.instances.clear();
+        let err = sites.write(text, &fewer).unwrap_err();
+        assert!(err.to_string().contains("the chunk has 1 <model>/<shell>"), "{err}");
     }
 
     #[test]

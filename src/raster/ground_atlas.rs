@@ -238,6 +238,7 @@ mod tests {
                 instances: 0..0,
                 instance_elements: 0,
                 speedtree_elements: 0,
+                sites: None,
                 terrain: block.map(|b| {
                     terrain.push(b);
                     terrain.len() - 1

@@ -14,6 +14,7 @@ use crate::digest::Digest;
 use crate::formats::chunk::{
     ChunkFile, InstanceElement, InstanceKind, SpeedTreeElement, TerrainElement,
 };
+use crate::formats::shadow_write::{Place, ShadowSites, Site};
 use glam::DMat4;
 use std::collections::{BTreeMap, HashMap};
 
@@ -24,6 +25,9 @@ pub struct ParsedChunk {
     /// The digest of the file with its `<shadow>` masks zeroed: what the
     /// load records as the input it read.
     pub canonical: Digest,
+    /// Where its `<shadow>`s go (text XML only): the output writes them
+    /// there without parsing the file again.
+    pub sites: Option<ShadowSites>,
 }
 
 /// The key of the [`Kind::Chunk`] entry of a chunk file whose bytes'
@@ -64,6 +68,12 @@ pub fn encode(parsed: &ParsedChunk) -> Vec<u8> {
     body.var(chunk.items.len() as u64);
     for (tag, count) in &chunk.items {
         body.var(strings.index(tag)).var(*count as u64);
+    }
+    match &parsed.sites {
+        Some(sites) => encode_sites(body.u8(1), sites),
+        None => {
+            body.u8(0);
+        }
     }
     let mut out = Encoder::new();
     out.var(strings.list.len() as u64);
@@ -115,6 +125,11 @@ fn decode_checked(bytes: &[u8]) -> Result<ParsedChunk, DecodeError> {
         let tag = strings.get(&mut d)?;
         items.insert(tag, d.var()? as usize);
     }
+    let sites = match d.u8()? {
+        0 => None,
+        1 => Some(decode_sites(&mut d)?),
+        _ => return Err(DecodeError { at: 0 }),
+    };
     if !d.is_done() {
         return Err(DecodeError { at: 0 });
     }
@@ -128,6 +143,93 @@ fn decode_checked(bytes: &[u8]) -> Result<ParsedChunk, DecodeError> {
             items,
         },
         canonical,
+        sites,
+    })
+}
+
+/// The places, each offset as the distance from the one before (they
+/// ascend within each list, so most take a byte or two).
+fn encode_sites(e: &mut Encoder, sites: &ShadowSites) {
+    e.u8(sites.depth);
+    let mut last = 0u32;
+    let mut site = |e: &mut Encoder, site: &Site| {
+        let place = Place::ALL.iter().position(|p| *p == site.place).unwrap_or(0) as u8;
+        e.u8(place);
+        e.var(u64::from(site.start.wrapping_sub(last)));
+        e.var(u64::from(site.end - site.start));
+        match site.held {
+            Some(held) => e.u8(1).u32(held),
+            None => e.u8(0),
+        };
+        last = site.start;
+    };
+    for list in [&sites.instances, &sites.speedtrees] {
+        e.var(list.len() as u64);
+        for s in list.iter() {
+            site(e, s);
+        }
+    }
+    match &sites.terrain {
+        Some(s) => site(e.u8(1), s),
+        None => {
+            e.u8(0);
+        }
+    }
+    e.var(sites.extras.len() as u64);
+    for (target, range) in &sites.extras {
+        e.var(u64::from(*target)).u32(range.start).u32(range.end);
+    }
+}
+
+fn decode_sites(d: &mut Decoder) -> Result<ShadowSites, DecodeError> {
+    let bad = DecodeError { at: 0 };
+    let depth = d.u8()?;
+    let mut last = 0u32;
+    let mut site = |d: &mut Decoder| -> Result<Site, DecodeError> {
+        let place = *Place::ALL.get(usize::from(d.u8()?)).ok_or(bad)?;
+        let start = last.wrapping_add(u32::try_from(d.var()?).map_err(|_| bad)?);
+        let end = start
+            .checked_add(u32::try_from(d.var()?).map_err(|_| bad)?)
+            .ok_or(bad)?;
+        let held = match d.u8()? {
+            0 => None,
+            1 => Some(d.u32()?),
+            _ => return Err(bad),
+        };
+        last = start;
+        Ok(Site {
+            place,
+            start,
+            end,
+            held,
+        })
+    };
+    let mut lists = [Vec::new(), Vec::new()];
+    for list in &mut lists {
+        let count = d.len(3)?;
+        for _ in 0..count {
+            list.push(site(d)?);
+        }
+    }
+    let terrain = match d.u8()? {
+        0 => None,
+        1 => Some(site(d)?),
+        _ => return Err(bad),
+    };
+    let count = d.len(9)?;
+    let extras = (0..count)
+        .map(|_| {
+            let target = u32::try_from(d.var()?).map_err(|_| bad)?;
+            Ok((target, d.u32()?..d.u32()?))
+        })
+        .collect::<Result<_, DecodeError>>()?;
+    let [instances, speedtrees] = lists;
+    Ok(ShadowSites {
+        depth,
+        instances,
+        speedtrees,
+        terrain,
+        extras,
     })
 }
 
@@ -280,9 +382,11 @@ mod tests {
     const CHUNK: &str = "<root>\n\t<transform>\n\t\t<row0>\t0.6 0 -0.8\t</row0>\n\t\t<row1>\t0 1 0\t</row1>\n\t\t<row2>\t0.8 0 0.6\t</row2>\n\t\t<row3>\t100 -2.5 7\t</row3>\n\t</transform>\n\t<shell>\n\t\t<resource>\tsets/a/shell.model\t</resource>\n\t\t<editorOnly>\n\t\t\t<castsShadow>\tfalse\t</castsShadow>\n\t\t</editorOnly>\n\t</shell>\n\t<entity>\n\t\t<type>\tInfo\t</type>\n\t</entity>\n\t<model>\n\t\t<resource>\tsets/b.model\t</resource>\n\t\t<resource>\tsets/a/shell.model\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t-1 0 0\t</row0>\n\t\t\t<row1>\t0 1 0\t</row1>\n\t\t\t<row2>\t0 0 1\t</row2>\n\t\t\t<row3>\t5.125 6 -7\t</row3>\n\t\t</transform>\n\t</model>\n\t<speedtree>\n\t\t<spt>\ttrees/oak.spt\t</spt>\n\t\t<seed>\t-3\t</seed>\n\t\t<transform>\n\t\t\t<row0>\t1 0 0\t</row0>\n\t\t\t<row1>\t0 1 0\t</row1>\n\t\t\t<row2>\t0 0 1\t</row2>\n\t\t\t<row3>\t1e-300 -0 3\t</row3>\n\t\t</transform>\n\t</speedtree>\n\t<speedtree>\n\t\t<spt>\ttrees/oak.spt\t</spt>\n\t\t<visibilityMask>\t4294967295\t</visibilityMask>\n\t</speedtree>\n\t<terrain>\n\t\t<resource>\t00000000o.cdata/terrain2\t</resource>\n\t</terrain>\n</root>\n";
 
     fn parsed(text: &str) -> ParsedChunk {
+        let root = xml::parse(text.as_bytes()).unwrap();
         ParsedChunk {
-            chunk: chunk::parse(&xml::parse(text.as_bytes()).unwrap()).unwrap(),
+            chunk: chunk::parse(&root).unwrap(),
             canonical: Digest::of(text.as_bytes()),
+            sites: Some(ShadowSites::find(text.as_bytes(), &root).unwrap()),
         }
     }
 
@@ -302,6 +406,25 @@ mod tests {
     #[test]
     fn a_chunk_without_optional_items_round_trips() {
         let original = parsed("<root>\n\t<entity/>\n</root>\n");
+        assert_eq!(decode(&encode(&original)), Some(original));
+        let packed = ParsedChunk {
+            sites: None,
+            ..parsed(CHUNK)
+        };
+        assert_eq!(decode(&encode(&packed)), Some(packed));
+    }
+
+    #[test]
+    fn places_of_every_kind_round_trip() {
+        // A shadow to replace (with a second one to remove), one that is
+        // not a mask, self-closing and one-line elements.
+        let text = "<root>\n\t<model>\n\t\t<shadow>\t6\t</shadow>\n\t\t<shadow>\t1\t</shadow>\n\t</model>\n\t<model/>\n\t<speedtree><shadow>x</shadow></speedtree>\n\t<terrain><resource>a.cdata/terrain2</resource></terrain>\n</root>\n";
+        let original = parsed(text);
+        let sites = original.sites.as_ref().unwrap();
+        assert_eq!(sites.instances.len(), 2);
+        assert_eq!(sites.extras.len(), 1);
+        assert_eq!(sites.held(), None, "a value that is not a mask");
+        assert_eq!(sites.instances[0].held, Some(6));
         assert_eq!(decode(&encode(&original)), Some(original));
     }
 

@@ -17,6 +17,7 @@ use crate::error::{Error, Result};
 use crate::files::{self, ResPaths};
 use crate::formats::bake_settings::{BakeSettings, ParametricTree, Proxy, SpeedTreeProxies};
 use crate::formats::chunk::{self, ChunkFile, InstanceKind};
+use crate::formats::shadow_write::ShadowSites;
 use crate::formats::space_settings;
 use crate::formats::{
     self, binsection, model, primitives, shadow_write, terrain as terrain_format, visual,
@@ -273,11 +274,11 @@ fn count_items(items: &mut BTreeMap<String, ItemCount>, file: &ChunkFile) {
 /// in name order (as the chunks are placed), with the chunk's transform;
 /// a chunk's transform problems are the placing's to report.
 fn terrain_jobs(
-    by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+    by_name: &BTreeMap<String, (PathBuf, ReadChunk)>,
     chunk_size: f64,
 ) -> Vec<TerrainJob> {
     let chunks = by_name.iter().enumerate();
-    let with_terrain = chunks.filter_map(|(chunk, (name, (path, file, _)))| {
+    let with_terrain = chunks.filter_map(|(chunk, (name, (path, ReadChunk { file, .. })))| {
         let element = file.terrain.as_ref()?;
         let grid = space_settings::parse_outdoor_chunk_name(name);
         let transform = chunk_transform(path, file, grid, chunk_size, &mut Vec::new());
@@ -372,9 +373,9 @@ impl Loader<'_> {
         parsed: Vec<(PathBuf, Result<ReadChunk>)>,
         space_dir: &Path,
         settings: &space_settings::SpaceSettings,
-    ) -> Result<BTreeMap<String, (PathBuf, ChunkFile, Key)>> {
+    ) -> Result<BTreeMap<String, (PathBuf, ReadChunk)>> {
         let problems = &mut self.problems;
-        let mut by_name: BTreeMap<String, (PathBuf, ChunkFile, Key)> = BTreeMap::new();
+        let mut by_name: BTreeMap<String, (PathBuf, ReadChunk)> = BTreeMap::new();
         for (path, chunk) in parsed {
             let name = chunk_name(&path);
             match chunk {
@@ -382,8 +383,8 @@ impl Loader<'_> {
                     let (what, why) = err.as_problem_of(&path);
                     problems.push(Problem { what, why });
                 }
-                Ok((chunk, key)) => {
-                    if let Some((kept, _, _)) = by_name.get(&name) {
+                Ok(chunk) => {
+                    if let Some((kept, _)) = by_name.get(&name) {
                         problems.push(Problem {
                             what: path.display().to_string(),
                             why: format!("duplicate of chunk {}; ignored", kept.display()),
@@ -401,7 +402,7 @@ impl Loader<'_> {
                             continue;
                         }
                     }
-                    by_name.insert(name, (path, chunk, key));
+                    by_name.insert(name, (path, chunk));
                 }
             }
         }
@@ -424,7 +425,7 @@ impl Loader<'_> {
     /// problem saying how many placements in how many chunks lose it.
     fn load_models(
         &mut self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+        by_name: &BTreeMap<String, (PathBuf, ReadChunk)>,
     ) -> (Vec<Model>, BTreeMap<String, usize>) {
         let (sources, usage) = self.models_needed(by_name);
         let (res_paths, log) = (&self.config.res_paths, self.log);
@@ -469,7 +470,7 @@ impl Loader<'_> {
     /// much of the world uses it.
     fn models_needed(
         &self,
-        by_name: &BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+        by_name: &BTreeMap<String, (PathBuf, ReadChunk)>,
     ) -> (BTreeMap<String, ModelSource>, BTreeMap<String, Usage>) {
         let mut sources: BTreeMap<String, ModelSource> = BTreeMap::new();
         let mut usage: BTreeMap<String, Usage> = BTreeMap::new();
@@ -481,7 +482,7 @@ impl Loader<'_> {
             used.chunks.insert(chunk.to_string());
             sources.entry(name).or_insert(source);
         };
-        for (chunk, (path, file, _)) in by_name {
+        for (chunk, (path, ReadChunk { file, .. })) in by_name {
             let first = || ModelSource::Resource {
                 referenced_by: path.clone(),
             };
@@ -516,7 +517,7 @@ impl Loader<'_> {
     /// instances are ever held twice.
     fn place_chunks(
         &mut self,
-        by_name: BTreeMap<String, (PathBuf, ChunkFile, Key)>,
+        by_name: BTreeMap<String, (PathBuf, ReadChunk)>,
         settings: &space_settings::SpaceSettings,
         model_names: &BTreeMap<String, usize>,
     ) -> Placed {
@@ -528,7 +529,7 @@ impl Loader<'_> {
         instances.reserve_exact(
             by_name
                 .values()
-                .map(|(_, f, _)| f.instances.len() + f.speedtrees.len())
+                .map(|(_, read)| read.file.instances.len() + read.file.speedtrees.len())
                 .sum(),
         );
         let placing = Placing {
@@ -540,17 +541,18 @@ impl Loader<'_> {
         while named.peek().is_some() {
             // A batch's parsed items are freed once it is placed: they are
             // not all held while the terrain is decoded beside.
-            let batch: Vec<(String, (PathBuf, ChunkFile, Key))> =
+            let batch: Vec<(String, (PathBuf, ReadChunk))> =
                 named.by_ref().take(BATCH).collect();
             let first_index = chunks.len();
             let placed: Vec<PlacedChunk> = batch
                 .par_iter()
                 .enumerate()
-                .map(|(i, (name, (path, file, _)))| {
-                    placing.chunk(first_index + i, name, path, file)
+                .map(|(i, (name, (path, read)))| {
+                    placing.chunk(first_index + i, name, path, &read.file)
                 })
                 .collect();
-            for ((name, (path, file, key)), placed) in batch.into_iter().zip(placed) {
+            for ((name, (path, read)), placed) in batch.into_iter().zip(placed) {
+                let ReadChunk { file, key, sites } = read;
                 count_items(&mut items, &file);
                 self.problems.extend(placed.problems);
                 let first_instance = instances.len();
@@ -565,6 +567,7 @@ impl Loader<'_> {
                     instance_elements: file.instances.len(),
                     speedtree_elements: file.speedtrees.len(),
                     terrain: None,
+                    sites,
                 });
             }
         }
@@ -796,8 +799,23 @@ fn read_parsed<T>(
         .map_err(|e| e.in_source(path, &bytes))
 }
 
-/// A chunk file's items and the content key of its bytes.
-type ReadChunk = (ChunkFile, Key);
+/// A chunk file's items, the content key of its bytes, and where its
+/// `<shadow>`s go (text XML).
+struct ReadChunk {
+    file: ChunkFile,
+    key: Key,
+    sites: Option<ShadowSites>,
+}
+
+impl ReadChunk {
+    fn of(parsed: ParsedChunk, key: Key) -> ReadChunk {
+        ReadChunk {
+            file: parsed.chunk,
+            key,
+            sites: parsed.sites,
+        }
+    }
+}
 
 /// Reads a chunk, noting it in `log` with its masks zeroed: the bake
 /// ignores old `<shadow>` values, so writing masks does not change the
@@ -806,7 +824,7 @@ fn read_chunk(path: &Path, log: &ReadLog) -> Result<ReadChunk> {
     let bytes = files::read_file(path)?;
     let parsed = parse_chunk(path, &bytes)?;
     log.record_digest(path, parsed.canonical);
-    Ok((parsed.chunk, content_key(&bytes)))
+    Ok(ReadChunk::of(parsed, content_key(&bytes)))
 }
 
 /// [`read_chunk`] with its items from `cache` when a bake before parsed
@@ -821,7 +839,7 @@ fn read_chunk_cached(
     if let Some(key) = vouched {
         if let Some(parsed) = cached_items(cache, &key) {
             log.record_digest(path, parsed.canonical);
-            return Ok((parsed.chunk, key));
+            return Ok(ReadChunk::of(parsed, key));
         }
     }
     let bytes = files::read_file(path)?;
@@ -841,7 +859,7 @@ fn read_chunk_cached(
         }
     };
     log.record_digest(path, parsed.canonical);
-    Ok((parsed.chunk, key))
+    Ok(ReadChunk::of(parsed, key))
 }
 
 /// The items of the chunk file whose content key is `key`, when `cache`
@@ -866,7 +884,14 @@ fn parse_chunk(path: &Path, bytes: &[u8]) -> Result<ParsedChunk> {
         Ok(canonical) => Digest::of(&canonical),
         Err(_) => Digest::of(bytes),
     };
-    Ok(ParsedChunk { chunk, canonical })
+    // Packed chunks (rare) are parsed again when written.
+    let text = !bytes.starts_with(&formats::packed_xml::MAGIC);
+    let sites = text.then(|| ShadowSites::find(bytes, &root).ok()).flatten();
+    Ok(ParsedChunk {
+        chunk,
+        canonical,
+        sites,
+    })
 }
 
 /// Reads and parses a data section, noting the file in `log`.

@@ -13,6 +13,7 @@ pub mod terrain;
 
 use crate::cache::Key;
 use crate::formats::chunk::InstanceKind;
+use crate::formats::shadow_write::ShadowSites;
 use crate::formats::space_settings::SpaceSettings;
 use glam::{DMat4, DVec3, Vec3};
 use rayon::prelude::*;
@@ -187,6 +188,9 @@ pub struct Chunk {
     pub speedtree_elements: usize,
     /// Into `Scene::terrain`.
     pub terrain: Option<usize>,
+    /// Where the `<shadow>`s of the bytes loaded (`file_key`) go, for a
+    /// text chunk: the output writes there without parsing the file.
+    pub sites: Option<ShadowSites>,
 }
 
 /// A placed instance: a `<model>` or `<shell>` with its parts, or a

@@ -124,6 +124,7 @@ impl World {
                     instance_elements: 0,
                     speedtree_elements: 0,
                     terrain: None,
+                    sites: None,
                 });
             }
         }
