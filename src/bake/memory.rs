@@ -14,8 +14,10 @@
 /// precomputed triangle).
 pub const PER_DISTINCT_TRIANGLE: u64 = 80;
 /// Heap bytes per placed instance in the scene: the 200-byte record
-/// (f64 transform, chunk, index, flags) and its resource names and parts.
-pub const PER_INSTANCE: u64 = 290;
+/// (f64 transform, chunk, index, flags) and its resource names and parts
+/// (290 measured), and where its element's `<shadow>` goes in the chunk
+/// file (a 20-byte place, `formats::shadow_write::Site`).
+pub const PER_INSTANCE: u64 = 310;
 /// Heap bytes per caster (primitive group or terrain block): the caster
 /// table's 20-byte entry (u32 owner indices, flags) and its share of the
 /// per-part index (34 bytes a part, 1.4 casters a part on `gen --chunks

@@ -7,8 +7,8 @@ use super::{BakeResult, LightReport, Skipped};
 use crate::cache::codec::{Decoder, Encoder};
 use crate::cache::{content_key, Cache, Fetched, Key, Kind};
 use crate::files::{self, ResPaths};
-use crate::formats::chunk::InstanceKind;
 use crate::formats::chunk::ChunkFile;
+use crate::formats::chunk::InstanceKind;
 use crate::formats::shadow_write::{self, ChunkShadows, InstanceShadow, ShadowSites};
 use crate::formats::Section;
 use crate::progress::{Counter, Phase, Progress};
@@ -358,7 +358,12 @@ impl ChunkOutputs<'_> {
             Some(bytes) => bytes,
             None => files::read_file(&chunk.file)?,
         };
-        let (kept, shadows, bytes, written) = self.rewrite(index, chunk, &original)?;
+        let Rewritten {
+            kept,
+            shadows,
+            bytes,
+            written,
+        } = self.rewrite(index, chunk, &original)?;
         let key = content_key(&bytes);
         // New bytes a bake does not write (`--dry-run`, `--check`) are in
         // no file a later bake reads: their entries would only fill the
@@ -397,18 +402,24 @@ impl ChunkOutputs<'_> {
         index: usize,
         chunk: &crate::scene::Chunk,
         original: &[u8],
-    ) -> Result<(Vec<(u32, u32)>, ChunkShadows, Vec<u8>, Written)> {
+    ) -> Result<Rewritten> {
         let keep = !self.result.baked_bits;
         let loaded = || chunk.file_key == Some(content_key(original));
-        let sites = chunk.sites.as_ref().filter(|sites| {
-            sites.held().is_some_and(|held| held & keep == 0) && loaded()
-        });
+        let sites = chunk
+            .sites
+            .as_ref()
+            .filter(|sites| sites.held().is_some_and(|held| held & keep == 0) && loaded());
         if let Some(sites) = sites {
             let (kept, shadows) = self.shadows(index, || Ok(Vec::new()))?;
             let (bytes, moved) = sites
                 .write(original, &shadows)
                 .map_err(|e| e.in_file(&chunk.file))?;
-            return Ok((kept, shadows, bytes, Written::AtSites(moved)));
+            return Ok(Rewritten {
+                kept,
+                shadows,
+                bytes,
+                written: Written::AtSites(moved),
+            });
         }
         let root = crate::formats::parse_data_section(original)
             .map_err(|e| e.in_source(&chunk.file, original))?;
@@ -416,8 +427,13 @@ impl ChunkOutputs<'_> {
         let (kept, shadows) = self.shadows(index, old)?;
         let (bytes, sites) = shadow_write::write_shadows_parsed(original, &root, &shadows)
             .map_err(|e| e.in_file(&chunk.file))?;
-        let items = crate::formats::chunk::parse(&root).ok();
-        Ok((kept, shadows, bytes, Written::Parsed(items, sites)))
+        let items = crate::formats::chunk::parse(&root).ok().map(Box::new);
+        Ok(Rewritten {
+            kept,
+            shadows,
+            bytes,
+            written: Written::Parsed(items, sites),
+        })
     }
 
     /// Stores the chunk's items under the content key `key` of its new
@@ -441,7 +457,7 @@ impl ChunkOutputs<'_> {
                 let inputs = &self.scene.inputs;
                 let at = inputs.binary_search_by(|f| f.path.as_path().cmp(&chunk.file));
                 items.zip(at.ok()).map(|(items, at)| ParsedChunk {
-                    chunk: items,
+                    chunk: *items,
                     canonical: inputs[at].digest,
                     sites,
                 })
@@ -583,13 +599,21 @@ impl ChunkOutputs<'_> {
     }
 }
 
+/// A chunk's new `<shadow>`s and bytes, with the bits kept from the file.
+struct Rewritten {
+    kept: Vec<(u32, u32)>,
+    shadows: ChunkShadows,
+    bytes: Vec<u8>,
+    written: Written,
+}
+
 /// What a later load reads of a chunk's new bytes, as its output made
 /// them.
 enum Written {
     /// Written at the places the load found: the places in the new bytes.
     AtSites(ShadowSites),
     /// Parsed: the items, and the places in the new bytes (text XML).
-    Parsed(Option<ChunkFile>, Option<ShadowSites>),
+    Parsed(Option<Box<ChunkFile>>, Option<ShadowSites>),
 }
 
 /// The entry of the chunk file whose content key is `content`, if the

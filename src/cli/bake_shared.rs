@@ -315,7 +315,9 @@ pub fn write_results(
         },
     };
     // The load's counts: the output reads entries only to copy them.
-    let loaded = results.cache.map(|cache| PhaseCounts::of_kind(cache, Kind::Chunk));
+    let loaded = results
+        .cache
+        .map(|cache| PhaseCounts::of_kind(cache, Kind::Chunk));
     let (outputs, kept) =
         output::chunk_outputs_cached(scene, &mut result, &res_paths, to, reporter, results.cache)?;
     if let Some(cache) = results.cache {

@@ -381,15 +381,24 @@ pub enum Place {
 }
 
 impl Place {
-    pub const ALL: [Place; 4] = [Place::Replace, Place::Expand, Place::OwnLine, Place::BeforeClose];
+    pub const ALL: [Place; 4] = [
+        Place::Replace,
+        Place::Expand,
+        Place::OwnLine,
+        Place::BeforeClose,
+    ];
 }
 
 impl ShadowSites {
     /// The places in `original` (text XML), `root` being it parsed.
     pub fn find(original: &[u8], root: &Section) -> Result<ShadowSites, FormatError> {
-        let models = |tag: &str| InstanceKind::from_tag(tag).is_some_and(InstanceKind::names_models);
+        let models =
+            |tag: &str| InstanceKind::from_tag(tag).is_some_and(InstanceKind::names_models);
         let of = |is_target: &dyn Fn(&str) -> bool| -> Vec<&Section> {
-            root.children.iter().filter(|c| is_target(&c.name)).collect()
+            root.children
+                .iter()
+                .filter(|c| is_target(&c.name))
+                .collect()
         };
         let instances = of(&models);
         let speedtrees = of(&|tag| tag == SPEEDTREE_TAG);
@@ -416,8 +425,14 @@ impl ShadowSites {
                 held,
             })
         };
-        let instances = instances.into_iter().map(&mut site_of).collect::<Result<_, _>>()?;
-        let speedtrees = speedtrees.into_iter().map(&mut site_of).collect::<Result<_, _>>()?;
+        let instances = instances
+            .into_iter()
+            .map(&mut site_of)
+            .collect::<Result<_, _>>()?;
+        let speedtrees = speedtrees
+            .into_iter()
+            .map(&mut site_of)
+            .collect::<Result<_, _>>()?;
         let terrain = terrain.map(&mut site_of).transpose()?;
         // Targets are the root's children: one depth for all.
         let depth = root.path.matches('/').count() + 1;
@@ -434,8 +449,14 @@ impl ShadowSites {
     /// Every bit the targets' `<shadow>`s hold now, `None` when one holds
     /// a value that is not a mask.
     pub fn held(&self) -> Option<u32> {
-        let sites = self.instances.iter().chain(&self.speedtrees).chain(&self.terrain);
-        sites.map(|site| site.held).try_fold(0, |all, held| Some(all | held?))
+        let sites = self
+            .instances
+            .iter()
+            .chain(&self.speedtrees)
+            .chain(&self.terrain);
+        sites
+            .map(|site| site.held)
+            .try_fold(0, |all, held| Some(all | held?))
     }
 
     /// `original` (the bytes the places were found in) with `shadows`
@@ -460,10 +481,20 @@ impl ShadowSites {
                 at: 0..shadow.len(),
                 held: masks.bits(),
             };
-            edits.push(site_edit(original, at, site.place, depth, eol, (new, shadow)));
+            edits.push(site_edit(
+                original,
+                at,
+                site.place,
+                depth,
+                eol,
+                (new, shadow),
+            ));
             for (_, extra) in self.extras.iter().filter(|(t, _)| t == target) {
                 let range = extra.start as usize..extra.end as usize;
-                if !original.get(range.clone()).is_some_and(|b| find_last(b, b"<shadow").is_some()) {
+                let holds_a_shadow = original
+                    .get(range.clone())
+                    .is_some_and(|b| find_last(b, b"<shadow").is_some());
+                if !holds_a_shadow {
                     return Err(not_the_bytes(range.start));
                 }
                 edits.push(Edit {
@@ -1488,11 +1519,20 @@ mod tests {
             let (text, shadows, _) = random_chunk(&mut rng);
             let root = xml::parse(text.as_bytes()).unwrap();
             let sites = ShadowSites::find(text.as_bytes(), &root).unwrap();
-            for site in sites.instances.iter().chain(&sites.speedtrees).chain(&sites.terrain) {
+            for site in sites
+                .instances
+                .iter()
+                .chain(&sites.speedtrees)
+                .chain(&sites.terrain)
+            {
                 places[Place::ALL.iter().position(|p| *p == site.place).unwrap()] += 1;
             }
             let (out, moved) = sites.write(text.as_bytes(), &shadows).unwrap();
-            assert_eq!(out, write_shadows(text.as_bytes(), &shadows).unwrap(), "case {case}");
+            assert_eq!(
+                out,
+                write_shadows(text.as_bytes(), &shadows).unwrap(),
+                "case {case}"
+            );
             let found = ShadowSites::find(&out, &xml::parse(&out).unwrap()).unwrap();
             assert_eq!(moved, found, "case {case}:\n{text}");
             // Other masks into the written bytes, through the places alone.
@@ -1503,7 +1543,16 @@ mod tests {
             let (twice, _) = moved.write(&out, &other).unwrap();
             assert_eq!(twice, write_shadows(&out, &other).unwrap(), "case {case}");
         }
-        assert!(places.iter().all(|&n| n > 20), "every place met: {places:?}");
+        assert!(
+            places.iter().all(|&n| n > 20),
+            "every place met: {places:?}"
+        );
+    }
+
+    #[test]
+    fn a_place_is_the_twenty_bytes_the_memory_model_counts() {
+        // bake::memory::PER_INSTANCE counts one per placed element.
+        assert_eq!(std::mem::size_of::<Site>(), 20);
     }
 
     #[test]
@@ -1517,13 +1566,19 @@ mod tests {
         };
         let other = BASIC.replace("<root>", "<root> ");
         let err = sites.write(other.as_bytes(), &shadows).unwrap_err();
-        assert!(err.to_string().contains("not those its <shadow> places"), "{err}");
+        assert!(
+            err.to_string().contains("not those its <shadow> places"),
+            "{err}"
+        );
         let shorter = &text[..40];
         assert!(sites.write(shorter, &shadows).is_err());
         let mut fewer = shadows.clone();
         fewer.instances.clear();
         let err = sites.write(text, &fewer).unwrap_err();
-        assert!(err.to_string().contains("the chunk has 1 <model>/<shell>"), "{err}");
+        assert!(
+            err.to_string().contains("the chunk has 1 <model>/<shell>"),
+            "{err}"
+        );
     }
 
     #[test]

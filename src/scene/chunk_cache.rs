@@ -153,7 +153,10 @@ fn encode_sites(e: &mut Encoder, sites: &ShadowSites) {
     e.u8(sites.depth);
     let mut last = 0u32;
     let mut site = |e: &mut Encoder, site: &Site| {
-        let place = Place::ALL.iter().position(|p| *p == site.place).unwrap_or(0) as u8;
+        let place = Place::ALL
+            .iter()
+            .position(|p| *p == site.place)
+            .unwrap_or(0) as u8;
         e.u8(place);
         e.var(u64::from(site.start.wrapping_sub(last)));
         e.var(u64::from(site.end - site.start));

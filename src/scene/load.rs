@@ -541,8 +541,7 @@ impl Loader<'_> {
         while named.peek().is_some() {
             // A batch's parsed items are freed once it is placed: they are
             // not all held while the terrain is decoded beside.
-            let batch: Vec<(String, (PathBuf, ReadChunk))> =
-                named.by_ref().take(BATCH).collect();
+            let batch: Vec<(String, (PathBuf, ReadChunk))> = named.by_ref().take(BATCH).collect();
             let first_index = chunks.len();
             let placed: Vec<PlacedChunk> = batch
                 .par_iter()

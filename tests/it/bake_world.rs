@@ -584,3 +584,53 @@ fn fixture_bakes_match_the_blessed_masks() {
         );
     }
 }
+
+/// The output writes a chunk at the `<shadow>` places its load found,
+/// without parsing it again: the same bytes as writing it parsed, into
+/// chunks without masks and into chunks a bake wrote before.
+#[test]
+fn chunks_written_at_the_places_the_load_found_equal_chunks_parsed_again() {
+    use shadowcull::bake::output;
+    use shadowcull::files::ResPaths;
+    let dir = tempfile::tempdir().unwrap();
+    copy_fixture(Preset::Village, dir.path());
+    let settings_file = dir.path().join(SETTINGS_FILE);
+    let settings = shadowcull::files::read_bake_settings(&settings_file).unwrap();
+    let config = BakeConfig::from_settings(&settings);
+    let res_paths = ResPaths::new(settings.res_paths.clone());
+    for round in ["into chunks without masks", "into chunks baked before"] {
+        let scene = load_world(&settings_file);
+        let mut parsed_again = scene.clone();
+        for chunk in &mut parsed_again.chunks {
+            chunk.sites = None;
+        }
+        let mut outputs = Vec::new();
+        for scene in [&scene, &parsed_again] {
+            let mut result = bake::bake(scene, &config, &Silent).unwrap();
+            let keep = !result.baked_bits;
+            for sites in scene.chunks.iter().filter_map(|c| c.sites.as_ref()) {
+                let held = sites.held();
+                assert!(held.is_some_and(|h| h & keep == 0), "{round}: places used");
+            }
+            let out = tempfile::tempdir().unwrap();
+            let made =
+                output::chunk_outputs(scene, &mut result, &res_paths, Some(out.path()), &Silent)
+                    .unwrap();
+            output::write_outputs(&made, &Silent).unwrap();
+            let files: Vec<_> = snapshot(out.path())
+                .into_iter()
+                .map(|(p, b)| (p.strip_prefix(out.path()).unwrap().to_path_buf(), b))
+                .collect();
+            outputs.push(files);
+        }
+        assert!(scene.chunks.iter().all(|c| c.sites.is_some()), "{round}");
+        assert_eq!(outputs[0].len(), scene.chunks.len(), "{round}");
+        assert!(outputs[0] == outputs[1], "{round}: the two writes differ");
+        let baked = shadowcull(&["bake", settings_file.to_str().unwrap(), "--quiet"]);
+        assert!(
+            baked.status.success(),
+            "{}",
+            String::from_utf8_lossy(&baked.stderr)
+        );
+    }
+}
