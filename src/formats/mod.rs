@@ -6,6 +6,7 @@
 pub mod bake_settings;
 pub mod binsection;
 pub mod chunk;
+pub mod chunk_scan;
 pub mod model;
 pub mod packed_xml;
 pub mod partial;

@@ -61,25 +61,15 @@ impl Section {
     }
 
     pub fn as_bool(&self) -> Result<bool, FormatError> {
-        match self.value.to_ascii_lowercase().as_str() {
-            "true" | "1" => Ok(true),
-            "false" | "0" => Ok(false),
-            other => Err(self.error(format!("expected true or false, found `{other}`"))),
-        }
+        bool_of(&self.value).ok_or_else(|| {
+            let other = self.value.to_ascii_lowercase();
+            self.error(format!("expected true or false, found `{other}`"))
+        })
     }
 
     pub fn as_i64(&self) -> Result<i64, FormatError> {
         let text = self.value.as_str();
-        text.parse::<i64>()
-            .or_else(|_| {
-                // The engine's asInt tolerates a float spelling such as `128.0`.
-                text.parse::<f64>()
-                    .ok()
-                    .filter(|v| v.fract() == 0.0 && v.abs() < 9.0e15)
-                    .map(|v| v as i64)
-                    .ok_or(())
-            })
-            .map_err(|_| self.error(format!("expected an integer, found `{text}`")))
+        i64_of(text).ok_or_else(|| self.error(format!("expected an integer, found `{text}`")))
     }
 
     pub fn as_f64(&self) -> Result<f64, FormatError> {
@@ -112,35 +102,101 @@ impl Section {
     /// (D3D) convention: rows 0–2 the basis, row 3 the translation.
     /// Missing rows default to identity rows, as the engine's `readMatrix34`.
     pub fn as_matrix(&self) -> Result<DMat4, FormatError> {
-        let has_rows = (0..4).any(|i| self.child(&format!("row{i}")).is_some());
-        let mut rows = [DVec3::X, DVec3::Y, DVec3::Z, DVec3::ZERO];
-        if has_rows {
-            for (i, row) in rows.iter_mut().enumerate() {
-                if let Some(section) = self.child(&format!("row{i}")) {
-                    *row = section.as_vec3()?;
+        let rows = ROW_TAGS.map(|tag| self.child(tag).map(|row| row.value.as_str()));
+        matrix_of(rows, &self.value).map_err(|bad| match bad.row {
+            Some(i) => self
+                .children_named(ROW_TAGS[i])
+                .next()
+                .unwrap_or(self)
+                .error(bad.message),
+            None => self.error(bad.message),
+        })
+    }
+}
+
+/// The tags of a matrix's rows.
+pub const ROW_TAGS: [&str; 4] = ["row0", "row1", "row2", "row3"];
+
+/// A value that is not what was asked: the row it is in (`None`: the
+/// element's own value) and what is wrong.
+pub struct BadValue {
+    pub row: Option<usize>,
+    pub message: String,
+}
+
+/// A value as a boolean, BigWorld's way (`true`/`false`/`1`/`0`, any case).
+pub fn bool_of(value: &str) -> Option<bool> {
+    match value.to_ascii_lowercase().as_str() {
+        "true" | "1" => Some(true),
+        "false" | "0" => Some(false),
+        _ => None,
+    }
+}
+
+/// A value as an integer; the engine's asInt tolerates a float spelling
+/// such as `128.0`.
+pub fn i64_of(text: &str) -> Option<i64> {
+    text.parse::<i64>().ok().or_else(|| {
+        text.parse::<f64>()
+            .ok()
+            .filter(|v| v.fract() == 0.0 && v.abs() < 9.0e15)
+            .map(|v| v as i64)
+    })
+}
+
+/// A BigWorld matrix from its rows' values (`rows[i]`: the first
+/// `<row{i}>`, if any) or, without rows, twelve numbers in `value`. Rows
+/// are row-vector (D3D) convention: rows 0–2 the basis, row 3 the
+/// translation. Missing rows default to identity rows, as the engine's
+/// `readMatrix34`.
+pub fn matrix_of(rows: [Option<&str>; 4], value: &str) -> Result<DMat4, BadValue> {
+    let numbers = |text: &str, row: Option<usize>| -> Result<Vec<f64>, BadValue> {
+        text.split_ascii_whitespace()
+            .map(|word| {
+                word.parse::<f64>().map_err(|_| BadValue {
+                    row,
+                    message: format!("expected numbers, found `{word}`"),
+                })
+            })
+            .collect()
+    };
+    let mut out = [DVec3::X, DVec3::Y, DVec3::Z, DVec3::ZERO];
+    if rows.iter().any(Option::is_some) {
+        for (i, (row, text)) in out.iter_mut().zip(rows).enumerate() {
+            let Some(text) = text else { continue };
+            match numbers(text, Some(i))?.as_slice() {
+                [x, y, z] => *row = DVec3::new(*x, *y, *z),
+                values => {
+                    return Err(BadValue {
+                        row: Some(i),
+                        message: format!("expected 3 numbers, found {}", values.len()),
+                    })
                 }
             }
-        } else {
-            let values = self.as_f64s()?;
-            if values.len() != 12 {
-                return Err(self.error(format!(
+        }
+    } else {
+        let values = numbers(value, None)?;
+        if values.len() != 12 {
+            return Err(BadValue {
+                row: None,
+                message: format!(
                     "expected <row0>..<row3> or 12 numbers, found {} numbers",
                     values.len()
-                )));
-            }
-            for (i, row) in rows.iter_mut().enumerate() {
-                *row = DVec3::new(values[3 * i], values[3 * i + 1], values[3 * i + 2]);
-            }
+                ),
+            });
         }
-        // glam is column-vector; a row-vector matrix M with p' = p·M is the
-        // column-vector matrix Mᵀ, whose columns are M's rows.
-        Ok(DMat4::from_cols(
-            DVec4::from((rows[0], 0.0)),
-            DVec4::from((rows[1], 0.0)),
-            DVec4::from((rows[2], 0.0)),
-            DVec4::from((rows[3], 1.0)),
-        ))
+        for (i, row) in out.iter_mut().enumerate() {
+            *row = DVec3::new(values[3 * i], values[3 * i + 1], values[3 * i + 2]);
+        }
     }
+    // glam is column-vector; a row-vector matrix M with p' = p·M is the
+    // column-vector matrix Mᵀ, whose columns are M's rows.
+    Ok(DMat4::from_cols(
+        DVec4::from((out[0], 0.0)),
+        DVec4::from((out[1], 0.0)),
+        DVec4::from((out[2], 0.0)),
+        DVec4::from((out[3], 1.0)),
+    ))
 }
 
 /// Hand-built trees for unit tests of the format readers.

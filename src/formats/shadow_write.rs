@@ -179,15 +179,30 @@ pub fn without_masks(
     root: &Section,
     chunk: &super::chunk::ChunkFile,
 ) -> Result<Vec<u8>, FormatError> {
-    let shadows = ChunkShadows {
-        instances: vec![Some(InstanceShadow::default()); chunk.instances.len()],
-        speedtrees: vec![Some(InstanceShadow::default()); chunk.speedtrees.len()],
-        terrain: chunk.terrain.as_ref().map(|_| 0),
-    };
+    let shadows = zero_masks(chunk);
     if original.starts_with(&packed_xml::MAGIC) {
         write_packed(original, &shadows)
     } else {
         edit_text(original, root, &shadows)
+    }
+}
+
+/// [`without_masks`] of a text chunk from the places of its `<shadow>`s
+/// (`sites`, found in `original`), without its tree.
+pub fn without_masks_at(
+    original: &[u8],
+    sites: &ShadowSites,
+    chunk: &super::chunk::ChunkFile,
+) -> Result<Vec<u8>, FormatError> {
+    Ok(sites.write(original, &zero_masks(chunk))?.0)
+}
+
+/// Every `<shadow>` the bake writes into `chunk`, with every mask 0.
+fn zero_masks(chunk: &super::chunk::ChunkFile) -> ChunkShadows {
+    ChunkShadows {
+        instances: vec![Some(InstanceShadow::default()); chunk.instances.len()],
+        speedtrees: vec![Some(InstanceShadow::default()); chunk.speedtrees.len()],
+        terrain: chunk.terrain.as_ref().map(|_| 0),
     }
 }
 
@@ -234,12 +249,17 @@ pub fn read_chunk_shadows(root: &Section) -> Result<ChunkShadows, FormatError> {
 }
 
 fn mask_value(section: &Section) -> Result<u32, FormatError> {
-    section.value.trim().parse::<u32>().map_err(|_| {
+    mask_of(&section.value).ok_or_else(|| {
         section.error(format!(
             "expected a 32-bit shadow mask (0..=4294967295), found `{}`",
             section.value
         ))
     })
+}
+
+/// A mask value's number.
+pub(super) fn mask_of(value: &str) -> Option<u32> {
+    value.trim().parse::<u32>().ok()
 }
 
 /// The elements to write into, as positions among the root's children,
@@ -616,7 +636,7 @@ impl ShadowSites {
 }
 
 /// A byte offset into a chunk file as a place holds it.
-fn offset(at: usize) -> Result<u32, FormatError> {
+pub(super) fn offset(at: usize) -> Result<u32, FormatError> {
     u32::try_from(at).map_err(|_| FormatError::at_byte(at, "chunk file larger than 4 GiB"))
 }
 
@@ -647,12 +667,27 @@ fn element_site(original: &[u8], element: &Section) -> Result<(Place, Range<usiz
     let text = original
         .get(span.clone())
         .ok_or_else(|| element.error("internal error: element span outside the file"))?;
-    if text.ends_with(b"/>") {
-        return Ok((Place::Expand, span));
+    let close = find_last(text, b"</").map(|i| span.start + i);
+    if !text.ends_with(b"/>") && close.is_none() {
+        return Err(element.error("internal error: element without an end tag"));
     }
-    let close = find_last(text, b"</")
-        .map(|i| span.start + i)
-        .ok_or_else(|| element.error("internal error: element without an end tag"))?;
+    Ok(place_without_shadow(original, span, close.unwrap_or(0)))
+}
+
+/// Where the `<shadow>` of an element without one goes: the element spans
+/// `span` of `original`, its end tag starts at `close` (unless it is
+/// self-closing).
+pub(super) fn place_without_shadow(
+    original: &[u8],
+    span: Range<usize>,
+    close: usize,
+) -> (Place, Range<usize>) {
+    if original
+        .get(span.clone())
+        .is_some_and(|text| text.ends_with(b"/>"))
+    {
+        return (Place::Expand, span);
+    }
     let line_start = original
         .get(..close)
         .and_then(|before| before.iter().rposition(|&b| b == b'\n'))
@@ -661,10 +696,10 @@ fn element_site(original: &[u8], element: &Section) -> Result<(Place, Range<usiz
         && original
             .get(line_start..close)
             .is_some_and(|prefix| prefix.iter().all(|&b| b == b' ' || b == b'\t'));
-    Ok(match alone {
+    match alone {
         true => (Place::OwnLine, line_start..line_start),
         false => (Place::BeforeClose, close..close),
-    })
+    }
 }
 
 /// The span `site` names in `original`, when the bytes there are what
@@ -805,7 +840,7 @@ fn verify(out: &[u8], shadows: &ChunkShadows) -> Result<(), FormatError> {
 
 /// `span` widened to its whole line, line break included, when nothing but
 /// spaces and tabs share the line with it; else `span` itself.
-fn whole_line(text: &[u8], span: Range<usize>) -> Range<usize> {
+pub(super) fn whole_line(text: &[u8], span: Range<usize>) -> Range<usize> {
     let blank = |b: &u8| *b == b' ' || *b == b'\t';
     let Some(before) = text.get(..span.start) else {
         return span;

@@ -17,6 +17,7 @@ use crate::error::{Error, Result};
 use crate::files::{self, ResPaths};
 use crate::formats::bake_settings::{BakeSettings, ParametricTree, Proxy, SpeedTreeProxies};
 use crate::formats::chunk::{self, ChunkFile, InstanceKind};
+use crate::formats::chunk_scan;
 use crate::formats::shadow_write::ShadowSites;
 use crate::formats::space_settings;
 use crate::formats::{
@@ -877,14 +878,25 @@ fn cached_items(cache: &Cache, key: &Key) -> Option<ParsedChunk> {
 
 /// Parses chunk file `bytes` (read from `path`, which errors name).
 fn parse_chunk(path: &Path, bytes: &[u8]) -> Result<ParsedChunk> {
+    // Packed chunks (rare) are parsed again when written.
+    let text = !bytes.starts_with(&formats::packed_xml::MAGIC);
+    if let Some((chunk, sites)) = text.then(|| chunk_scan::scan(bytes)).flatten() {
+        let canonical = match shadow_write::without_masks_at(bytes, &sites, &chunk) {
+            Ok(canonical) => Digest::of(&canonical),
+            Err(_) => Digest::of(bytes),
+        };
+        return Ok(ParsedChunk {
+            chunk,
+            canonical,
+            sites: Some(sites),
+        });
+    }
     let root = formats::parse_data_section(bytes).map_err(|e| e.in_source(path, bytes))?;
     let chunk = chunk::parse(&root).map_err(|e| e.in_source(path, bytes))?;
     let canonical = match shadow_write::without_masks(bytes, &root, &chunk) {
         Ok(canonical) => Digest::of(&canonical),
         Err(_) => Digest::of(bytes),
     };
-    // Packed chunks (rare) are parsed again when written.
-    let text = !bytes.starts_with(&formats::packed_xml::MAGIC);
     let sites = text.then(|| ShadowSites::find(bytes, &root).ok()).flatten();
     Ok(ParsedChunk {
         chunk,
