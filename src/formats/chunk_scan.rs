@@ -15,7 +15,6 @@ use super::section::{bool_of, i64_of, matrix_of, ROW_TAGS};
 use super::shadow_write::{self, Place, ShadowSites, Site, SHADOW_TAG};
 use glam::DMat4;
 use quick_xml::events::Event;
-use quick_xml::Reader;
 use std::collections::BTreeMap;
 use std::ops::Range;
 
@@ -26,17 +25,7 @@ const MAX_DEPTH: usize = 64;
 /// The chunk's items and `<shadow>` places, or `None` where the tree
 /// reader must answer.
 pub fn scan(bytes: &[u8]) -> Option<(ChunkFile, ShadowSites)> {
-    let bom = if bytes.starts_with(&[0xEF, 0xBB, 0xBF]) {
-        3
-    } else {
-        0
-    };
-    let mut reader = Reader::from_reader(&bytes[bom..]);
-    let config = reader.config_mut();
-    config.trim_text(false);
-    config.check_end_names = true;
-    config.allow_unmatched_ends = false;
-    config.check_comments = false;
+    let (mut reader, bom) = super::xml::reader(bytes);
     let mut scan = Scan::default();
     loop {
         let start = bom + reader.buffer_position() as usize;

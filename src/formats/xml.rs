@@ -21,19 +21,7 @@ const MAX_DEPTH: usize = 256;
 /// Parses a whole text XML document. Text after the root element's end is
 /// ignored, as the engine does.
 pub fn parse(bytes: &[u8]) -> Result<Section, FormatError> {
-    // A UTF-8 byte order mark is tolerated; offsets stay file offsets.
-    let bom = if bytes.starts_with(&[0xEF, 0xBB, 0xBF]) {
-        3
-    } else {
-        0
-    };
-    let mut reader = Reader::from_reader(&bytes[bom..]);
-    let config = reader.config_mut();
-    config.trim_text(false);
-    config.check_end_names = true;
-    config.allow_unmatched_ends = false;
-    config.check_comments = false;
-
+    let (mut reader, bom) = reader(bytes);
     let mut tree = Builder::default();
     loop {
         let start = bom + reader.buffer_position() as usize;
@@ -58,6 +46,25 @@ pub fn parse(bytes: &[u8]) -> Result<Section, FormatError> {
         }
     }
     tree.finish(bytes.len())
+}
+
+/// The event reader every text XML read uses, and where in `bytes` its
+/// offsets start: a UTF-8 byte order mark is tolerated, and offsets plus
+/// that start are file offsets. White space is kept (values are trimmed
+/// as sections), end tags must match.
+pub(super) fn reader(bytes: &[u8]) -> (Reader<&[u8]>, usize) {
+    let bom = if bytes.starts_with(&[0xEF, 0xBB, 0xBF]) {
+        3
+    } else {
+        0
+    };
+    let mut reader = Reader::from_reader(&bytes[bom..]);
+    let config = reader.config_mut();
+    config.trim_text(false);
+    config.check_end_names = true;
+    config.allow_unmatched_ends = false;
+    config.check_comments = false;
+    (reader, bom)
 }
 
 /// The tree as the events build it.
