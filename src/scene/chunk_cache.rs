@@ -148,7 +148,8 @@ fn decode_checked(bytes: &[u8]) -> Result<ParsedChunk, DecodeError> {
 }
 
 /// The places, each offset as the distance from the one before (they
-/// ascend within each list, so most take a byte or two).
+/// ascend within each list, so most take a byte or two), its length and
+/// place in one number, its bits in another.
 fn encode_sites(e: &mut Encoder, sites: &ShadowSites) {
     e.u8(sites.depth);
     let mut last = 0u32;
@@ -156,14 +157,11 @@ fn encode_sites(e: &mut Encoder, sites: &ShadowSites) {
         let place = Place::ALL
             .iter()
             .position(|p| *p == site.place)
-            .unwrap_or(0) as u8;
-        e.u8(place);
+            .unwrap_or(0) as u64;
         e.var(u64::from(site.start.wrapping_sub(last)));
-        e.var(u64::from(site.end - site.start));
-        match site.held {
-            Some(held) => e.u8(1).u32(held),
-            None => e.u8(0),
-        };
+        e.var(u64::from(site.end - site.start) << 2 | place);
+        // 0: not a mask; else the bits plus one (masks are small numbers).
+        e.var(site.held.map_or(0, |held| u64::from(held) + 1));
         last = site.start;
     };
     for list in [&sites.instances, &sites.speedtrees] {
@@ -189,15 +187,16 @@ fn decode_sites(d: &mut Decoder) -> Result<ShadowSites, DecodeError> {
     let depth = d.u8()?;
     let mut last = 0u32;
     let mut site = |d: &mut Decoder| -> Result<Site, DecodeError> {
-        let place = *Place::ALL.get(usize::from(d.u8()?)).ok_or(bad)?;
         let start = last.wrapping_add(u32::try_from(d.var()?).map_err(|_| bad)?);
-        let end = start
-            .checked_add(u32::try_from(d.var()?).map_err(|_| bad)?)
+        let length_and_place = d.var()?;
+        let place = Place::ALL[(length_and_place & 3) as usize];
+        let end = u32::try_from(length_and_place >> 2)
+            .ok()
+            .and_then(|length| start.checked_add(length))
             .ok_or(bad)?;
-        let held = match d.u8()? {
+        let held = match d.var()? {
             0 => None,
-            1 => Some(d.u32()?),
-            _ => return Err(bad),
+            bits => Some(u32::try_from(bits - 1).map_err(|_| bad)?),
         };
         last = start;
         Ok(Site {
