@@ -427,12 +427,15 @@ impl ChunkOutputs<'_> {
         let (kept, shadows) = self.shadows(index, old)?;
         let (bytes, sites) = shadow_write::write_shadows_parsed(original, &root, &shadows)
             .map_err(|e| e.in_file(&chunk.file))?;
-        let items = crate::formats::chunk::parse(&root).ok().map(Box::new);
+        // Only a cache keeps them (`keep_items`).
+        let items = self
+            .cache
+            .and_then(|_| crate::formats::chunk::parse(&root).ok());
         Ok(Rewritten {
             kept,
             shadows,
             bytes,
-            written: Written::Parsed(items, sites),
+            written: Written::Parsed(items.map(Box::new), sites),
         })
     }
 
