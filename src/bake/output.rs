@@ -330,6 +330,8 @@ impl ChunkOutputs<'_> {
             (Some(key), None) => key,
             _ => content_key(original.insert(files::read_file(&chunk.file)?)),
         };
+        // The key of `original` when it was read for it.
+        let read_key = original.as_ref().map(|_| content);
         let mut damaged = false;
         if let Some(cache) = self.cache {
             let key = output_key(cache, &content);
@@ -363,7 +365,7 @@ impl ChunkOutputs<'_> {
             shadows,
             bytes,
             written,
-        } = self.rewrite(index, chunk, &original)?;
+        } = self.rewrite(index, chunk, &original, read_key)?;
         let key = content_key(&bytes);
         // New bytes a bake does not write (`--dry-run`, `--check`) are in
         // no file a later bake reads: their entries would only fill the
@@ -396,15 +398,17 @@ impl ChunkOutputs<'_> {
     /// The chunk's new `<shadow>`s (with the bits kept from the file) and
     /// bytes, and what a later load reads of those bytes. Written at the
     /// places the load found when `original` is the bytes it read and
-    /// holds no bit to keep; else parsed.
+    /// holds no bit to keep; else parsed. `read_key`: the content key of
+    /// `original`, when known.
     fn rewrite(
         &self,
         index: usize,
         chunk: &crate::scene::Chunk,
         original: &[u8],
+        read_key: Option<Key>,
     ) -> Result<Rewritten> {
         let keep = !self.result.baked_bits;
-        let loaded = || chunk.file_key == Some(content_key(original));
+        let loaded = || chunk.file_key == Some(read_key.unwrap_or_else(|| content_key(original)));
         let sites = chunk
             .sites
             .as_ref()

@@ -56,12 +56,13 @@ pub fn scan(bytes: &[u8]) -> Option<(ChunkFile, ShadowSites)> {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Role {
     Root,
-    /// A direct child of the root the scan reads: an instance, the first
-    /// `<terrain>`, the first `<transform>`.
+    /// A direct child of the root the scan reads: an instance or the
+    /// first `<terrain>` (the root's first `<transform>` is a `Transform`).
     Target,
     /// A value of the innermost target the scan reads.
     Value(Field),
-    /// The target's first `<transform>`, whose rows are read.
+    /// The target's first `<transform>` (or the root's), whose own value
+    /// and rows are read.
     Transform,
     /// The target's first `<editorOnly>`, whose first `castsShadow` is.
     EditorOnly,
@@ -90,7 +91,16 @@ enum Field {
 
 /// Whether an element of this role has its text read.
 fn reads_value(role: Role) -> bool {
-    matches!(role, Role::Value(_) | Role::Shadow | Role::Transform) || role == Role::Target
+    matches!(role, Role::Value(_) | Role::Shadow | Role::Transform)
+}
+
+/// What a direct child of the root the scan reads is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum TargetKind {
+    Instance(InstanceKind),
+    Terrain,
+    /// The root's own transform (an indoor chunk's).
+    Transform,
 }
 
 /// An open element: its role and its text as the tree reader joins it
@@ -102,12 +112,9 @@ struct Open {
 }
 
 /// One target element as read so far.
-#[derive(Default)]
 struct Target {
-    tag: String,
+    kind: TargetKind,
     start: usize,
-    /// Its own text: the matrix of a root `<transform>`.
-    value: String,
     resources: Vec<String>,
     transform: Option<Matrix>,
     casts_shadow: Option<String>,
@@ -188,16 +195,14 @@ impl Scan {
                 1
             }
         };
-        let instance = InstanceKind::from_tag(name).is_some();
-        if !(instance || ((name == "terrain" || name == "transform") && count == 1)) {
-            return Role::Skipped;
-        }
-        self.targets.push(Target {
-            tag: name.to_string(),
-            start,
-            ..Target::default()
-        });
-        Role::Target
+        let (kind, role) = match (InstanceKind::from_tag(name), name, count) {
+            (Some(kind), _, _) => (TargetKind::Instance(kind), Role::Target),
+            (None, "terrain", 1) => (TargetKind::Terrain, Role::Target),
+            (None, "transform", 1) => (TargetKind::Transform, Role::Transform),
+            _ => return Role::Skipped,
+        };
+        self.targets.push(Target::new(kind, start));
+        role
     }
 
     /// The role of a child of `parent` (below the root's children).
@@ -214,10 +219,6 @@ impl Scan {
         Some(match parent {
             // Mixed content inside a value the tree reader joins; left to it.
             Role::Value(_) => return None,
-            Role::Target if target.tag == "transform" => {
-                target.transform.get_or_insert_with(Matrix::default);
-                row(&target.transform).unwrap_or(Role::Skipped)
-            }
             Role::Target => target.child(name, start),
             Role::Transform => row(&target.transform).unwrap_or(Role::Skipped),
             Role::EditorOnly if name == "castsShadow" && target.editor_casts_shadow.is_none() => {
@@ -279,7 +280,6 @@ impl Scan {
         match open.role {
             Role::Root => self.done = true,
             Role::Target => {
-                target.value = open.value;
                 target.span = target.start..end;
                 target.close = close;
             }
@@ -300,14 +300,10 @@ impl Scan {
         let root_name = self.root_name?;
         let depth = u8::try_from(1 + root_name.matches('/').count()).ok()?;
         let path = |tag: &str| format!("{root_name}/{tag}");
-        let is_instance =
-            |t: &Target| InstanceKind::from_tag(&t.tag).is_some_and(|k| k.names_models());
-        let models = self.targets.iter().filter(|t| is_instance(t)).count() as u32;
-        let trees = self
-            .targets
-            .iter()
-            .filter(|t| t.tag == SPEEDTREE_TAG)
-            .count() as u32;
+        let count =
+            |of: fn(TargetKind) -> bool| self.targets.iter().filter(|t| of(t.kind)).count() as u32;
+        let models = count(|k| matches!(k, TargetKind::Instance(i) if i.names_models()));
+        let trees = count(|k| k == TargetKind::Instance(InstanceKind::SpeedTree));
         let mut chunk = ChunkFile {
             root_name: root_name.clone(),
             transform: None,
@@ -322,18 +318,16 @@ impl Scan {
         };
         for target in self.targets {
             // Its place in the writer's order: instances, speedtrees, terrain.
-            let writer_index = match InstanceKind::from_tag(&target.tag) {
-                _ if target.tag == "transform" => {
-                    let matrix = Matrix {
-                        value: target.value.clone(),
-                        rows: target.transform.map(|m| m.rows).unwrap_or_default(),
-                    };
-                    chunk.transform = Some(matrix.read()?);
+            let writer_index = match target.kind {
+                TargetKind::Transform => {
+                    chunk.transform = Some(target.transform?.read()?);
                     continue;
                 }
-                Some(InstanceKind::SpeedTree) => models + chunk.speedtrees.len() as u32,
-                Some(_) => chunk.instances.len() as u32,
-                None => models + trees,
+                TargetKind::Instance(InstanceKind::SpeedTree) => {
+                    models + chunk.speedtrees.len() as u32
+                }
+                TargetKind::Instance(_) => chunk.instances.len() as u32,
+                TargetKind::Terrain => models + trees,
             };
             for extra in &target.extras {
                 let line = shadow_write::whole_line(bytes, extra.clone());
@@ -346,8 +340,8 @@ impl Scan {
                 Some(matrix) => matrix.read(),
                 None => Some(DMat4::IDENTITY),
             };
-            match InstanceKind::from_tag(&target.tag) {
-                Some(InstanceKind::SpeedTree) => {
+            match target.kind {
+                TargetKind::Instance(InstanceKind::SpeedTree) => {
                     let integer = |value: &Option<String>| match value {
                         Some(text) => i64_of(text).map(Some),
                         None => Some(None),
@@ -362,7 +356,7 @@ impl Scan {
                     });
                     sites.speedtrees.push(site);
                 }
-                Some(kind) => {
+                TargetKind::Instance(kind) => {
                     let casts_shadow = match (&target.casts_shadow, &target.editor_casts_shadow) {
                         (Some(flag), _) | (None, Some(flag)) => bool_of(flag)?,
                         (None, None) => true,
@@ -377,7 +371,7 @@ impl Scan {
                     });
                     sites.instances.push(site);
                 }
-                None => {
+                TargetKind::Terrain | TargetKind::Transform => {
                     chunk.terrain = Some(TerrainElement {
                         resource: target.resources.into_iter().next()?,
                         path: path("terrain"),
@@ -393,6 +387,26 @@ impl Scan {
 }
 
 impl Target {
+    fn new(kind: TargetKind, start: usize) -> Target {
+        Target {
+            kind,
+            start,
+            resources: Vec::new(),
+            // The root's transform is read as an instance's is.
+            transform: (kind == TargetKind::Transform).then(Matrix::default),
+            casts_shadow: None,
+            editor_only_seen: false,
+            editor_casts_shadow: None,
+            spt: None,
+            seed: None,
+            visibility_mask: None,
+            shadow: None,
+            extras: Vec::new(),
+            span: start..start,
+            close: start,
+        }
+    }
+
     /// The role of a direct child named `name` starting at `start`.
     fn child(&mut self, name: &str, start: usize) -> Role {
         match name {
