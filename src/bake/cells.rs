@@ -24,8 +24,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;
 
-/// Tiles per cell side: a cell is 256 × 256 texels.
-pub const CELL_TILES: u32 = 8;
+/// Tiles per cell side: a cell is 512 × 512 texels.
+pub const CELL_TILES: u32 = 16;
 
 /// The cells of one grid: faces, then rows of cells, then columns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

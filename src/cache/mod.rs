@@ -196,6 +196,21 @@ impl KeyHasher {
         self
     }
 
+    /// [`Self::bytes`] of the values' little-endian bytes, without
+    /// gathering them first: a big world's terrain samples are hundreds
+    /// of megabytes.
+    pub fn f32s(&mut self, v: &[f32]) -> &mut Self {
+        self.u64(v.len() as u64 * 4);
+        let mut run = [0u8; KeyHasher::BUFFER];
+        for values in v.chunks(KeyHasher::BUFFER / 4) {
+            for (bytes, value) in run.chunks_exact_mut(4).zip(values) {
+                bytes.copy_from_slice(&value.to_le_bytes());
+            }
+            self.update(&run[..values.len() * 4]);
+        }
+        self
+    }
+
     pub fn str(&mut self, v: &str) -> &mut Self {
         self.bytes(v.as_bytes())
     }
@@ -580,6 +595,22 @@ pub fn clear_folder(dir: &Path) -> crate::Result<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn samples_hash_as_their_bytes_do() {
+        for n in [0, 1, 255, 256, 257, 1000] {
+            let values: Vec<f32> = (0..n).map(|i| i as f32 * 0.37 - 20.0).collect();
+            let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            let mut by_values = KeyHasher::content("samples");
+            let mut by_bytes = by_values.clone();
+            by_values.u32(7).f32s(&values).u32(9);
+            by_bytes.u32(7).bytes(&bytes).u32(9);
+            assert_eq!(by_values.finish(), by_bytes.finish(), "{n} samples");
+        }
+        let mut one = KeyHasher::content("samples");
+        let mut other = one.clone();
+        assert_ne!(one.f32s(&[1.0]).finish(), other.f32s(&[1.5]).finish());
+    }
 
     fn cache(dir: &Path, max: u64) -> Cache {
         Cache::open(dir, max, content_key(b"test build"))

@@ -36,6 +36,35 @@ use glam::DVec3;
 use crate::formats::terrain::{TerrainData, TerrainVersion};
 use crate::trace::HeightGrid;
 
+/// The lowest and highest of `heights` (as f64, exactly), or the index of
+/// the first that is not finite. In lanes: a big world holds hundreds of
+/// millions of samples.
+fn finite_extremes(heights: &[f32]) -> Result<(f64, f64), usize> {
+    const LANES: usize = 16;
+    let (mut low, mut high) = ([f32::INFINITY; LANES], [f32::NEG_INFINITY; LANES]);
+    let mut finite = true;
+    let mut runs = heights.chunks_exact(LANES);
+    for run in &mut runs {
+        for i in 0..LANES {
+            let h = run[i];
+            finite &= h.is_finite();
+            low[i] = if h < low[i] { h } else { low[i] };
+            high[i] = if h > high[i] { h } else { high[i] };
+        }
+    }
+    for (i, &h) in runs.remainder().iter().enumerate() {
+        finite &= h.is_finite();
+        low[i] = if h < low[i] { h } else { low[i] };
+        high[i] = if h > high[i] { h } else { high[i] };
+    }
+    if !finite {
+        return Err(heights.iter().position(|h| !h.is_finite()).unwrap_or(0));
+    }
+    let low = low.into_iter().fold(f32::INFINITY, f32::min);
+    let high = high.into_iter().fold(f32::NEG_INFINITY, f32::max);
+    Ok((f64::from(low), f64::from(high)))
+}
+
 /// A chunk's terrain block in world space.
 #[derive(Debug, Clone)]
 pub struct TerrainBlock {
@@ -91,24 +120,21 @@ impl TerrainBlock {
         let (cells_x, cells_z) = (vx - 1, vz - 1);
 
         let mut heights = Vec::with_capacity(vx * vz);
-        let (mut min_height, mut max_height) = (f64::INFINITY, f64::NEG_INFINITY);
         for z in 0..vz {
             let row_start = (z + border) * grid.width + border;
             let row = grid
                 .heights
                 .get(row_start..row_start + vx)
                 .ok_or("height grid row out of range")?;
-            for (x, &h) in row.iter().enumerate() {
-                if !h.is_finite() {
-                    return Err(format!(
-                        "height {h} at visible sample ({x}, {z}) is not finite"
-                    ));
-                }
-                min_height = min_height.min(f64::from(h));
-                max_height = max_height.max(f64::from(h));
-                heights.push(h);
-            }
+            heights.extend_from_slice(row);
         }
+        let (min_height, max_height) = finite_extremes(&heights).map_err(|at| {
+            let (x, z) = (at % vx, at / vx);
+            format!(
+                "height {} at visible sample ({x}, {z}) is not finite",
+                heights[at]
+            )
+        })?;
 
         let mut cell_holes = Vec::new();
         if let Some(map) = &data.holes {

@@ -219,16 +219,17 @@ fn block_origin() -> Scenario {
 }
 
 fn ground_blocks() -> Scenario {
-    // A light from −x skimming under a terrain block at 10 m: its rays meet
+    // A light from −x skimming under a terrain block at 25 m: its rays meet
     // two boxes under the block without crossing it (they enter under it
-    // from the world's edge), so the block is not in their cells' reach,
+    // from the world's edge), and the block's image lies more than a cell
+    // (10 m) above theirs, so the block is not in their cells' reach,
     // but the below-ground test reads it for their hits. A hole over the
     // boxes makes them count.
     let build = |hole: bool| {
         let mut world = World::new(2, 1);
         let holes =
             move |x: f64, z: f64| hole && (2.0..12.0).contains(&x) && (4.0..7.0).contains(&z);
-        world.terrain_with_holes((1, 0), 16, |_, _| 10.0, holes);
+        world.terrain_with_holes((1, 0), 16, |_, _| 25.0, holes);
         block(&mut world, (1, 0), [20.0, 0.0, 5.0], [21.0, 1.0, 6.0]);
         block(&mut world, (1, 0), [25.0, 0.0, 5.0], [26.0, 1.0, 6.0]);
         world
@@ -279,8 +280,9 @@ fn cell_index() -> Scenario {
     Scenario {
         name: "two cells that reach the same parts",
         input: KeyInput::CellIndex,
-        before: (World::new(2, 2), sun(0.1)),
-        after: (build(), sun(0.1)),
+        // Texels of 5 cm: the 32 m square spans two cells a side.
+        before: (World::new(2, 2), sun(0.05)),
+        after: (build(), sun(0.05)),
     }
 }
 
@@ -304,10 +306,12 @@ fn light_settings() -> Scenario {
 
 fn world_bounds() -> Scenario {
     // A pole thinner than a texel, hit by the texel centres or not as the
-    // grid's origin (the world's low corner) moves by 0.1 m.
+    // grid's origin (the world's low corner) moves by 0.1 m; the world is
+    // wide enough that its cell (128 m) holds neither of the poles at the
+    // edges that move the bounds.
     let build = |shift: f32| {
-        let mut world = World::new(9, 1);
-        let far = 9.0 * CHUNK as f32;
+        let mut world = World::new(17, 1);
+        let far = 17.0 * CHUNK as f32;
         block(
             &mut world,
             (0, 0),
@@ -316,15 +320,15 @@ fn world_bounds() -> Scenario {
         );
         block(
             &mut world,
-            (8, 0),
+            (16, 0),
             [far - 0.1 + shift, -1.0, 0.0],
             [far + shift, 10.0, 16.0],
         );
-        block(&mut world, (4, 0), [72.1, 0.5, 2.0], [72.15, 3.0, 14.0]);
+        block(&mut world, (8, 0), [136.1, 0.5, 2.0], [136.15, 3.0, 14.0]);
         put(
             &mut world,
-            (4, 0),
-            quad_up(70.0, 1.0, 75.0, 15.0, 0.0),
+            (8, 0),
+            quad_up(134.0, 1.0, 139.0, 15.0, 0.0),
             true,
         );
         world
@@ -401,12 +405,12 @@ fn refine_cells() -> Scenario {
 fn refine_seed() -> Scenario {
     // A quad between texel centres, over a receiver under half of it: its
     // one surface point proves it or not by its seed, which follows its
-    // id. Receiver-only boxes in another cell, earlier in id order, shift
-    // its id.
+    // id. Receiver-only boxes in another cell (the world is 640 m wide,
+    // cells 512 m), earlier in id order, shift its id.
     let build = |dummies: usize| {
-        let mut world = World::new(17, 1);
+        let mut world = World::new(40, 1);
         block(&mut world, (0, 0), [0.0, -1.0, 0.0], [0.1, 5.0, 0.1]);
-        block(&mut world, (16, 0), [271.9, -1.0, 15.9], [272.0, 5.0, 16.0]);
+        block(&mut world, (39, 0), [639.9, -1.0, 15.9], [640.0, 5.0, 16.0]);
         for n in 0..dummies {
             let x = 1.0 + n as f32 * 0.5;
             let dummy = cube(Vec3::new(x, 0.0, 1.0), Vec3::new(x + 0.1, 0.1, 1.1));
@@ -414,14 +418,14 @@ fn refine_seed() -> Scenario {
         }
         put(
             &mut world,
-            (16, 0),
-            quad_up(260.62, 5.62, 261.08, 6.08, 2.0),
+            (39, 0),
+            quad_up(628.62, 5.62, 629.08, 6.08, 2.0),
             true,
         );
         put(
             &mut world,
-            (16, 0),
-            quad_up(260.0, 5.0, 260.85, 7.0, 1.0),
+            (39, 0),
+            quad_up(628.0, 5.0, 628.85, 7.0, 1.0),
             false,
         );
         world
