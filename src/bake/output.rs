@@ -181,7 +181,7 @@ pub enum Content {
     /// stays as it is), or the bake writes nothing
     /// ([`OutputBytes::Dropped`]).
     None,
-    /// In a synced temporary file beside the target, written as the
+    /// In a temporary file beside the target, written as the
     /// output was prepared: a large world's rewritten chunks would fill
     /// memory.
     Staged(files::Staged),

@@ -1,6 +1,8 @@
 //! Batch writes that never leave a torn file: every target checked first,
-//! every temporary file written and synced before the first rename, modes
-//! and owners kept, symbolic links written through, folders synced after.
+//! every temporary file written and synced to disk before the first rename
+//! (one sync of each file system they lie on, not one per file: a big
+//! world's output is thousands of files), modes and owners kept, symbolic
+//! links written through, folders synced after.
 
 use super::folder_of;
 use super::replaceable::plan_target;
@@ -28,7 +30,8 @@ pub fn write_atomic_streamed(
     let planned = plan_batch(&[(path, &[])])?;
     let folders = prepare_folders(&planned, &[])?;
     let temp = temporary_path(&planned[0].real);
-    if let Err(err) = write_temporary_with(&temp, planned[0].existing.as_ref(), fill) {
+    let written = write_temporary_with(&temp, planned[0].existing.as_ref(), fill);
+    if let Err(err) = written.and_then(|()| sync_temporaries(&[&temp])) {
         let _ = fs::remove_file(&temp);
         return Err(err);
     }
@@ -60,7 +63,8 @@ struct Planned<'a> {
 }
 
 /// Writes one temporary file: a new file (never through an existing link),
-/// the mode and owner of the file it replaces, synced to disk.
+/// the mode and owner of the file it replaces (synced later, with the
+/// rest of its batch: [`sync_temporaries`]).
 fn write_temporary(temp: &Path, bytes: &[u8], existing: Option<&Metadata>) -> Result<()> {
     write_temporary_with(temp, existing, &mut |out| out.write_all(bytes))
 }
@@ -93,7 +97,66 @@ fn write_temporary_with(
         file.set_permissions(meta.permissions())
             .map_err(|e| Error::io(temp, "set the mode of", e))?;
     }
-    file.sync_all().map_err(|e| Error::io(temp, "sync", e))
+    Ok(())
+}
+
+/// The bytes of every temporary file of `temps` on disk before any is
+/// renamed: on Linux one `syncfs` of each file system they lie on (a
+/// sync per file costs a big world's output seconds), falling back to
+/// the files' own syncs where a file system refuses it; elsewhere each
+/// file synced.
+fn sync_temporaries(temps: &[&Path]) -> Result<()> {
+    let folders = distinct(temps.iter().map(|t| folder_of_temporary(t)).collect());
+    let mut synced_devices = Vec::new();
+    for folder in folders {
+        match sync_file_system(folder, &mut synced_devices) {
+            Ok(true) => {}
+            Ok(false) => sync_each(temps.iter().filter(|t| folder_of_temporary(t) == folder))?,
+            Err(err) => return Err(Error::io(folder, "sync the file system of", err)),
+        }
+    }
+    Ok(())
+}
+
+/// The folder a temporary lies in.
+fn folder_of_temporary(temp: &Path) -> &Path {
+    temp.parent().unwrap_or(Path::new("."))
+}
+
+/// Syncs the file system `folder` lies on, once per device in `synced`;
+/// `false` when it cannot be synced whole (not Linux, or refused).
+#[cfg(target_os = "linux")]
+fn sync_file_system(folder: &Path, synced: &mut Vec<u64>) -> std::io::Result<bool> {
+    use std::os::unix::fs::MetadataExt;
+    use std::os::unix::io::AsRawFd;
+    let handle = File::open(folder)?;
+    let device = handle.metadata()?.dev();
+    if synced.contains(&device) {
+        return Ok(true);
+    }
+    // SAFETY: `handle` is an open descriptor for the whole call.
+    let done = unsafe { libc::syncfs(handle.as_raw_fd()) } == 0;
+    if done {
+        synced.push(device);
+    }
+    Ok(done)
+}
+
+#[cfg(not(target_os = "linux"))]
+fn sync_file_system(_folder: &Path, _synced: &mut Vec<u64>) -> std::io::Result<bool> {
+    Ok(false)
+}
+
+/// Each of `temps` synced on its own.
+fn sync_each<'a>(temps: impl Iterator<Item = &'a &'a Path>) -> Result<()> {
+    for temp in temps {
+        fs::OpenOptions::new()
+            .write(true)
+            .open(temp)
+            .and_then(|file| file.sync_all())
+            .map_err(|e| Error::io(temp, "sync", e))?;
+    }
+    Ok(())
 }
 
 /// Replaces every file of a batch so that a crash or kill never leaves a
@@ -104,8 +167,9 @@ fn write_temporary_with(
 /// 2. stale temporary files of earlier runs are removed from the folders
 ///    (see `temporaries`);
 /// 3. each file's bytes go to a temporary file beside its target, keeping
-///    the target's mode (and owner where possible), synced to disk; a
-///    failure removes them all, so nothing was replaced;
+///    the target's mode (and owner where possible), and all are synced to
+///    disk ([`sync_temporaries`]); a failure removes them all, so nothing
+///    was replaced;
 /// 4. only then are they renamed over their targets, one by one;
 /// 5. the folders are synced so the renames last.
 ///
@@ -120,9 +184,8 @@ pub fn write_files(files: &[(&Path, &[u8])]) -> Result<()> {
 /// (the other targets of the same output, whose bytes stay as they are: a
 /// re-run that completes a killed bake may change no file at all, and must
 /// still remove what the killed run left), and calling `written` as each
-/// file's temporary is written and synced: step 3 syncs once per file, so
-/// a caller can show its progress while this module keeps the file system
-/// to itself.
+/// file's temporary is written, so a caller can show its progress while
+/// this module keeps the file system to itself.
 pub fn write_files_beside(
     files: &[(&Path, &[u8])],
     unchanged: &[&Path],
@@ -131,13 +194,20 @@ pub fn write_files_beside(
     let planned = plan_batch(files)?;
     let folders = prepare_folders(&planned, unchanged)?;
     let temporaries = write_temporaries(&planned, written)?;
+    let temps: Vec<&Path> = temporaries.iter().map(PathBuf::as_path).collect();
+    if let Err(err) = sync_temporaries(&temps) {
+        for temp in &temporaries {
+            let _ = fs::remove_file(temp);
+        }
+        return Err(err);
+    }
     rename_over_targets(&planned, &temporaries)?;
     sync_folders(&folders);
     Ok(())
 }
 
-/// A file's new bytes waiting beside it in a synced temporary file
-/// ([`stage`]), renamed over it by [`commit_staged`]; dropped without
+/// A file's new bytes waiting beside it in a temporary file ([`stage`]),
+/// synced and renamed over it by [`commit_staged`]; dropped without
 /// that, the temporary is removed. A large batch is staged file by file
 /// as its bytes are made, so it is never held whole in memory, and still
 /// replaces nothing until every file is staged.
@@ -178,8 +248,8 @@ pub enum Staging {
 }
 
 /// Checks `target` as a batch's first step does and writes `bytes` to a
-/// synced temporary file beside it (creating its folder), keeping the
-/// mode and owner of the file it will replace.
+/// temporary file beside it (creating its folder), keeping the mode and
+/// owner of the file it will replace.
 pub fn stage(target: &Path, bytes: &[u8]) -> Result<Staging> {
     let (real, existing) = match plan_target(target) {
         Ok(planned) => planned,
@@ -201,12 +271,13 @@ pub fn stage(target: &Path, bytes: &[u8]) -> Result<Staging> {
     }))
 }
 
-/// Steps 2, 4 and 5 of [`write_files`] for files already staged: every
-/// target checked again (it may have changed since it was staged) and
-/// two that are one file refused, with every staged file discarded and
-/// nothing replaced; stale temporaries swept beside them and beside
-/// `unchanged`; each renamed over its target in order (`renamed` called
-/// after each); the folders synced.
+/// The rest of [`write_files`] for files already staged: every target
+/// checked again (it may have changed since it was staged) and two that
+/// are one file refused, with every staged file discarded and nothing
+/// replaced; stale temporaries swept beside them and beside `unchanged`;
+/// the temporaries synced to disk (a failure discards them all); each
+/// renamed over its target in order (`renamed` called after each); the
+/// folders synced.
 pub fn commit_staged(
     staged: &[&Staged],
     unchanged: &[&Path],
@@ -226,6 +297,11 @@ pub fn commit_staged(
     }
     let folders = distinct(staged.iter().map(|f| f.folder.as_path()).collect());
     sweep_beside(&folders, unchanged);
+    let temps: Vec<&Path> = staged.iter().map(|f| f.temp.as_path()).collect();
+    if let Err(err) = sync_temporaries(&temps) {
+        staged.iter().for_each(|file| file.discard());
+        return Err(err);
+    }
     let pairs: Vec<(&Path, &Path)> = staged
         .iter()
         .map(|f| (f.temp.as_path(), f.real.as_path()))
@@ -300,8 +376,8 @@ fn sweep_beside(folders: &[&Path], unchanged: &[&Path]) {
     }
 }
 
-/// Step 3: every temporary file written and synced, in batch order; on a
-/// failure every one written so far is removed, so nothing was replaced.
+/// Step 3: every temporary file written, in batch order; on a failure
+/// every one written so far is removed, so nothing was replaced.
 fn write_temporaries(planned: &[Planned], written: &mut dyn FnMut()) -> Result<Vec<PathBuf>> {
     let mut temporaries: Vec<PathBuf> = Vec::with_capacity(planned.len());
     for file in planned {
@@ -412,6 +488,23 @@ mod tests {
             Staging::Staged(staged) => staged,
             Staging::Refused(why) => panic!("{} refused: {why}", target.display()),
         }
+    }
+
+    #[test]
+    fn temporaries_in_several_folders_are_synced_and_a_missing_folder_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+        std::fs::create_dir_all(&a).unwrap();
+        std::fs::create_dir_all(&b).unwrap();
+        let temps = [a.join(".x.tmp"), a.join(".y.tmp"), b.join(".z.tmp")];
+        for temp in &temps {
+            write_temporary(temp, b"bytes", None).unwrap();
+        }
+        let paths: Vec<&Path> = temps.iter().map(PathBuf::as_path).collect();
+        sync_temporaries(&paths).unwrap();
+        let gone = dir.path().join("gone").join(".w.tmp");
+        let err = sync_temporaries(&[&gone]).unwrap_err().to_string();
+        assert!(err.contains("gone"), "{err}");
     }
 
     fn make_read_only(path: &Path) {
