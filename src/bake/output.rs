@@ -168,8 +168,10 @@ pub struct ChunkOutput {
     pub target: PathBuf,
     /// The target's new content, where it waits for [`write_outputs`].
     pub content: Content,
-    /// The content key of what the target holds after writing.
-    pub key: Key,
+    /// The content key of what the target holds after writing, for the
+    /// world's record a bake with a cache keeps (`None` without one: a big
+    /// world's chunks are not hashed for nothing).
+    pub key: Option<Key>,
     /// The target would hold different bytes after writing.
     pub changed: bool,
 }
@@ -366,12 +368,12 @@ impl ChunkOutputs<'_> {
             bytes,
             written,
         } = self.rewrite(index, chunk, &original, read_key)?;
-        let key = content_key(&bytes);
+        let key = self.cache.map(|_| content_key(&bytes));
         // New bytes a bake does not write (`--dry-run`, `--check`) are in
         // no file a later bake reads: their entries would only fill the
         // cache.
         let kept_by_target = bytes == original || self.bytes == OutputBytes::Kept;
-        if let Some(cache) = self.cache.filter(|_| kept_by_target) {
+        if let (Some(cache), Some(key)) = (self.cache.filter(|_| kept_by_target), key) {
             cache.put(
                 Kind::Output,
                 &output_key(cache, &key),
@@ -519,12 +521,12 @@ impl ChunkOutputs<'_> {
         original: &Option<Vec<u8>>,
     ) -> Result<Made> {
         let output = match original {
-            Some(bytes) => self.output(chunk, bytes, bytes.clone(), content)?,
+            Some(bytes) => self.output(chunk, bytes, bytes.clone(), Some(content))?,
             None => ChunkOutput {
                 source: chunk.file.clone(),
                 target: chunk.file.clone(),
                 content: Content::None,
-                key: content,
+                key: Some(content),
                 changed: false,
             },
         };
@@ -570,7 +572,7 @@ impl ChunkOutputs<'_> {
         chunk: &crate::scene::Chunk,
         original: &[u8],
         bytes: Vec<u8>,
-        key: Key,
+        key: Option<Key>,
     ) -> Result<ChunkOutput> {
         let target = match self.out_dir {
             None => chunk.file.clone(),
@@ -745,7 +747,7 @@ pub fn space_settings_output(
     Ok(ChunkOutput {
         source,
         target,
-        key: content_key(&bytes),
+        key: Some(content_key(&bytes)),
         content,
         changed,
     })

@@ -125,7 +125,7 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
                 chunks: wrote
                     .outputs
                     .iter()
-                    .map(|o| (o.target.as_path(), o.key))
+                    .filter_map(|o| Some((o.target.as_path(), o.key?)))
                     .collect(),
                 res_roots: &settings.res_paths,
                 lights: wrote.lights,

@@ -102,6 +102,10 @@ pub(crate) struct CopyRange {
     count: u32,
 }
 
+/// Parts whose boxes one parallel step of [`TopLevel::build`] makes: a
+/// few megabytes of them at a time.
+const PARTS_PER_WAVE: usize = 1 << 16;
+
 /// The first caster ids of a part entry and of its coincident copies:
 /// parts placed with the same model at the bit-identical transform (an
 /// editor's duplicate key leaves such stacks), which are one entry of the
@@ -301,7 +305,7 @@ impl Extent {
 impl TopLevel {
     pub fn build(
         bottom: &BottomLevels,
-        parts: &(impl PlacedParts + ?Sized),
+        parts: &(impl PlacedParts + Sync + ?Sized),
         blocks: impl ExactSizeIterator<Item = PlacedBlock>,
         reference: DVec3,
     ) -> TopLevel {
@@ -309,15 +313,28 @@ impl TopLevel {
         let mut sources = Vec::with_capacity(parts.count() + blocks.len());
         let mut placements = Vec::with_capacity(parts.count());
         let mut left_out_triangles = 0;
-        for index in 0..parts.count() {
-            let part = parts.part(index);
-            match part_box(bottom, &part, reference) {
-                Some(b) => {
-                    boxes.push(b);
-                    sources.push(Source::Part(index as u32));
-                    placements.push((placement_hash(&part), index as u32));
+        // Each part's box and inverse in parallel, a wave at a time, so
+        // the lists fill in index order without a second copy of them.
+        for wave in (0..parts.count()).step_by(PARTS_PER_WAVE) {
+            let found: Vec<Option<(Aabb, u64)>> = (wave..parts.count().min(wave + PARTS_PER_WAVE))
+                .into_par_iter()
+                .map(|index| {
+                    let part = parts.part(index);
+                    part_box(bottom, &part, reference).map(|b| (b, placement_hash(&part)))
+                })
+                .collect();
+            for (index, found) in (wave..).zip(found) {
+                match found {
+                    Some((b, hash)) => {
+                        boxes.push(b);
+                        sources.push(Source::Part(index as u32));
+                        placements.push((hash, index as u32));
+                    }
+                    None => {
+                        let model = parts.part(index).model as usize;
+                        left_out_triangles += bottom.model_triangles(model);
+                    }
                 }
-                None => left_out_triangles += bottom.model_triangles(part.model as usize),
             }
         }
         let coincident = Coincident::find(parts, placements);
@@ -346,21 +363,14 @@ impl TopLevel {
         });
         let tree = BoxTree::build(&boxes, 1);
         drop(boxes);
-        let mut copy_casters = Vec::new();
-        let entries = tree
+        // The entries in parallel (an inverse each), straight into their
+        // vector; their copies' ranges after, in slot order.
+        let mut entries: Vec<Entry> = tree
             .order()
-            .iter()
+            .par_iter()
             .map(|&i| match sources[i as usize] {
                 Source::Part(index) => {
-                    let start = copy_casters.len() as u32;
-                    let copies = coincident.copies.get(&index).map_or(&[][..], |c| &c[..]);
-                    copy_casters
-                        .extend(copies.iter().map(|&c| parts.part(c as usize).first_caster));
-                    let copies = CopyRange {
-                        start,
-                        count: copies.len() as u32,
-                    };
-                    part_entry(&parts.part(index as usize), reference, copies)
+                    part_entry(&parts.part(index as usize), reference, CopyRange::default())
                 }
                 Source::Block(placed) => Entry::Block {
                     block: placed.block,
@@ -368,6 +378,22 @@ impl TopLevel {
                 },
             })
             .collect();
+        let mut copy_casters = Vec::new();
+        if !coincident.copies.is_empty() {
+            for (entry, &i) in entries.iter_mut().zip(tree.order()) {
+                let (Entry::Part { copies: range, .. }, Source::Part(index)) =
+                    (entry, sources[i as usize])
+                else {
+                    continue;
+                };
+                let copies = coincident.copies.get(&index).map_or(&[][..], |c| &c[..]);
+                *range = CopyRange {
+                    start: copy_casters.len() as u32,
+                    count: copies.len() as u32,
+                };
+                copy_casters.extend(copies.iter().map(|&c| parts.part(c as usize).first_caster));
+            }
+        }
         TopLevel {
             tree,
             entries,

@@ -1468,7 +1468,7 @@ fn chunks_read_back_from_the_cache_load_the_scene_parsing_loads_before_and_after
     let parsed_after = load_unvouched(&load, None).unwrap();
     assert_eq!(scene_text(&after), scene_text(&parsed_after));
     for (chunk, output) in after.chunks.iter().zip(&outputs) {
-        assert_eq!(chunk.file_key, Some(output.key), "{}", chunk.name);
+        assert_eq!(chunk.file_key, output.key, "{}", chunk.name);
     }
 }
 
