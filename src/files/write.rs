@@ -106,21 +106,22 @@ fn write_temporary_with(
 /// the files' own syncs where a file system refuses it; elsewhere each
 /// file synced.
 fn sync_temporaries(temps: &[&Path]) -> Result<()> {
-    let folders = distinct(temps.iter().map(|t| folder_of_temporary(t)).collect());
+    let of_each: Vec<PathBuf> = temps.iter().map(|t| folder_of(t)).collect();
     let mut synced_devices = Vec::new();
-    for folder in folders {
+    for folder in distinct(of_each.iter().map(PathBuf::as_path).collect()) {
         match sync_file_system(folder, &mut synced_devices) {
             Ok(true) => {}
-            Ok(false) => sync_each(temps.iter().filter(|t| folder_of_temporary(t) == folder))?,
+            Ok(false) => sync_each(
+                temps
+                    .iter()
+                    .zip(&of_each)
+                    .filter(|(_, of)| of.as_path() == folder)
+                    .map(|(temp, _)| temp),
+            )?,
             Err(err) => return Err(Error::io(folder, "sync the file system of", err)),
         }
     }
     Ok(())
-}
-
-/// The folder a temporary lies in.
-fn folder_of_temporary(temp: &Path) -> &Path {
-    temp.parent().unwrap_or(Path::new("."))
 }
 
 /// Syncs the file system `folder` lies on, once per device in `synced`;
@@ -502,6 +503,11 @@ mod tests {
         }
         let paths: Vec<&Path> = temps.iter().map(PathBuf::as_path).collect();
         sync_temporaries(&paths).unwrap();
+        // A temporary named without a folder lies in the current one
+        // (whose file system Linux syncs whole).
+        if cfg!(target_os = "linux") {
+            sync_temporaries(&[Path::new(".not-written.tmp")]).unwrap();
+        }
         let gone = dir.path().join("gone").join(".w.tmp");
         let err = sync_temporaries(&[&gone]).unwrap_err().to_string();
         assert!(err.contains("gone"), "{err}");
