@@ -182,9 +182,25 @@ fn sweep_plot_keeps_its_legend_inside_and_its_labels_apart_near_zero() {
     ];
     // Every row at zero, within a factor of two in time.
     let all_zero: Vec<(f64, u64)> = (0..12).map(|i| (0.1 + 0.01 * i as f64, 0)).collect();
-    for rows in [&village[..], &all_zero] {
-        let svg = report_of(rows).to_svg();
+    // Every row at one time and one count: the densest crowd there is.
+    let one_place = [(0.2, 3); 12];
+    for rows in [&village[..], &all_zero, &one_place] {
+        let report = report_of(rows);
+        let svg = report.to_svg();
         assert_eq!(layout_problems(&svg), Vec::<String>::new(), "{svg}");
+        // Every row is named: by its label at its point, or in the key.
+        let texts: Vec<String> = texts(&svg).into_iter().map(|(t, _)| t).collect();
+        for (i, row) in report.rows.iter().enumerate() {
+            let keyed = format!("{}: {}", i + 1, row.label);
+            assert!(
+                texts
+                    .iter()
+                    .any(|t| *t == row.label || t.starts_with(&keyed)),
+                "row {} ({}) is not named\n{svg}",
+                i + 1,
+                row.label
+            );
+        }
     }
 }
 
