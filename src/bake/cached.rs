@@ -210,8 +210,8 @@ pub struct BakeCache<'c> {
     /// (light, cell) of the cells a plan's calibration traced and stored:
     /// computed by this bake, though found in the cache.
     calibrated: Mutex<HashSet<(usize, u64)>>,
-    /// The setup of the light a plan built last, for the bake.
-    kept: Mutex<Option<LightSetup>>,
+    /// The setups a plan built and kept for the bake.
+    kept: Mutex<Vec<LightSetup>>,
 }
 
 impl<'c> BakeCache<'c> {
@@ -231,7 +231,7 @@ impl<'c> BakeCache<'c> {
             lights: Mutex::new(BTreeMap::new()),
             reports: Mutex::new(BTreeMap::new()),
             calibrated: Mutex::new(HashSet::new()),
-            kept: Mutex::new(None),
+            kept: Mutex::new(Vec::new()),
         }
     }
 
@@ -423,9 +423,9 @@ impl<'c> BakeCache<'c> {
         planned
     }
 
-    /// Keeps the setup of the light a plan built last for the bake.
-    pub fn keep_setup(&self, setup: Option<LightSetup>) {
-        *lock(&self.kept) = setup;
+    /// Keeps the setups a plan built for the bake.
+    pub fn keep_setups(&self, setups: Vec<LightSetup>) {
+        *lock(&self.kept) = setups;
     }
 
     /// Cell `cell` of `light`: its value from the cache, or traced by
@@ -837,7 +837,9 @@ impl GridSource for BakeCache<'_> {
     }
 
     fn take_setup(&self, index: usize, _config: &BakeConfig) -> Option<LightSetup> {
-        lock(&self.kept).take_if(|setup| setup.index == index)
+        let mut kept = lock(&self.kept);
+        let at = kept.iter().position(|setup| setup.index == index)?;
+        Some(kept.swap_remove(at))
     }
 
     /// Light `index`'s setup for a bake with this cache, as

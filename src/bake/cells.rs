@@ -176,17 +176,26 @@ impl GroundNear {
             near.starts.resize(world.parts.len() + 1, 0);
             return near;
         }
-        let per_part: Vec<Vec<u32>> = world
+        // Runs of parts, each into one list (not a list per part: millions
+        // of small allocations on a large world).
+        let runs: Vec<(Vec<u32>, Vec<u32>)> = world
             .parts
-            .par_iter()
-            .map(|part| match part_box(world, part) {
-                Some((min, max)) => blocks_near(scene, &cells, min, max),
-                None => Vec::new(),
+            .par_chunks(GROUND_NEAR_RUN)
+            .map(|run| {
+                let (mut ends, mut blocks) = (Vec::with_capacity(run.len()), Vec::new());
+                for part in run {
+                    if let Some((min, max)) = part_box(world, part) {
+                        blocks_near(scene, &cells, min, max, &mut blocks);
+                    }
+                    ends.push(blocks.len() as u32);
+                }
+                (ends, blocks)
             })
             .collect();
-        for blocks in per_part {
+        for (ends, blocks) in runs {
+            let before = near.blocks.len() as u32;
+            near.starts.extend(ends.iter().map(|&end| before + end));
             near.blocks.extend(blocks);
-            near.starts.push(near.blocks.len() as u32);
         }
         near
     }
@@ -201,14 +210,18 @@ impl GroundNear {
     }
 }
 
-/// The blocks in the chunk cells the box `min..max` may read (see
-/// [`GroundNear`]), ascending.
+/// Parts per parallel run of [`GroundNear::of`].
+const GROUND_NEAR_RUN: usize = 8192;
+
+/// Appends to `blocks` the blocks in the chunk cells the box `min..max` may
+/// read (see [`GroundNear`]), ascending.
 fn blocks_near(
     scene: &Scene,
     cells: &HashMap<(i64, i64), u32>,
     min: DVec3,
     max: DVec3,
-) -> Vec<u32> {
+    blocks: &mut Vec<u32>,
+) {
     let size = scene.settings.chunk_size;
     let grow = 1.0 + 1e-5 * min.abs().max(max.abs()).max_element();
     let range = |lo: f64, hi: f64| {
@@ -218,9 +231,9 @@ fn blocks_near(
         (first.abs() < 1e9 && last.abs() < 1e9).then_some((first as i64, last as i64))
     };
     let (Some((x0, x1)), Some((z0, z1))) = (range(min.x, max.x), range(min.z, max.z)) else {
-        return Vec::new();
+        return;
     };
-    let mut blocks = Vec::new();
+    let start = blocks.len();
     if (x1 - x0 + 1).saturating_mul(z1 - z0 + 1) > cells.len() as i64 {
         blocks.extend(cells.iter().filter_map(|(&(x, z), &b)| {
             ((x0..=x1).contains(&x) && (z0..=z1).contains(&z)).then_some(b)
@@ -232,8 +245,7 @@ fn blocks_near(
             }
         }
     }
-    blocks.sort_unstable();
-    blocks
+    blocks[start..].sort_unstable();
 }
 
 /// A placed part's world box (its model's bottom level's), or `None` when

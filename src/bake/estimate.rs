@@ -236,13 +236,15 @@ pub fn plan_with(
 ) -> Result<Plan, BakeError> {
     let started = Instant::now();
     let mut lights = Vec::new();
-    let mut kept = None;
-    // Last light first: the first light's setup, built last, is kept.
+    let mut kept: Vec<LightSetup> = Vec::new();
+    // Last light first: the first light's setup, built last, is kept; with
+    // a cache, so is every other whose top level is small beside its reach
+    // (an edit's few cells), which the bake would otherwise find again.
     for index in (0..config.lights.len()).rev() {
         let planned = plan_light(world, config, index, baseline.threads, progress, cache)?;
         let (light, setup) = planned;
         lights.push(light);
-        kept = setup;
+        kept.extend(setup.filter(|s| index == 0 || (cache.is_some() && s.top_is_small())));
     }
     lights.reverse();
     let calibration_seconds = started.elapsed().as_secs_f64();
@@ -260,9 +262,7 @@ pub fn plan_with(
         Some(_) => cached_output_share(&lights),
         None => 1.0,
     };
-    let kept_setup_seconds = kept
-        .as_ref()
-        .map_or(0.0, |s: &LightSetup| s.reach_seconds + s.top_seconds);
+    let kept_setup_seconds: f64 = kept.iter().map(|s| s.reach_seconds + s.top_seconds).sum();
     let estimated_seconds = baseline.elapsed_seconds
         + calibration_seconds
         + lights.iter().map(|l| l.estimated_seconds).sum::<f64>()
@@ -270,7 +270,7 @@ pub fn plan_with(
         + output_share * baseline.chunk_file_bytes as f64
             / (OUTPUT_BYTES_PER_THREAD_SECOND * threads as f64);
     if let Some(cache) = cache {
-        cache.keep_setup(kept.take());
+        cache.keep_setups(std::mem::take(&mut kept));
     }
     Ok(Plan {
         lights,
@@ -281,7 +281,7 @@ pub fn plan_with(
         estimated_peak_bytes,
         items: world.scene.item_entries(),
         unproxied_speedtrees: world.scene.unproxied_trees(),
-        kept: KeptSetup(Mutex::new(kept)),
+        kept: KeptSetup(Mutex::new(kept.pop())),
     })
 }
 

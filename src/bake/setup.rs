@@ -125,6 +125,9 @@ fn placed_blocks<'w>(
     })
 }
 
+/// See [`LightSetup::top_is_small`].
+const SMALL_TOP_SHARE: usize = 8;
+
 /// What lies in one light's reach, and what was left out.
 #[derive(Debug, Default, Clone)]
 pub struct Reach {
@@ -255,6 +258,13 @@ impl LightSetup {
             self.grid.reference_point(),
         );
         self.top_seconds = started.elapsed().as_secs_f64();
+    }
+
+    /// The top level holds at most a [`SMALL_TOP_SHARE`]th of the reach
+    /// (a cached bake's few cells traced again): cheap to hold beside
+    /// another light's.
+    pub fn top_is_small(&self) -> bool {
+        self.top.len() * SMALL_TOP_SHARE <= self.reach.parts.len() + self.reach.blocks.len()
     }
 
     /// Nothing in reach can be hit: no ray of the light meets anything.

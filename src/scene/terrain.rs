@@ -226,6 +226,9 @@ impl TerrainBlock {
             heights: &self.heights,
             holes: &self.cell_holes,
             alternating: self.version == TerrainVersion::Terrain2,
+            // Every sample is finite (checked when the block was made), so
+            // these are the f32 extremes exactly.
+            extremes: (self.min_height as f32, self.max_height as f32),
         }
     }
 

@@ -38,6 +38,10 @@ pub struct HeightGrid<'a> {
     /// terrain2: the diagonal alternates with `(cx ^ cz) & 1`; terrain1:
     /// every diagonal joins (x, z)–(x+1, z+1).
     pub alternating: bool,
+    /// The lowest and highest of `heights` ([`extremes_of`]), known to the
+    /// block that holds them, so a block's range costs no pass over its
+    /// samples.
+    pub extremes: (f32, f32),
 }
 
 impl HeightGrid<'_> {
@@ -262,12 +266,18 @@ impl Quantizer {
 }
 
 /// The lowest and highest of a block's samples (∞, −∞ for none).
-fn extremes(grid: &HeightGrid) -> (f32, f32) {
+/// The lowest and highest of `heights`: (∞, −∞) for none.
+pub fn extremes_of(heights: &[f32]) -> (f32, f32) {
     let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
-    for &h in grid.heights {
+    for &h in heights {
         (low, high) = (low.min(h), high.max(h));
     }
     (low, high)
+}
+
+fn extremes(grid: &HeightGrid) -> (f32, f32) {
+    debug_assert_eq!(grid.extremes, extremes_of(grid.heights));
+    grid.extremes
 }
 
 /// A block's height range from its extremes: (0, 0) for no sample.
@@ -723,6 +733,7 @@ mod tests {
                     heights: &heights[..samples.min(heights.len())],
                     holes: &holes,
                     alternating: true,
+                    extremes: extremes_of(&heights[..samples.min(heights.len())]),
                 };
                 let field = HeightField::build(&grid);
                 let what = format!("{cells_x} × {cells_z} cells");
@@ -756,6 +767,7 @@ mod tests {
             heights: &heights,
             holes: &holes,
             alternating: true,
+            extremes: extremes_of(&heights),
         };
         let field = HeightField::build(&grid);
         let reference = origin + DVec3::new(37.0, 0.0, 51.0);

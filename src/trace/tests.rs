@@ -751,6 +751,7 @@ mod two_level {
                 heights,
                 holes,
                 alternating: true,
+                extremes: crate::trace::heightfield::extremes_of(heights),
             })
             .collect()
     }

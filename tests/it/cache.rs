@@ -971,6 +971,48 @@ fn a_recomputed_cell_says_which_input_changed() {
     assert!(why.contains(&("options".into(), String::new())), "{why:?}");
 }
 
+#[test]
+fn a_light_whose_cells_the_cache_holds_is_set_up_once() {
+    // The plan sets every light up to read its cells' entries; a light
+    // whose top level is small (here empty: only the sun changed) is kept
+    // for the bake instead of being set up again.
+    let dir = tempfile::tempdir().unwrap();
+    let settings = small_world(dir.path());
+    ok(run(&["bake", s(&settings), "--quiet"]), "the first bake");
+    let text = std::fs::read_to_string(&settings).unwrap();
+    let turned = replaced_once(
+        &text,
+        "-0.300000 -1.000000 0.200000",
+        "-0.200000 -1.000000 0.300000",
+    );
+    std::fs::write(&settings, turned).unwrap();
+    let out = ok(
+        run(&[
+            "bake",
+            s(&settings),
+            "--progress",
+            "json",
+            "--progress-interval",
+            "0",
+        ]),
+        "the sun turned",
+    );
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    for light in ["sun", "spot", "point"] {
+        let set_up = stderr
+            .lines()
+            .filter_map(|line| serde_json::from_str::<serde_json::Value>(line).ok())
+            .filter(|e| e["phase"] == "top-level" && e["light"] == light && e["done"] == 0)
+            .count();
+        assert_eq!(set_up, 1, "{light}: {stderr}");
+    }
+    assert!(
+        stderr.contains("light spot: 1 cells, 1 reused")
+            && stderr.contains("light point: 6 cells, 6 reused"),
+        "{stderr}"
+    );
+}
+
 /// The cache folder of `dir`'s default cache.
 fn cache_of(dir: &Path) -> PathBuf {
     dir.join(".shadowcull-cache")
