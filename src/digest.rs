@@ -25,20 +25,79 @@ fn avalanche(mut z: u64) -> u64 {
 impl Digest {
     /// The hash of `bytes`.
     pub fn of(bytes: &[u8]) -> Digest {
-        let mut a = K1;
-        let mut b = K2;
+        let mut digester = Digester::new();
+        digester.update(bytes);
+        digester.finish()
+    }
+}
+
+/// [`Digest::of`] the bytes given in pieces: the same value as of their
+/// concatenation, without making it (a chunk with its masks zeroed is
+/// hashed as it is spliced).
+#[derive(Debug, Clone)]
+pub struct Digester {
+    a: u64,
+    b: u64,
+    /// Bytes of a word not yet complete, and how many.
+    pending: [u8; 8],
+    pending_len: usize,
+    length: u64,
+}
+
+impl Default for Digester {
+    fn default() -> Digester {
+        Digester::new()
+    }
+}
+
+impl Digester {
+    pub fn new() -> Digester {
+        Digester {
+            a: K1,
+            b: K2,
+            pending: [0; 8],
+            pending_len: 0,
+            length: 0,
+        }
+    }
+
+    #[inline]
+    fn mix(&mut self, w: u64) {
+        self.a = (self.a ^ w).wrapping_mul(K2).rotate_left(29);
+        self.b = (self.b ^ w.rotate_left(17))
+            .wrapping_mul(K3)
+            .rotate_left(31);
+    }
+
+    pub fn update(&mut self, mut bytes: &[u8]) {
+        self.length += bytes.len() as u64;
+        if self.pending_len > 0 {
+            let take = (8 - self.pending_len).min(bytes.len());
+            self.pending[self.pending_len..self.pending_len + take].copy_from_slice(&bytes[..take]);
+            self.pending_len += take;
+            bytes = &bytes[take..];
+            if self.pending_len < 8 {
+                return;
+            }
+            self.mix(u64::from_le_bytes(self.pending));
+            self.pending_len = 0;
+        }
         let mut words = bytes.chunks_exact(8);
         for word in &mut words {
-            let w = u64::from_le_bytes(word.try_into().unwrap_or_default());
-            a = (a ^ w).wrapping_mul(K2).rotate_left(29);
-            b = (b ^ w.rotate_left(17)).wrapping_mul(K3).rotate_left(31);
+            self.mix(u64::from_le_bytes(word.try_into().unwrap_or_default()));
         }
+        let rest = words.remainder();
+        self.pending[..rest.len()].copy_from_slice(rest);
+        self.pending_len = rest.len();
+    }
+
+    /// The digest: the last word (zero-padded, mixed even when empty) and
+    /// the length folded in.
+    pub fn finish(mut self) -> Digest {
         let mut tail = [0u8; 8];
-        tail[..words.remainder().len()].copy_from_slice(words.remainder());
-        let w = u64::from_le_bytes(tail);
-        a = (a ^ w).wrapping_mul(K2).rotate_left(29);
-        b = (b ^ w.rotate_left(17)).wrapping_mul(K3).rotate_left(31);
-        let length = bytes.len() as u64;
+        tail[..self.pending_len].copy_from_slice(&self.pending[..self.pending_len]);
+        self.mix(u64::from_le_bytes(tail));
+        let (a, b, length) = (self.a, self.b, self.length);
         let hi = avalanche(a ^ length.wrapping_mul(K3) ^ b.rotate_left(13));
         let lo = avalanche(b ^ length.wrapping_mul(K1) ^ a.rotate_left(41));
         let mut out = [0u8; 16];
@@ -87,6 +146,31 @@ mod tests {
         // value is this function's own, recorded when it was written).
         assert_eq!(Digest::of(b"shadowcull").to_string(), PINNED);
         assert_ne!(Digest::of(b"a"), Digest::of(b"b"));
+    }
+
+    #[test]
+    fn pieces_digest_as_their_concatenation() {
+        let bytes: Vec<u8> = (0..200u32).map(|i| (i * 73 % 256) as u8).collect();
+        for len in [0, 1, 7, 8, 9, 15, 16, 17, 63, 200] {
+            let whole = Digest::of(&bytes[..len]);
+            for cuts in [
+                vec![],
+                vec![0],
+                vec![1],
+                vec![3, 5],
+                vec![7, 8, 9],
+                vec![2, 11, 30, 31],
+            ] {
+                let mut digester = Digester::new();
+                let mut at = 0;
+                for cut in cuts.into_iter().filter(|&c| c <= len) {
+                    digester.update(&bytes[at..cut]);
+                    at = cut;
+                }
+                digester.update(&bytes[at..len]);
+                assert_eq!(digester.finish(), whole, "{len} bytes");
+            }
+        }
     }
 
     const PINNED: &str = "eedcc6f5f5a1071d77275ae0b59a625c";

@@ -42,6 +42,7 @@ use super::chunk::{
     instance_elements, speedtree_elements, terrain_element, InstanceKind, SPEEDTREE_TAG,
 };
 use super::{packed_xml, xml, Section};
+use crate::digest::{Digest, Digester};
 use crate::error::FormatError;
 use std::fmt::Write as _;
 use std::ops::Range;
@@ -187,14 +188,15 @@ pub fn without_masks(
     }
 }
 
-/// [`without_masks`] of a text chunk from the places of its `<shadow>`s
-/// (`sites`, found in `original`), without its tree.
-pub fn without_masks_at(
+/// The [`Digest`] of [`without_masks`] of a text chunk, from the places of
+/// its `<shadow>`s (`sites`, found in `original`), without its tree and
+/// without making the bytes.
+pub fn digest_without_masks_at(
     original: &[u8],
     sites: &ShadowSites,
     chunk: &super::chunk::ChunkFile,
-) -> Result<Vec<u8>, FormatError> {
-    Ok(sites.write(original, &zero_masks(chunk))?.0)
+) -> Result<Digest, FormatError> {
+    sites.digest(original, &zero_masks(chunk))
 }
 
 /// Every `<shadow>` the bake writes into `chunk`, with every mask 0.
@@ -489,6 +491,28 @@ impl ShadowSites {
         original: &[u8],
         shadows: &ChunkShadows,
     ) -> Result<(Vec<u8>, ShadowSites), FormatError> {
+        let mut edits = self.edits(original, shadows)?;
+        let out = splice(original, &mut edits)?;
+        Ok((out, self.moved(&edits)))
+    }
+
+    /// The [`Digest`] of the bytes [`ShadowSites::write`] would make, made
+    /// as they are spliced rather than after (loading hashes every chunk
+    /// with its masks zeroed). Errors as `write`'s.
+    pub fn digest(&self, original: &[u8], shadows: &ChunkShadows) -> Result<Digest, FormatError> {
+        let mut digester = Digester::new();
+        let mut pos = 0;
+        for edit in &self.edits(original, shadows)? {
+            digester.update(kept_before(original, pos, edit)?);
+            digester.update(&edit.text);
+            pos = edit.range.end;
+        }
+        digester.update(original.get(pos..).unwrap_or(&[]));
+        Ok(digester.finish())
+    }
+
+    /// The edits that put `shadows` into `original`, in byte order.
+    fn edits(&self, original: &[u8], shadows: &ChunkShadows) -> Result<Vec<Edit>, FormatError> {
         let eol = line_ending(original);
         let depth = usize::from(self.depth);
         let written = self.targets(shadows)?;
@@ -525,8 +549,7 @@ impl ShadowSites {
             }
         }
         edits.sort_by_key(|e| (e.range.start, e.range.end));
-        let out = splice(original, &mut edits)?;
-        Ok((out, self.moved(&edits)))
+        Ok(edits)
     }
 
     /// Each target with masks to write: its place in the order instances,
@@ -787,15 +810,7 @@ fn splice(original: &[u8], edits: &mut [Edit]) -> Result<Vec<u8>, FormatError> {
     let mut out = Vec::with_capacity(original.len() + grown);
     let mut pos = 0;
     for edit in edits.iter_mut() {
-        let Some(kept) = original.get(pos..edit.range.start) else {
-            // Only possible if two edits overlap, which the element tree rules
-            // out; refuse rather than write a damaged file.
-            return Err(FormatError::at_byte(
-                edit.range.start,
-                "internal error: overlapping <shadow> edits; the file was not changed",
-            ));
-        };
-        out.extend_from_slice(kept);
+        out.extend_from_slice(kept_before(original, pos, edit)?);
         let at = out.len();
         out.extend_from_slice(&edit.text);
         if let Some(shadow) = &mut edit.shadow {
@@ -805,6 +820,18 @@ fn splice(original: &[u8], edits: &mut [Edit]) -> Result<Vec<u8>, FormatError> {
     }
     out.extend_from_slice(original.get(pos..).unwrap_or(&[]));
     Ok(out)
+}
+
+/// The bytes of `original` from `pos` to where `edit` begins.
+fn kept_before<'o>(original: &'o [u8], pos: usize, edit: &Edit) -> Result<&'o [u8], FormatError> {
+    // None only if two edits overlap, which the element tree rules out;
+    // refuse rather than write a damaged file.
+    original.get(pos..edit.range.start).ok_or_else(|| {
+        FormatError::at_byte(
+            edit.range.start,
+            "internal error: overlapping <shadow> edits; the file was not changed",
+        )
+    })
 }
 
 /// Reads the output back before anyone writes it to disk: a file this module
@@ -1721,9 +1748,13 @@ mod tests {
                 speedtrees: Vec::new(),
                 terrain: Some(0),
             };
+            let zeroed_bytes = write_shadows(text, &zeroed).unwrap();
+            assert_eq!(without_masks(text, &root, &chunk).unwrap(), zeroed_bytes);
+            // Hashed as it is spliced, the same digest as of the bytes.
+            let sites = ShadowSites::find(text, &root).unwrap();
             assert_eq!(
-                without_masks(text, &root, &chunk).unwrap(),
-                write_shadows(text, &zeroed).unwrap()
+                digest_without_masks_at(text, &sites, &chunk).unwrap(),
+                Digest::of(&zeroed_bytes)
             );
         }
         let before = without_masks(

@@ -881,10 +881,8 @@ fn parse_chunk(path: &Path, bytes: &[u8]) -> Result<ParsedChunk> {
     // Packed chunks (rare) are parsed again when written.
     let text = !bytes.starts_with(&formats::packed_xml::MAGIC);
     if let Some((chunk, sites)) = text.then(|| chunk_scan::scan(bytes)).flatten() {
-        let canonical = match shadow_write::without_masks_at(bytes, &sites, &chunk) {
-            Ok(canonical) => Digest::of(&canonical),
-            Err(_) => Digest::of(bytes),
-        };
+        let canonical = shadow_write::digest_without_masks_at(bytes, &sites, &chunk)
+            .unwrap_or_else(|_| Digest::of(bytes));
         return Ok(ParsedChunk {
             chunk,
             canonical,
