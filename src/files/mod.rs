@@ -28,7 +28,7 @@ pub use read::{
     REPORT_SIZE_CAP, SIZE_CAPS,
 };
 pub use replaceable::check_replaceable;
-pub use res_paths::{in_folder_or_bare, normalise, stays_inside, ResPaths};
+pub use res_paths::{in_folder_or_bare, normalise, normalised, stays_inside, ResPaths};
 pub use stamp::{exists, folder_names, is_folder, stamp, Stamp};
 pub use temporaries::STALE_TEMPORARY_AGE;
 pub use typed::{read_bake_settings, read_partial, write_partial, write_png};

@@ -4,6 +4,7 @@
 
 use super::read_file;
 use crate::error::{Error, Result};
+use std::borrow::Cow;
 use std::fs;
 use std::path::{Component, Path, PathBuf};
 
@@ -16,10 +17,18 @@ pub struct ResPaths {
 /// A resource name as written in XML, normalised: forward slashes, no
 /// leading slash, no surrounding white space.
 pub fn normalise(name: &str) -> String {
-    name.trim()
-        .replace('\\', "/")
-        .trim_start_matches('/')
-        .to_string()
+    normalised(name).into_owned()
+}
+
+/// [`normalise`] without a copy when `name` needs no change but trimming
+/// (nearly every name a chunk gives: placing millions looks each up).
+pub fn normalised(name: &str) -> Cow<'_, str> {
+    let name = name.trim();
+    if name.contains('\\') {
+        Cow::Owned(name.replace('\\', "/").trim_start_matches('/').to_string())
+    } else {
+        Cow::Borrowed(name.trim_start_matches('/'))
+    }
 }
 
 /// A normalised name that stays below the folder it is joined to: not
@@ -189,6 +198,22 @@ mod tests {
             message.starts_with("c.chunk:") && message.contains("sets/none.model"),
             "{message}"
         );
+    }
+
+    #[test]
+    fn names_are_normalised_the_same_with_or_without_a_copy() {
+        for (name, normal) in [
+            ("sets/a.model", "sets/a.model"),
+            ("\t/sets\\a.model ", "sets/a.model"),
+            ("//sets/a.model", "sets/a.model"),
+            ("\\\\sets\\b\\c.model", "sets/b/c.model"),
+            (" / ", ""),
+            ("", ""),
+        ] {
+            assert_eq!(normalised(name), normal, "{name:?}");
+            assert_eq!(normalise(name), normal, "{name:?}");
+        }
+        assert!(matches!(normalised(" sets/a.model"), Cow::Borrowed(_)));
     }
 
     #[test]

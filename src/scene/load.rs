@@ -544,11 +544,12 @@ impl Loader<'_> {
             // not all held while the terrain is decoded beside.
             let batch: Vec<(String, (PathBuf, ReadChunk))> = named.by_ref().take(BATCH).collect();
             let first_index = chunks.len();
+            let mut batch = batch;
             let placed: Vec<PlacedChunk> = batch
-                .par_iter()
+                .par_iter_mut()
                 .enumerate()
                 .map(|(i, (name, (path, read)))| {
-                    placing.chunk(first_index + i, name, path, &read.file)
+                    placing.chunk(first_index + i, name, path, &mut read.file)
                 })
                 .collect();
             for ((name, (path, read)), placed) in batch.into_iter().zip(placed) {
@@ -628,13 +629,14 @@ struct PlacedChunk {
 }
 
 impl Placing<'_> {
-    /// Chunk `name` (file `path`, parsed `file`), to be chunk `index`.
-    fn chunk(&self, index: usize, name: &str, path: &Path, file: &ChunkFile) -> PlacedChunk {
+    /// Chunk `name` (file `path`, parsed `file`), to be chunk `index`; the
+    /// instances take their elements' resource names.
+    fn chunk(&self, index: usize, name: &str, path: &Path, file: &mut ChunkFile) -> PlacedChunk {
         let mut problems = Vec::new();
         let grid = space_settings::parse_outdoor_chunk_name(name);
         let transform = chunk_transform(path, file, grid, self.chunk_size, &mut problems);
         let mut instances = Vec::with_capacity(file.instances.len() + file.speedtrees.len());
-        for element in &file.instances {
+        for element in &mut file.instances {
             instances.extend(self.instance(path, index, transform, element, &mut problems));
         }
         for element in &file.speedtrees {
@@ -648,14 +650,15 @@ impl Placing<'_> {
         }
     }
 
-    /// One chunk element placed in the world, or a problem when its
-    /// transform is not finite or singular, or it names no resource.
+    /// One chunk element placed in the world (its resource names moved
+    /// into the instance), or a problem when its transform is not finite
+    /// or singular, or it names no resource.
     fn instance(
         &self,
         chunk_path: &Path,
         chunk_index: usize,
         chunk_transform: DMat4,
-        element: &chunk::InstanceElement,
+        element: &mut chunk::InstanceElement,
         problems: &mut Vec<Problem>,
     ) -> Option<Instance> {
         let what = || format!("{} <{}>", chunk_path.display(), element.path);
@@ -671,13 +674,13 @@ impl Placing<'_> {
         let parts: Vec<Option<usize>> = element
             .resources
             .iter()
-            .map(|r| self.model_names.get(&files::normalise(r)).copied())
+            .map(|r| self.model_names.get(&*files::normalised(r)).copied())
             .collect();
         Some(Instance {
             chunk: chunk_index,
             index: element.index,
             kind: element.kind,
-            resources: element.resources.clone(),
+            resources: std::mem::take(&mut element.resources),
             parts,
             world,
             mirrored: determinant < 0.0,
