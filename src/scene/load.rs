@@ -544,12 +544,11 @@ impl Loader<'_> {
             // not all held while the terrain is decoded beside.
             let batch: Vec<(String, (PathBuf, ReadChunk))> = named.by_ref().take(BATCH).collect();
             let first_index = chunks.len();
-            let mut batch = batch;
             let placed: Vec<PlacedChunk> = batch
-                .par_iter_mut()
+                .par_iter()
                 .enumerate()
                 .map(|(i, (name, (path, read)))| {
-                    placing.chunk(first_index + i, name, path, &mut read.file)
+                    placing.chunk(first_index + i, name, path, &read.file)
                 })
                 .collect();
             for ((name, (path, read)), placed) in batch.into_iter().zip(placed) {
@@ -629,14 +628,13 @@ struct PlacedChunk {
 }
 
 impl Placing<'_> {
-    /// Chunk `name` (file `path`, parsed `file`), to be chunk `index`; the
-    /// instances take their elements' resource names.
-    fn chunk(&self, index: usize, name: &str, path: &Path, file: &mut ChunkFile) -> PlacedChunk {
+    /// Chunk `name` (file `path`, parsed `file`), to be chunk `index`.
+    fn chunk(&self, index: usize, name: &str, path: &Path, file: &ChunkFile) -> PlacedChunk {
         let mut problems = Vec::new();
         let grid = space_settings::parse_outdoor_chunk_name(name);
         let transform = chunk_transform(path, file, grid, self.chunk_size, &mut problems);
         let mut instances = Vec::with_capacity(file.instances.len() + file.speedtrees.len());
-        for element in &mut file.instances {
+        for element in &file.instances {
             instances.extend(self.instance(path, index, transform, element, &mut problems));
         }
         for element in &file.speedtrees {
@@ -650,15 +648,14 @@ impl Placing<'_> {
         }
     }
 
-    /// One chunk element placed in the world (its resource names moved
-    /// into the instance), or a problem when its transform is not finite
-    /// or singular, or it names no resource.
+    /// One chunk element placed in the world, or a problem when its
+    /// transform is not finite or singular, or it names no resource.
     fn instance(
         &self,
         chunk_path: &Path,
         chunk_index: usize,
         chunk_transform: DMat4,
-        element: &mut chunk::InstanceElement,
+        element: &chunk::InstanceElement,
         problems: &mut Vec<Problem>,
     ) -> Option<Instance> {
         let what = || format!("{} <{}>", chunk_path.display(), element.path);
@@ -680,7 +677,10 @@ impl Placing<'_> {
             chunk: chunk_index,
             index: element.index,
             kind: element.kind,
-            resources: std::mem::take(&mut element.resources),
+            // Copied, not moved: the copies lie together in the placing
+            // thread's memory, where the parsed strings lie among the
+            // parse's freed values and would hold their pages.
+            resources: element.resources.clone(),
             parts,
             world,
             mirrored: determinant < 0.0,
