@@ -265,7 +265,6 @@ impl Quantizer {
     }
 }
 
-/// The lowest and highest of a block's samples (∞, −∞ for none).
 /// The lowest and highest of `heights`: (∞, −∞) for none.
 pub fn extremes_of(heights: &[f32]) -> (f32, f32) {
     let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
@@ -275,6 +274,7 @@ pub fn extremes_of(heights: &[f32]) -> (f32, f32) {
     (low, high)
 }
 
+/// The lowest and highest of a block's samples, as its grid carries them.
 fn extremes(grid: &HeightGrid) -> (f32, f32) {
     debug_assert_eq!(grid.extremes, extremes_of(grid.heights));
     grid.extremes
