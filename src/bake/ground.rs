@@ -41,6 +41,10 @@ const CEILING_SLACK: f64 = 1e-3;
 /// A point's square is found by a product with the inverse side that may
 /// err by an ulp or two near an edge: the margin (a thousandth of a
 /// square) covers that.
+///
+/// A square's bound is found when a point first asks for it, from the
+/// blocks listed for it: a re-bake with a cache asks over a few blocks,
+/// whose samples alone it decodes.
 struct Ceilings {
     /// World coordinates of square (0, 0)'s lower corner, the side.
     min_x: f64,
@@ -49,9 +53,18 @@ struct Ceilings {
     per_side: f64,
     width: usize,
     depth: usize,
-    /// Row-major by z.
-    heights: Vec<f32>,
+    /// Row-major by z: the bound's f32 bits, [`UNSET`] until found.
+    heights: Vec<AtomicU32>,
+    /// The blocks that come near square `i`: `near[starts[i]..starts[i + 1]]`.
+    starts: Vec<u32>,
+    near: Vec<u32>,
 }
+
+/// A square whose bound is not found yet: a NaN, which no bound is.
+const UNSET: u32 = 0x7fc0_0000;
+
+/// The squares one block comes near, inclusive: x from, x to, z from, z to.
+type SquareSpan = (usize, usize, usize, usize);
 
 impl Ceilings {
     /// `None` when the blocks' grid rectangle is mostly empty or not
@@ -73,100 +86,126 @@ impl Ceilings {
             width: width as usize,
             depth: depth as usize,
             heights: Vec::new(),
+            starts: Vec::new(),
+            near: Vec::new(),
         };
         if !(ceilings.min_x.is_finite() && ceilings.min_z.is_finite() && side > 0.0) {
             return None;
         }
-        // Blocks raise squares in parallel: an atomic max over f32 in an
-        // order-preserving u32 (the same answer in any order).
-        let raised: Vec<AtomicU32> = (0..width * depth)
-            .map(|_| AtomicU32::new(ordered(f32::NEG_INFINITY)))
+        let spans: Option<Vec<(SquareSpan, usize)>> = cells
+            .par_iter()
+            .map(|&(_, block)| Some((ceilings.span(&scene.terrain[block])?, block)))
             .collect();
-        let all_on_grid = cells.par_iter().all(|&(_, block)| {
-            ceilings.raise(&scene.terrain[block], |at, h| {
-                raised[at].fetch_max(ordered(h), Ordering::Relaxed);
-            })
-        });
-        ceilings.heights = raised
-            .into_iter()
-            .map(|a| unordered(a.into_inner()))
+        ceilings.list_near(&spans?);
+        ceilings.heights = (0..ceilings.width * ceilings.depth)
+            .map(|_| AtomicU32::new(UNSET))
             .collect();
-        all_on_grid.then_some(ceilings)
+        Some(ceilings)
     }
 
-    /// Raises (`raise(square, bound)`) each square `block`'s cells come
-    /// near to the highest corner sample of those cells; false when the
-    /// block reaches past the grid (a block off its grid cell: never from a
+    /// Lists each block of `spans` under every square of its span, in
+    /// block order.
+    fn list_near(&mut self, spans: &[(SquareSpan, usize)]) {
+        let width = self.width;
+        let squares = move |&((x0, x1, z0, z1), _): &(SquareSpan, usize)| {
+            (z0..=z1).flat_map(move |qz| (x0..=x1).map(move |qx| qz * width + qx))
+        };
+        let mut starts = vec![0u32; self.width * self.depth + 1];
+        for span in spans {
+            for square in squares(span) {
+                starts[square + 1] += 1;
+            }
+        }
+        for i in 1..starts.len() {
+            starts[i] += starts[i - 1];
+        }
+        let mut filled = starts.clone();
+        let mut near = vec![0u32; starts.last().copied().unwrap_or(0) as usize];
+        for span in spans {
+            for square in squares(span) {
+                near[filled[square] as usize] = span.1 as u32;
+                filled[square] += 1;
+            }
+        }
+        (self.starts, self.near) = (starts, near);
+    }
+
+    /// The squares `block`'s cells come near; `None` when the block
+    /// reaches past the grid (a block off its grid cell: never from a
     /// well-formed space).
-    fn raise(&self, block: &TerrainBlock, mut raise: impl FnMut(usize, f32)) -> bool {
-        let (o, (sx, sz), (nx, nz)) = (block.origin(), block.spacing(), block.cells());
+    fn span(&self, block: &TerrainBlock) -> Option<SquareSpan> {
+        let o = block.origin();
         let margin = self.side * 1e-3;
         let square = |v: f64, min: f64| ((v - min) / self.side).floor();
-        let clamp = |v: f64, n: usize| v.clamp(0.0, n as f64 - 1.0) as usize;
         let (x0, x1) = (o.x - margin, o.x + block.chunk_size() + margin);
         let (z0, z1) = (o.z - margin, o.z + block.chunk_size() + margin);
         let (qx0, qx1) = (square(x0, self.min_x), square(x1, self.min_x));
         let (qz0, qz1) = (square(z0, self.min_z), square(z1, self.min_z));
         if !(qx0 >= 0.0 && qz0 >= 0.0 && qx1 < self.width as f64 && qz1 < self.depth as f64) {
-            return false;
+            return None;
         }
-        for qz in qz0 as usize..=qz1 as usize {
-            for qx in qx0 as usize..=qx1 as usize {
-                // The square grown by the margin, in the block's cells.
-                let (ax, az) = (
-                    self.min_x + qx as f64 * self.side,
-                    self.min_z + qz as f64 * self.side,
-                );
-                let cx = |a: f64| ((a - o.x) / sx).floor();
-                let cz = |a: f64| ((a - o.z) / sz).floor();
-                let (cx0, cx1) = (cx(ax - margin), cx(ax + self.side + margin));
-                let (cz0, cz1) = (cz(az - margin), cz(az + self.side + margin));
-                if cx1 < 0.0 || cz1 < 0.0 || cx0 > (nx - 1) as f64 || cz0 > (nz - 1) as f64 {
-                    continue;
-                }
-                let (cx0, cx1) = (clamp(cx0, nx), clamp(cx1, nx));
-                let (cz0, cz1) = (clamp(cz0, nz), clamp(cz1, nz));
-                let mut high = f64::NEG_INFINITY;
-                for z in cz0..=cz1 + 1 {
-                    for x in cx0..=cx1 + 1 {
-                        high = high.max(block.vertex_height(x, z).unwrap_or(f64::INFINITY));
-                    }
-                }
-                raise(qz * self.width + qx, round_up(o.y + high));
+        Some((qx0 as usize, qx1 as usize, qz0 as usize, qz1 as usize))
+    }
+
+    /// The highest corner sample of `block`'s cells that come near square
+    /// (qx, qz), in world height rounded up to f32; `None` when none does.
+    fn high_near(&self, block: &TerrainBlock, qx: usize, qz: usize) -> Option<f32> {
+        let (o, (sx, sz), (nx, nz)) = (block.origin(), block.spacing(), block.cells());
+        let margin = self.side * 1e-3;
+        let clamp = |v: f64, n: usize| v.clamp(0.0, n as f64 - 1.0) as usize;
+        // The square grown by the margin, in the block's cells.
+        let (ax, az) = (
+            self.min_x + qx as f64 * self.side,
+            self.min_z + qz as f64 * self.side,
+        );
+        let cx = |a: f64| ((a - o.x) / sx).floor();
+        let cz = |a: f64| ((a - o.z) / sz).floor();
+        let (cx0, cx1) = (cx(ax - margin), cx(ax + self.side + margin));
+        let (cz0, cz1) = (cz(az - margin), cz(az + self.side + margin));
+        if cx1 < 0.0 || cz1 < 0.0 || cx0 > (nx - 1) as f64 || cz0 > (nz - 1) as f64 {
+            return None;
+        }
+        let (cx0, cx1) = (clamp(cx0, nx), clamp(cx1, nx));
+        let (cz0, cz1) = (clamp(cz0, nz), clamp(cz1, nz));
+        let mut high = f64::NEG_INFINITY;
+        for z in cz0..=cz1 + 1 {
+            for x in cx0..=cx1 + 1 {
+                high = high.max(block.vertex_height(x, z).unwrap_or(f64::INFINITY));
             }
         }
-        true
+        Some(round_up(o.y + high))
     }
 
     /// The ceiling over world point (x, z); `None` outside the grid.
     #[inline]
-    fn at(&self, x: f64, z: f64) -> Option<f32> {
+    fn at(&self, x: f64, z: f64, terrain: &[TerrainBlock]) -> Option<f32> {
         // Truncation is the floor for the non-negative values kept.
         let qx = (x - self.min_x) * self.per_side;
         let qz = (z - self.min_z) * self.per_side;
         if !(qx >= 0.0 && qz >= 0.0 && qx < self.width as f64 && qz < self.depth as f64) {
             return None;
         }
-        Some(self.heights[qz as usize * self.width + qx as usize])
+        let (qx, qz) = (qx as usize, qz as usize);
+        let square = qz * self.width + qx;
+        let bits = self.heights[square].load(Ordering::Relaxed);
+        if bits != UNSET {
+            return Some(f32::from_bits(bits));
+        }
+        Some(self.find(square, qx, qz, terrain))
     }
-}
 
-/// `f` as a u32 in the same order (negative floats' bits flipped, positive
-/// ones' sign bit set), for an atomic max.
-fn ordered(f: f32) -> u32 {
-    let bits = f.to_bits();
-    match bits >> 31 {
-        1 => !bits,
-        _ => bits | 1 << 31,
+    /// Square (qx, qz)'s bound from its blocks, kept for later points
+    /// (threads that find it at once find the same).
+    #[cold]
+    fn find(&self, square: usize, qx: usize, qz: usize, terrain: &[TerrainBlock]) -> f32 {
+        let listed = self.starts[square] as usize..self.starts[square + 1] as usize;
+        let bound = self.near[listed]
+            .iter()
+            .filter_map(|&block| self.high_near(&terrain[block as usize], qx, qz))
+            .fold(f32::NEG_INFINITY, f32::max);
+        self.heights[square].store(bound.to_bits(), Ordering::Relaxed);
+        bound
     }
-}
-
-/// The f32 that [`ordered`] made `u`.
-fn unordered(u: u32) -> f32 {
-    f32::from_bits(match u >> 31 {
-        1 => u & !(1 << 31),
-        _ => !u,
-    })
 }
 
 /// `v` as the nearest f32 not below it (+∞ for NaN or beyond f32).
@@ -296,7 +335,10 @@ impl<'a> Ground<'a> {
     /// none at hand (outside the grid of ceilings, or no grid).
     #[inline]
     pub fn ceiling(&self, x: f64, z: f64) -> Option<f64> {
-        self.ceilings.as_ref()?.at(x, z).map(f64::from)
+        self.ceilings
+            .as_ref()?
+            .at(x, z, &self.scene.terrain)
+            .map(f64::from)
     }
 
     /// H(x, z): the terrain surface height above or below the point, or
@@ -381,38 +423,6 @@ impl Ground<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rng::Rng;
-
-    #[test]
-    fn ordered_bits_keep_the_order_of_floats() {
-        let mut rng = Rng::new(12);
-        let special = [
-            f32::NEG_INFINITY,
-            f32::MIN,
-            -1.0,
-            -f32::MIN_POSITIVE,
-            -1e-45,
-            -0.0,
-            0.0,
-            1e-45,
-            f32::MIN_POSITIVE,
-            1.0,
-            f32::MAX,
-            f32::INFINITY,
-        ];
-        let mut values: Vec<f32> = special.to_vec();
-        values.extend(
-            (0..500).map(|_| (rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-40.0, 38.0))) as f32),
-        );
-        for &a in &values {
-            assert_eq!(unordered(ordered(a)).to_bits(), a.to_bits());
-            for &b in &values {
-                if a < b {
-                    assert!(ordered(a) < ordered(b), "{a} < {b}");
-                }
-            }
-        }
-    }
 
     #[test]
     fn dense_and_sparse_tables_find_the_same_blocks() {

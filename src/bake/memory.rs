@@ -34,11 +34,13 @@ pub const PER_PART_IN_REACH: u64 = 370;
 /// that have holes.
 pub const PER_HEIGHT_SAMPLE: f64 = 5.3;
 /// Heap bytes per terrain block for the below-ground test's ceilings
-/// (`bake::ground`): 64 f32 squares a chunk of the blocks' grid, with a
-/// one-chunk border (a third more on a 10×10 grid, 4 % on 96×96), held
-/// twice while they are built (counted, not measured: 600 is 2 × 256 ×
-/// 1.17).
-pub const PER_TERRAIN_BLOCK: u64 = 600;
+/// (`bake::ground`): 64 squares a chunk of the blocks' grid, each a 4-byte
+/// bound and a 4-byte start into the list of blocks near it, the starts
+/// held twice while the list is built, with a one-chunk border (a third
+/// more on a 10×10 grid, 4 % on 96×96); and the list, each block under the
+/// 100 squares its cells come near (counted, not measured: 1 300 is
+/// 1.17 × 64 × 12 + 400).
+pub const PER_TERRAIN_BLOCK: u64 = 1300;
 /// Resident bytes per worker thread beyond the heap: its malloc arena's
 /// slack and the touched part of its stack (scratch hit lists and
 /// traversal stacks are a few kilobytes).

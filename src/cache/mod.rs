@@ -41,7 +41,7 @@ pub enum Kind {
     Chunk,
     /// A model's loaded geometry.
     Model,
-    /// A terrain block's decoded heights and holes.
+    /// A terrain block's height range, so its samples wait to be decoded.
     Terrain,
     /// The casters one cell of a light's grid proves useful.
     Cell,

@@ -118,29 +118,89 @@ pub fn read_terrain(cdata: &[u8], entry: &str) -> Result<TerrainData, FormatErro
     }
 }
 
-/// Reads `{entry}/heights` and the optional `{entry}/holes` of a terrain2
-/// `.cdata` ZIP. Byte offsets in errors are relative to the named entry.
-pub fn read_terrain2_zip(cdata: &[u8], entry: &str) -> Result<TerrainData, FormatError> {
+/// A terrain2 block read but for its heights: the height map's size from
+/// its header, the holes decoded, the heights entry kept as stored, to be
+/// decoded by [`EncodedHeights::decode`] when first needed.
+#[derive(Debug, Clone)]
+pub struct DeferredTerrain {
+    pub version: TerrainVersion,
+    pub width: usize,
+    pub height: usize,
+    pub border: usize,
+    pub holes: Option<HoleMap>,
+    pub heights: EncodedHeights,
+}
+
+/// A `heights` entry's bytes as the ZIP holds them, with its name for
+/// errors.
+#[derive(Debug, Clone)]
+pub struct EncodedHeights {
+    raw: Vec<u8>,
+    name: String,
+}
+
+impl EncodedHeights {
+    /// What [`read_terrain`] would have decoded from the entry.
+    pub fn decode(&self) -> Result<HeightMap, FormatError> {
+        decode_entry(&self.raw, &self.name, decode_heights)
+    }
+}
+
+/// [`read_terrain`] without decoding the heights (most of its work): a
+/// terrain2 ZIP's entry as [`DeferredTerrain`]; `None` for a terrain1
+/// BinSection (small, read whole by [`read_terrain`]).
+pub fn read_terrain_deferred(
+    cdata: &[u8],
+    entry: &str,
+) -> Result<Option<DeferredTerrain>, FormatError> {
+    match cdata.starts_with(b"PK") {
+        true => open_terrain2_zip(cdata, entry).map(Some),
+        false => Ok(None),
+    }
+}
+
+/// A terrain2 ZIP's `{entry}/heights` as stored and `{entry}/holes`
+/// decoded.
+fn open_terrain2_zip(cdata: &[u8], entry: &str) -> Result<DeferredTerrain, FormatError> {
     let mut archive = zip::ZipArchive::new(Cursor::new(cdata))
         .map_err(|e| FormatError::whole_file(format!("the .cdata is not a readable ZIP: {e}")))?;
     let heights_name = format!("{entry}/heights");
-    let heights_raw = read_zip_entry(&mut archive, &heights_name)?.ok_or_else(|| {
+    let mut raw = read_zip_entry(&mut archive, &heights_name)?.ok_or_else(|| {
         FormatError::whole_file(format!(
             "ZIP has no entry `{heights_name}`; check the chunk's <terrain><resource>"
         ))
     })?;
-    let heights = decode_entry(&heights_raw, &heights_name, decode_heights)?;
-
+    // Kept until the heights are first read, maybe for the whole bake:
+    // not the spare capacity reading it left.
+    raw.shrink_to_fit();
+    let (width, height) = decode_entry(&raw, &heights_name, heights_size)?;
     let holes_name = format!("{entry}/holes");
     let holes = match read_zip_entry(&mut archive, &holes_name)? {
         Some(raw) => Some(decode_entry(&raw, &holes_name, decode_holes)?),
         None => None,
     };
-    Ok(TerrainData {
+    Ok(DeferredTerrain {
         version: TerrainVersion::Terrain2,
-        heights,
+        width,
+        height,
         border: TERRAIN2_BORDER,
         holes,
+        heights: EncodedHeights {
+            raw,
+            name: heights_name,
+        },
+    })
+}
+
+/// Reads `{entry}/heights` and the optional `{entry}/holes` of a terrain2
+/// `.cdata` ZIP. Byte offsets in errors are relative to the named entry.
+pub fn read_terrain2_zip(cdata: &[u8], entry: &str) -> Result<TerrainData, FormatError> {
+    let deferred = open_terrain2_zip(cdata, entry)?;
+    Ok(TerrainData {
+        version: deferred.version,
+        heights: deferred.heights.decode()?,
+        border: deferred.border,
+        holes: deferred.holes,
     })
 }
 
@@ -264,8 +324,8 @@ fn sample_count(w: u32, h: u32, at: usize, what: &str) -> Result<usize, FormatEr
         })
 }
 
-/// Decodes a terrain2 `heights` entry (after BinaryBlock inflation).
-pub fn decode_heights(b: &[u8]) -> Result<HeightMap, FormatError> {
+/// A terrain2 `heights` entry's header: width, height, version.
+fn heights_header(b: &[u8]) -> Result<(u32, u32, u32), FormatError> {
     if b.len() < HEIGHTS_HEADER_LEN {
         return Err(FormatError::at_byte(
             b.len(),
@@ -293,6 +353,18 @@ pub fn decode_heights(b: &[u8]) -> Result<HeightMap, FormatError> {
             format!("height map size is {w}×{h}; it needs at least one sample"),
         ));
     }
+    Ok((w, h, version))
+}
+
+/// A terrain2 `heights` entry's size in samples, from its header.
+fn heights_size(b: &[u8]) -> Result<(usize, usize), FormatError> {
+    let (w, h, _) = heights_header(b)?;
+    Ok((w as usize, h as usize))
+}
+
+/// Decodes a terrain2 `heights` entry (after BinaryBlock inflation).
+pub fn decode_heights(b: &[u8]) -> Result<HeightMap, FormatError> {
+    let (w, h, version) = heights_header(b)?;
     let count = sample_count(w, h, 4, "height map")?;
     let heights = match version {
         VERSION_ABS_QFLOAT => decode_qpng_heights(b, w, h, count)?,

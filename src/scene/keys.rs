@@ -62,7 +62,9 @@ pub fn model_key(model: &Model) -> Key {
 }
 
 /// What the bake uses of a terrain block apart from where it lies: its
-/// samples, holes, cells, diagonal rule and chunk size.
+/// samples and holes — as the content key of the file and entry they were
+/// read from, which may not be decoded, or as themselves for a block made
+/// in memory —, cells, diagonal rule and chunk size.
 pub fn block_key(block: &TerrainBlock) -> Key {
     let grid = block.grid();
     let mut hasher = KeyHasher::content("terrain");
@@ -70,10 +72,21 @@ pub fn block_key(block: &TerrainBlock) -> Key {
         .f64(grid.chunk_size)
         .u64(grid.cells_x as u64)
         .u64(grid.cells_z as u64)
-        .bool(grid.alternating)
-        .u64(grid.heights.len() as u64);
-    let holes: Vec<u8> = grid.holes.iter().map(|&hole| u8::from(hole)).collect();
-    hasher.f32s(grid.heights).bytes(&holes);
+        .bool(grid.alternating);
+    match block.source() {
+        Some(source) => {
+            hasher.str("read from").key(source);
+        }
+        None => {
+            let heights = grid.heights.get();
+            let holes: Vec<u8> = grid.holes.iter().map(|&hole| u8::from(hole)).collect();
+            hasher
+                .str("samples")
+                .u64(heights.len() as u64)
+                .f32s(heights)
+                .bytes(&holes);
+        }
+    }
     hasher.finish()
 }
 

@@ -10,6 +10,7 @@
 
 use super::chunk_cache::{self, ParsedChunk};
 use super::items::ItemCount;
+use super::terrain_cache;
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::cache::{content_key, Cache, Fetched, Key, Kind, KnownFiles};
 use crate::digest::Digest;
@@ -119,6 +120,7 @@ pub fn load_scene_cached(
     // placed, which leave a core idle at times.
     let reading = TerrainReading {
         config,
+        cache,
         log: &log,
         progress,
         space_dir: &space_dir,
@@ -233,6 +235,8 @@ struct TerrainJob {
 /// beside the models' load and the placing).
 struct TerrainReading<'a> {
     config: &'a LoadConfig,
+    /// Where blocks' height ranges are kept between bakes.
+    cache: Option<&'a Cache>,
     log: &'a ReadLog,
     progress: &'a dyn Progress,
     space_dir: &'a Path,
@@ -248,7 +252,8 @@ impl TerrainReading<'_> {
             .into_par_iter()
             .map(|job| {
                 let folder = chunk_folder(&self.config.space, self.space_dir, &job.chunk_path);
-                let block = load_terrain(res_paths, log, &job, &folder, self.chunk_size);
+                let block =
+                    load_terrain(res_paths, log, self.cache, &job, &folder, self.chunk_size);
                 counter.add(1);
                 (job.chunk, block)
             })
@@ -1022,6 +1027,7 @@ fn chunk_folder(space: &str, space_dir: &Path, chunk_path: &Path) -> String {
 fn load_terrain(
     res_paths: &ResPaths,
     log: &ReadLog,
+    cache: Option<&Cache>,
     job: &TerrainJob,
     folder: &str,
     chunk_size: f64,
@@ -1048,9 +1054,56 @@ fn load_terrain(
     let bytes = files::read_file(&cdata_path)
         .map_err(|err| cdata_not_found(err, chunk_path, &file, &cdata_path, res_paths))?;
     log.record(&cdata_path, &bytes);
-    let data = terrain_format::read_terrain(&bytes, &entry).map_err(|e| e.in_file(&cdata_path))?;
-    TerrainBlock::new(&data, origin, chunk_size)
-        .map_err(|message| Error::invalid(&cdata_path, message))
+    let Some(cache) = cache else {
+        return decode_terrain(&bytes, &entry, origin, chunk_size, &cdata_path);
+    };
+    let source = terrain_cache::source_key(&content_key(&bytes), &entry);
+    let key = terrain_cache::key(cache, &source);
+    if let Some(block) = deferred_terrain(cache, &key, &bytes, &entry, origin, chunk_size) {
+        return Ok(block.with_source(source));
+    }
+    let block = decode_terrain(&bytes, &entry, origin, chunk_size, &cdata_path)?;
+    cache.put(Kind::Terrain, &key, &terrain_cache::encode(block.range()));
+    Ok(block.with_source(source))
+}
+
+/// The block in `.cdata` file `bytes` (read from `path`, which errors
+/// name), its heights decoded.
+fn decode_terrain(
+    bytes: &[u8],
+    entry: &str,
+    origin: DVec3,
+    chunk_size: f64,
+    path: &Path,
+) -> Result<TerrainBlock> {
+    let data = terrain_format::read_terrain(bytes, entry).map_err(|e| e.in_file(path))?;
+    TerrainBlock::new(&data, origin, chunk_size).map_err(|message| Error::invalid(path, message))
+}
+
+/// The block in `.cdata` file `bytes` with its heights decoded when first
+/// read, when `cache` holds its height range under `key`; `None` (the
+/// block then decoded now) when it does not, or the entry is damaged or
+/// the file is not one whose decoding can wait.
+fn deferred_terrain(
+    cache: &Cache,
+    key: &Key,
+    bytes: &[u8],
+    entry: &str,
+    origin: DVec3,
+    chunk_size: f64,
+) -> Option<TerrainBlock> {
+    let range = match cache.fetch(Kind::Terrain, key) {
+        Fetched::Value(value) => match terrain_cache::decode(&value) {
+            Some(range) => range,
+            None => {
+                cache.reject(Kind::Terrain, key);
+                return None;
+            }
+        },
+        _ => return None,
+    };
+    let data = terrain_format::read_terrain_deferred(bytes, entry).ok()??;
+    TerrainBlock::deferred(data, range, origin, chunk_size).ok()
 }
 
 /// A missing `.cdata` named as a missing model is: where it was looked

@@ -10,6 +10,7 @@ pub mod keys;
 pub mod load;
 pub mod speedtree;
 pub mod terrain;
+pub mod terrain_cache;
 
 use crate::cache::Key;
 use crate::formats::chunk::InstanceKind;

@@ -33,8 +33,22 @@
 
 use glam::DVec3;
 
-use crate::formats::terrain::{TerrainData, TerrainVersion};
-use crate::trace::HeightGrid;
+use crate::cache::Key;
+use crate::formats::terrain::{DeferredTerrain, HoleMap, TerrainData, TerrainVersion};
+use crate::trace::{DeferredHeights, HeightGrid, Heights};
+
+/// Fails on an origin or chunk size a block cannot be placed with.
+fn check_placement(origin: DVec3, chunk_size: f64) -> Result<(), String> {
+    if !origin.is_finite() {
+        return Err(format!("terrain block origin {origin} is not finite"));
+    }
+    if !(chunk_size.is_finite() && chunk_size > 0.0) {
+        return Err(format!(
+            "chunk size {chunk_size} is not a positive finite number of metres"
+        ));
+    }
+    Ok(())
+}
 
 /// The lowest and highest of `heights` (as f64, exactly), or the index of
 /// the first that is not finite. In lanes: a big world holds hundreds of
@@ -77,12 +91,70 @@ pub struct TerrainBlock {
     spacing_z: f64,
     /// Visible vertex heights, `(cells_x + 1) × (cells_z + 1)`, row-major by
     /// z; kept in f32 as the files store them (4 bytes a sample).
-    heights: Vec<f32>,
+    heights: BlockHeights,
     /// One flag per height cell, row-major by z; empty when the block has
     /// no hole (most blocks: that saves a byte per cell on big worlds).
     cell_holes: Vec<bool>,
-    min_height: f64,
-    max_height: f64,
+    range: HeightRange,
+    /// The content key of what the block was read from (its file's bytes
+    /// and entry), when it was read from a file: what a cache key hashes
+    /// instead of the samples, which may not be decoded.
+    source: Option<Key>,
+}
+
+/// The samples as decoded, or decoded when first read.
+#[derive(Debug, Clone)]
+enum BlockHeights {
+    Held(Vec<f32>),
+    Deferred(DeferredHeights),
+}
+
+/// The lowest and highest visible sample of a block (every one finite):
+/// what the load needs of a block's samples without decoding them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeightRange {
+    pub low: f32,
+    pub high: f32,
+}
+
+/// A height grid's visible part: the grid's size less the border.
+#[derive(Debug, Clone, Copy)]
+struct Visible {
+    width: usize,
+    border: usize,
+    vx: usize,
+    vz: usize,
+}
+
+impl Visible {
+    /// Fails on a grid too small to have a visible cell.
+    fn of(width: usize, height: usize, border: usize) -> Result<Visible, String> {
+        let visible = |n: usize| n.checked_sub(border.checked_mul(2)?).filter(|&v| v >= 2);
+        let (Some(vx), Some(vz)) = (visible(width), visible(height)) else {
+            return Err(format!(
+                "height grid {width}×{height} with a {border}-sample border has no visible cell"
+            ));
+        };
+        Ok(Visible {
+            width,
+            border,
+            vx,
+            vz,
+        })
+    }
+
+    /// The visible rows of a grid's samples.
+    fn crop(&self, samples: &[f32]) -> Result<Vec<f32>, String> {
+        let mut heights = Vec::with_capacity(self.vx * self.vz);
+        for z in 0..self.vz {
+            let row_start = (z + self.border) * self.width + self.border;
+            let row = samples
+                .get(row_start..row_start + self.vx)
+                .ok_or("height grid row out of range")?;
+            heights.extend_from_slice(row);
+        }
+        Ok(heights)
+    }
 }
 
 impl TerrainBlock {
@@ -91,14 +163,7 @@ impl TerrainBlock {
     /// inconsistent to have a visible cell, on non-finite heights, origin or
     /// size, and on a hole map whose size does not match its cells.
     pub fn new(data: &TerrainData, origin: DVec3, chunk_size: f64) -> Result<TerrainBlock, String> {
-        if !origin.is_finite() {
-            return Err(format!("terrain block origin {origin} is not finite"));
-        }
-        if !(chunk_size.is_finite() && chunk_size > 0.0) {
-            return Err(format!(
-                "chunk size {chunk_size} is not a positive finite number of metres"
-            ));
-        }
+        check_placement(origin, chunk_size)?;
         let grid = &data.heights;
         if grid.width.checked_mul(grid.height) != Some(grid.heights.len()) {
             return Err(format!(
@@ -108,36 +173,93 @@ impl TerrainBlock {
                 grid.heights.len()
             ));
         }
-        let border = data.border;
-        // Visible vertices are the grid minus `border` on each side.
-        let visible = |n: usize| n.checked_sub(border.checked_mul(2)?).filter(|&v| v >= 2);
-        let (Some(vx), Some(vz)) = (visible(grid.width), visible(grid.height)) else {
-            return Err(format!(
-                "height grid {}×{} with a {border}-sample border has no visible cell",
-                grid.width, grid.height
-            ));
-        };
-        let (cells_x, cells_z) = (vx - 1, vz - 1);
-
-        let mut heights = Vec::with_capacity(vx * vz);
-        for z in 0..vz {
-            let row_start = (z + border) * grid.width + border;
-            let row = grid
-                .heights
-                .get(row_start..row_start + vx)
-                .ok_or("height grid row out of range")?;
-            heights.extend_from_slice(row);
-        }
-        let (min_height, max_height) = finite_extremes(&heights).map_err(|at| {
-            let (x, z) = (at % vx, at / vx);
+        let visible = Visible::of(grid.width, grid.height, data.border)?;
+        let heights = visible.crop(&grid.heights)?;
+        let (low, high) = finite_extremes(&heights).map_err(|at| {
+            let (x, z) = (at % visible.vx, at / visible.vx);
             format!(
                 "height {} at visible sample ({x}, {z}) is not finite",
                 heights[at]
             )
         })?;
+        let range = HeightRange {
+            low: low as f32,
+            high: high as f32,
+        };
+        let block = TerrainBlock::laid_out(data.version, visible, origin, chunk_size, range);
+        block.with_holes(data.holes.as_ref(), BlockHeights::Held(heights))
+    }
 
+    /// The block of [`TerrainBlock::new`] with its samples decoded when
+    /// first read: `range` is the height range a block made by `new` from
+    /// the same bytes found (kept by a cache), so it is not found again.
+    /// Should decoding ever fail (it did not for these bytes before), the
+    /// block is flat at its lowest height.
+    pub fn deferred(
+        data: DeferredTerrain,
+        range: HeightRange,
+        origin: DVec3,
+        chunk_size: f64,
+    ) -> Result<TerrainBlock, String> {
+        check_placement(origin, chunk_size)?;
+        let visible = Visible::of(data.width, data.height, data.border)?;
+        if !(range.low.is_finite() && range.high.is_finite() && range.low <= range.high) {
+            return Err(format!("height range {range:?} is not finite"));
+        }
+        let block = TerrainBlock::laid_out(data.version, visible, origin, chunk_size, range);
+        let samples = visible.vx * visible.vz;
+        let encoded = data.heights;
+        let decode = move || {
+            let decoded = encoded.decode().ok();
+            let heights = decoded.and_then(|map| visible.crop(&map.heights).ok());
+            heights
+                .filter(|h| h.len() == samples)
+                .unwrap_or_else(|| vec![range.low; samples])
+        };
+        let heights = BlockHeights::Deferred(DeferredHeights::new(std::sync::Arc::new(decode)));
+        block.with_holes(data.holes.as_ref(), heights)
+    }
+
+    /// The block read from the file whose content and entry `source` keys.
+    pub fn with_source(mut self, source: Key) -> TerrainBlock {
+        self.source = Some(source);
+        self
+    }
+
+    /// A block of `visible`'s cells without samples or holes yet.
+    fn laid_out(
+        version: TerrainVersion,
+        visible: Visible,
+        origin: DVec3,
+        chunk_size: f64,
+        range: HeightRange,
+    ) -> TerrainBlock {
+        let (cells_x, cells_z) = (visible.vx - 1, visible.vz - 1);
+        TerrainBlock {
+            origin,
+            chunk_size,
+            version,
+            cells_x,
+            cells_z,
+            spacing_x: chunk_size / cells_x as f64,
+            spacing_z: chunk_size / cells_z as f64,
+            heights: BlockHeights::Held(Vec::new()),
+            cell_holes: Vec::new(),
+            range,
+            source: None,
+        }
+    }
+
+    /// The block with `heights` and the cells `holes` marks; fails on a
+    /// hole map whose size does not match its cells.
+    fn with_holes(
+        mut self,
+        holes: Option<&HoleMap>,
+        heights: BlockHeights,
+    ) -> Result<TerrainBlock, String> {
+        let (cells_x, cells_z) = (self.cells_x, self.cells_z);
         let mut cell_holes = Vec::new();
-        if let Some(map) = &data.holes {
+        if let Some(map) = holes {
             if map.width.checked_mul(map.height) != Some(map.holes.len()) {
                 return Err(format!(
                     "hole map says {}×{} but holds {} cells",
@@ -161,23 +283,30 @@ impl TerrainBlock {
                 }
             }
         }
-
         if !cell_holes.contains(&true) {
             cell_holes = Vec::new();
         }
-        Ok(TerrainBlock {
-            origin,
-            chunk_size,
-            version: data.version,
-            cells_x,
-            cells_z,
-            spacing_x: chunk_size / cells_x as f64,
-            spacing_z: chunk_size / cells_z as f64,
-            heights,
-            cell_holes,
-            min_height,
-            max_height,
-        })
+        self.cell_holes = cell_holes;
+        self.heights = heights;
+        Ok(self)
+    }
+
+    /// The lowest and highest visible sample.
+    pub fn range(&self) -> HeightRange {
+        self.range
+    }
+
+    /// What the block was read from, if from a file.
+    pub fn source(&self) -> Option<&Key> {
+        self.source.as_ref()
+    }
+
+    /// Whether its samples are in memory (held, or decoded by a reader).
+    pub fn is_decoded(&self) -> bool {
+        match &self.heights {
+            BlockHeights::Held(_) => true,
+            BlockHeights::Deferred(deferred) => deferred.is_decoded(),
+        }
     }
 
     /// World translation of the chunk (local origin of the visible square).
@@ -208,7 +337,9 @@ impl TerrainBlock {
         if x > self.cells_x {
             return None;
         }
-        self.heights
+        self.grid()
+            .heights
+            .get()
             .get(z * (self.cells_x + 1) + x)
             .copied()
             .map(f64::from)
@@ -223,23 +354,24 @@ impl TerrainBlock {
             chunk_size: self.chunk_size,
             cells_x: self.cells_x,
             cells_z: self.cells_z,
-            heights: &self.heights,
+            heights: match &self.heights {
+                BlockHeights::Held(heights) => Heights::Held(heights),
+                BlockHeights::Deferred(deferred) => Heights::Deferred(deferred),
+            },
             holes: &self.cell_holes,
             alternating: self.version == TerrainVersion::Terrain2,
-            // Every sample is finite (checked when the block was made), so
-            // these are the f32 extremes exactly.
-            extremes: (self.min_height as f32, self.max_height as f32),
+            extremes: (self.range.low, self.range.high),
         }
     }
 
-    /// Visible height samples held.
+    /// Visible height samples, decoded or not.
     pub fn samples(&self) -> usize {
-        self.heights.len()
+        (self.cells_x + 1) * (self.cells_z + 1)
     }
 
-    /// Bytes of height samples and hole flags held.
+    /// Bytes of height samples and hole flags once decoded.
     pub fn heap_bytes(&self) -> usize {
-        self.heights.len() * 4 + self.cell_holes.len()
+        self.samples() * 4 + self.cell_holes.len()
     }
 
     /// Whether height cell (cx, cz) is a hole (no triangles, no height).
@@ -263,10 +395,10 @@ impl TerrainBlock {
     pub fn bounds(&self) -> (DVec3, DVec3) {
         let o = self.origin;
         (
-            DVec3::new(o.x, o.y + self.min_height, o.z),
+            DVec3::new(o.x, o.y + f64::from(self.range.low), o.z),
             DVec3::new(
                 o.x + self.chunk_size,
-                o.y + self.max_height,
+                o.y + f64::from(self.range.high),
                 o.z + self.chunk_size,
             ),
         )
@@ -594,6 +726,60 @@ mod tests {
         let wc = 1.0 - wa - wb;
         let margin = 1e-9;
         (wa > margin && wb > margin && wc > margin).then_some(wa * a.y + wb * b.y + wc * c.y)
+    }
+
+    #[test]
+    fn a_deferred_block_is_the_decoded_block_once_read() {
+        use crate::formats::terrain::{read_terrain, read_terrain_deferred, write_terrain2_cdata};
+        let mut rng = Rng::new(31);
+        let (w, h) = (13, 11);
+        let heights = HeightMap {
+            width: w,
+            height: h,
+            heights: (0..w * h)
+                .map(|_| (rng.unit() * 80.0 - 30.0) as f32)
+                .collect(),
+        };
+        let holes = HoleMap {
+            width: 8,
+            height: 8,
+            holes: (0..64).map(|_| rng.next_u64().is_multiple_of(5)).collect(),
+        };
+        let bytes = write_terrain2_cdata(&heights, Some(&holes));
+        let origin = DVec3::new(-200.0, 3.5, 700.0);
+        let eager = TerrainBlock::new(&read_terrain(&bytes, "terrain2").unwrap(), origin, 100.0);
+        let eager = eager.unwrap();
+        let data = read_terrain_deferred(&bytes, "terrain2").unwrap().unwrap();
+        let deferred = TerrainBlock::deferred(data, eager.range(), origin, 100.0).unwrap();
+        assert!(eager.is_decoded() && !deferred.is_decoded());
+        // What the load and the top levels read needs no sample.
+        assert_eq!(deferred.bounds(), eager.bounds());
+        assert_eq!(deferred.cells(), eager.cells());
+        assert_eq!(deferred.samples(), eager.samples());
+        assert_eq!(deferred.visible_triangles(), eager.visible_triangles());
+        let (nx, nz) = eager.cells();
+        for (cx, cz) in (0..nz).flat_map(|cz| (0..nx).map(move |cx| (cx, cz))) {
+            assert_eq!(deferred.cell_is_hole(cx, cz), eager.cell_is_hole(cx, cz));
+        }
+        let copy = deferred.clone();
+        assert!(!deferred.is_decoded() && !copy.is_decoded());
+        // The first height asked decodes the samples, the same ones.
+        let (x, z) = (origin.x + 41.0, origin.z + 17.0);
+        assert_eq!(deferred.height_at(x, z), eager.height_at(x, z));
+        assert!(deferred.is_decoded() && !copy.is_decoded());
+        for block in [&deferred, &copy] {
+            assert_eq!(block.grid().heights.get(), eager.grid().heights.get());
+            assert_eq!(block.triangles(), eager.triangles());
+        }
+        let holed = (0..nz).any(|cz| (0..nx).any(|cx| eager.cell_is_hole(cx, cz)));
+        assert!(holed, "the seed gives the block a hole");
+    }
+
+    #[test]
+    fn terrain1_is_never_deferred() {
+        let bytes = crate::formats::binsection::MAGIC;
+        let deferred = crate::formats::terrain::read_terrain_deferred(&bytes, "terrain");
+        assert!(deferred.unwrap().is_none());
     }
 
     #[test]

@@ -16,6 +16,7 @@ use super::boxtree::{BoxRay, Span};
 use super::triangle::{report_hit, PreparedRay};
 use super::{Hit, TraceRay, TraceTriangle};
 use glam::{DVec3, Vec3};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// Cells per leaf tile side.
 const TILE_CELLS: usize = 2;
@@ -31,8 +32,7 @@ pub struct HeightGrid<'a> {
     pub cells_z: usize,
     /// Chunk-local heights of the visible vertices, `(cells_x + 1) ×
     /// (cells_z + 1)`, row-major by z.
-    pub heights: &'a [f32],
-    /// One flag per cell, row-major by z.
+    pub heights: Heights<'a>,
     /// One flag per cell, row-major by z; empty: no hole.
     pub holes: &'a [bool],
     /// terrain2: the diagonal alternates with `(cx ^ cz) & 1`; terrain1:
@@ -44,12 +44,95 @@ pub struct HeightGrid<'a> {
     pub extremes: (f32, f32),
 }
 
+/// A block's samples: held, or decoded by the first reader. A re-bake
+/// with a cache traces near a few of a world's blocks; the others are
+/// never decoded, their height ranges known before.
+#[derive(Clone, Copy, Debug)]
+pub enum Heights<'a> {
+    Held(&'a [f32]),
+    Deferred(&'a DeferredHeights),
+}
+
+impl<'a> Heights<'a> {
+    /// The samples, decoded now if no reader has yet.
+    #[inline]
+    pub fn get(self) -> &'a [f32] {
+        match self {
+            Heights::Held(heights) => heights,
+            Heights::Deferred(deferred) => deferred.get(),
+        }
+    }
+
+    /// The samples if held or decoded already.
+    pub fn at_hand(self) -> Option<&'a [f32]> {
+        match self {
+            Heights::Held(heights) => Some(heights),
+            Heights::Deferred(deferred) => deferred.decoded.get().map(Vec::as_slice),
+        }
+    }
+}
+
+/// What makes a block's samples when they are first read.
+pub type DecodeHeights = Arc<dyn Fn() -> Vec<f32> + Send + Sync>;
+
+/// Samples decoded once, by whichever thread reads them first; the
+/// decoder (and what it holds, the encoded bytes) is dropped then.
+pub struct DeferredHeights {
+    decoded: OnceLock<Vec<f32>>,
+    decode: Mutex<Option<DecodeHeights>>,
+}
+
+impl DeferredHeights {
+    pub fn new(decode: DecodeHeights) -> DeferredHeights {
+        DeferredHeights {
+            decoded: OnceLock::new(),
+            decode: Mutex::new(Some(decode)),
+        }
+    }
+
+    pub fn get(&self) -> &[f32] {
+        self.decoded.get_or_init(|| {
+            let decode = self.decode.lock().unwrap_or_else(|e| e.into_inner()).take();
+            decode.map_or_else(Vec::new, |decode| decode())
+        })
+    }
+
+    /// Whether a reader has decoded them.
+    pub fn is_decoded(&self) -> bool {
+        self.decoded.get().is_some()
+    }
+}
+
+impl Clone for DeferredHeights {
+    fn clone(&self) -> DeferredHeights {
+        let decode = self
+            .decode
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        DeferredHeights {
+            decoded: self.decoded.clone(),
+            decode: Mutex::new(decode),
+        }
+    }
+}
+
+impl std::fmt::Debug for DeferredHeights {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.decoded.get() {
+            Some(heights) => write!(f, "DeferredHeights({} decoded)", heights.len()),
+            None => write!(f, "DeferredHeights(not decoded)"),
+        }
+    }
+}
+
 impl HeightGrid<'_> {
     /// Chunk-local height of vertex (x, z).
     #[inline]
     pub fn height(&self, x: usize, z: usize) -> f64 {
         f64::from(
             self.heights
+                .get()
                 .get(z * (self.cells_x + 1) + x)
                 .copied()
                 .unwrap_or(0.0),
@@ -274,9 +357,12 @@ pub fn extremes_of(heights: &[f32]) -> (f32, f32) {
     (low, high)
 }
 
-/// The lowest and highest of a block's samples, as its grid carries them.
+/// The lowest and highest of a block's samples, as its grid carries them
+/// (checked against samples at hand, never decoding them for it).
 fn extremes(grid: &HeightGrid) -> (f32, f32) {
-    debug_assert_eq!(grid.extremes, extremes_of(grid.heights));
+    if let Some(heights) = grid.heights.at_hand() {
+        debug_assert_eq!(grid.extremes, extremes_of(heights));
+    }
     grid.extremes
 }
 
@@ -730,7 +816,7 @@ mod tests {
                     chunk_size: 100.0,
                     cells_x,
                     cells_z,
-                    heights: &heights[..samples.min(heights.len())],
+                    heights: Heights::Held(&heights[..samples.min(heights.len())]),
                     holes: &holes,
                     alternating: true,
                     extremes: extremes_of(&heights[..samples.min(heights.len())]),
@@ -764,7 +850,7 @@ mod tests {
             chunk_size: 100.0,
             cells_x: 32,
             cells_z: 32,
-            heights: &heights,
+            heights: Heights::Held(&heights),
             holes: &holes,
             alternating: true,
             extremes: extremes_of(&heights),

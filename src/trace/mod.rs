@@ -41,7 +41,7 @@ mod tests;
 pub use blas::BottomLevels;
 pub use brute::brute_force_hits;
 pub use bvh::Bvh;
-pub use heightfield::{HeightField, HeightGrid};
+pub use heightfield::{DecodeHeights, DeferredHeights, HeightField, HeightGrid, Heights};
 pub use instance::ToModel;
 pub use packet::{PacketScratch, PACKET_RAYS};
 pub use tlas::{transform_box, Extent, PartsFrom, PlacedBlock, PlacedPart, PlacedParts, TopLevel};

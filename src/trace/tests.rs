@@ -748,7 +748,7 @@ mod two_level {
                 chunk_size: size,
                 cells_x: cells,
                 cells_z: cells,
-                heights,
+                heights: crate::trace::heightfield::Heights::Held(heights),
                 holes,
                 alternating: true,
                 extremes: crate::trace::heightfield::extremes_of(heights),

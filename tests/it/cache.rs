@@ -1559,3 +1559,68 @@ fn a_chunk_file_whose_stamp_a_record_vouches_for_is_not_read() {
     let rewritten = load_scene_cached(&load, &Silent, Some(&cache), &vouch(after_the_margin));
     assert_eq!(scene_text(&rewritten.unwrap()), scene_text(&parsed));
 }
+
+#[test]
+fn terrain_read_back_is_decoded_where_read_and_bakes_as_decoded_terrain() {
+    use shadowcull::bake::ground::Ground;
+    use shadowcull::cache::{Kind, KindCounts};
+    use shadowcull::scene::{keys, LoadConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let settings = small_settings(dir.path());
+    let load = LoadConfig::from_settings(&settings);
+    let open = || Cache::open(dir.path().join("cache"), u64::MAX, content_key(b"a build"));
+    let terrain_counts = |cache: &Cache| -> KindCounts {
+        let counts = cache
+            .counts()
+            .into_iter()
+            .find(|(k, _)| *k == Kind::Terrain);
+        counts.unwrap().1
+    };
+    let first = open();
+    let decoded = load_unvouched(&load, Some(&first)).unwrap();
+    let blocks = decoded.terrain.len();
+    assert!(blocks >= 4, "{blocks} blocks");
+    assert_eq!(terrain_counts(&first).written, blocks as u64);
+    assert!(decoded.terrain.iter().all(|b| b.is_decoded()));
+
+    // Read back: every block's range from the cache, no sample decoded.
+    let second = open();
+    let read_back = load_unvouched(&load, Some(&second)).unwrap();
+    assert_eq!(terrain_counts(&second).reused, blocks as u64);
+    assert!(read_back.terrain.iter().all(|b| !b.is_decoded()));
+    assert_eq!(scene_text(&read_back), scene_text(&decoded));
+    for (a, b) in decoded.terrain.iter().zip(&read_back.terrain) {
+        assert_eq!((a.bounds(), a.cells()), (b.bounds(), b.cells()));
+        assert_eq!(keys::block_key(a), keys::block_key(b));
+    }
+
+    // The below-ground test over one block decodes the blocks near the
+    // point (the ceilings' squares reach a neighbour's edge), no other.
+    let ground = Ground::new(&read_back).unwrap();
+    let (lo, hi) = read_back.terrain[0].bounds();
+    let centre = (lo + hi) / 2.0;
+    let probe = DVec3::new(centre.x, lo.y - 1.0, centre.z);
+    let expected = Ground::new(&decoded).unwrap().is_below(probe, 0.0);
+    assert_eq!(ground.is_below(probe, 0.0), expected);
+    assert!(read_back.terrain[0].is_decoded());
+    let others = read_back.terrain[1..]
+        .iter()
+        .filter(|b| b.is_decoded())
+        .count();
+    assert_eq!(
+        others, 0,
+        "a point in the middle of block 0 decodes it alone"
+    );
+
+    // A bake of the read-back terrain decides what one of decoded terrain
+    // does, and reads the same samples.
+    let config = BakeConfig::from_settings(&settings);
+    let baked = bake::bake(&decoded, &config, &Silent).unwrap();
+    let read_back_baked = bake::bake(&read_back, &config, &Silent).unwrap();
+    assert_eq!(baked.masks, read_back_baked.masks);
+    for (a, b) in decoded.terrain.iter().zip(&read_back.terrain) {
+        if b.is_decoded() {
+            assert_eq!(a.grid().heights.get(), b.grid().heights.get());
+        }
+    }
+}

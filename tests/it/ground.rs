@@ -166,3 +166,32 @@ fn blocks_off_their_grid_cells_keep_the_rule() {
         assert!(under > 100, "{under} points below ground");
     }
 }
+
+#[test]
+fn ceilings_are_the_same_whichever_points_ask_first() {
+    // A square's bound is found when a point first asks for it: asked in
+    // another order, or by many threads at once, it is the same.
+    use rayon::prelude::*;
+    let world = hilly(DVec3::new(-3.0 * CHUNK, 12.0, 5.0 * CHUNK), 16);
+    let pts = points(
+        &mut Rng::new(77),
+        world.scene.chunks[0].transform.w_axis.truncate(),
+        16,
+    );
+    let forward = Ground::new(&world.scene).expect("terrain");
+    let backward = Ground::new(&world.scene).expect("terrain");
+    let parallel = Ground::new(&world.scene).expect("terrain");
+    let asked: Vec<Option<f64>> = pts.iter().map(|&(x, z)| forward.ceiling(x, z)).collect();
+    let reversed: Vec<Option<f64>> = pts
+        .iter()
+        .rev()
+        .map(|&(x, z)| backward.ceiling(x, z))
+        .collect();
+    let at_once: Vec<Option<f64>> = pts
+        .par_iter()
+        .map(|&(x, z)| parallel.ceiling(x, z))
+        .collect();
+    assert!(asked.iter().filter(|c| c.is_some()).count() > 1000);
+    assert_eq!(asked, reversed.into_iter().rev().collect::<Vec<_>>());
+    assert_eq!(asked, at_once);
+}
