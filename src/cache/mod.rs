@@ -41,7 +41,8 @@ pub enum Kind {
     Chunk,
     /// A model's loaded geometry.
     Model,
-    /// A terrain block's height range, so its samples wait to be decoded.
+    /// A space's terrain blocks' height ranges, so their samples wait to
+    /// be decoded.
     Terrain,
     /// The casters one cell of a light's grid proves useful.
     Cell,

@@ -10,7 +10,8 @@
 
 use super::chunk_cache::{self, ParsedChunk};
 use super::items::ItemCount;
-use super::terrain_cache;
+use super::terrain::HeightRange;
+use super::terrain_cache::{self, HeightRanges};
 use super::{Chunk, Group, InputFile, Instance, Model, Problem, Scene, SpaceRegion, TerrainBlock};
 use crate::cache::{content_key, Cache, Fetched, Key, Kind, KnownFiles};
 use crate::digest::Digest;
@@ -248,18 +249,57 @@ impl TerrainReading<'_> {
     fn decode(&self, jobs: Vec<TerrainJob>) -> Vec<(usize, Result<TerrainBlock>)> {
         let (res_paths, log) = (&self.config.res_paths, self.log);
         let counter = Counter::begin(self.progress, Phase::Terrain, None, jobs.len() as u64);
-        let blocks = jobs
+        let ranges = self.cache.map(|cache| self.stored_ranges(cache));
+        let blocks: Vec<(usize, Result<TerrainBlock>)> = jobs
             .into_par_iter()
             .map(|job| {
                 let folder = chunk_folder(&self.config.space, self.space_dir, &job.chunk_path);
-                let block =
-                    load_terrain(res_paths, log, self.cache, &job, &folder, self.chunk_size);
+                let block = load_terrain(
+                    res_paths,
+                    log,
+                    ranges.as_ref(),
+                    &job,
+                    &folder,
+                    self.chunk_size,
+                );
                 counter.add(1);
                 (job.chunk, block)
             })
             .collect();
         counter.finish();
+        if let (Some(cache), Some(stored)) = (self.cache, &ranges) {
+            self.store_ranges(cache, stored, &blocks);
+        }
         blocks
+    }
+
+    /// The height ranges the cache holds for this space's blocks.
+    fn stored_ranges(&self, cache: &Cache) -> HeightRanges {
+        let key = terrain_cache::key(cache, self.space_dir);
+        match cache.fetch(Kind::Terrain, &key) {
+            Fetched::Value(value) => terrain_cache::decode(&value).unwrap_or_else(|| {
+                cache.reject(Kind::Terrain, &key);
+                HeightRanges::default()
+            }),
+            _ => HeightRanges::default(),
+        }
+    }
+
+    /// Stores the height ranges of `blocks` (those read from a file), when
+    /// they are not the `stored` ones.
+    fn store_ranges(
+        &self,
+        cache: &Cache,
+        stored: &HeightRanges,
+        blocks: &[(usize, Result<TerrainBlock>)],
+    ) {
+        let read = blocks.iter().filter_map(|(_, block)| block.as_ref().ok());
+        let ranges = read.filter_map(|block| Some((*block.source()?, block.range())));
+        let ranges = HeightRanges(ranges.collect());
+        if ranges != *stored {
+            let key = terrain_cache::key(cache, self.space_dir);
+            cache.put(Kind::Terrain, &key, &terrain_cache::encode(&ranges));
+        }
     }
 }
 
@@ -1027,7 +1067,7 @@ fn chunk_folder(space: &str, space_dir: &Path, chunk_path: &Path) -> String {
 fn load_terrain(
     res_paths: &ResPaths,
     log: &ReadLog,
-    cache: Option<&Cache>,
+    ranges: Option<&HeightRanges>,
     job: &TerrainJob,
     folder: &str,
     chunk_size: f64,
@@ -1054,16 +1094,16 @@ fn load_terrain(
     let bytes = files::read_file(&cdata_path)
         .map_err(|err| cdata_not_found(err, chunk_path, &file, &cdata_path, res_paths))?;
     log.record(&cdata_path, &bytes);
-    let Some(cache) = cache else {
+    let Some(ranges) = ranges else {
         return decode_terrain(&bytes, &entry, origin, chunk_size, &cdata_path);
     };
     let source = terrain_cache::source_key(&content_key(&bytes), &entry);
-    let key = terrain_cache::key(cache, &source);
-    if let Some(block) = deferred_terrain(cache, &key, &bytes, &entry, origin, chunk_size) {
-        return Ok(block.with_source(source));
+    if let Some(range) = ranges.get(&source) {
+        if let Some(block) = deferred_terrain(range, &bytes, &entry, origin, chunk_size) {
+            return Ok(block.with_source(source));
+        }
     }
     let block = decode_terrain(&bytes, &entry, origin, chunk_size, &cdata_path)?;
-    cache.put(Kind::Terrain, &key, &terrain_cache::encode(block.range()));
     Ok(block.with_source(source))
 }
 
@@ -1081,27 +1121,15 @@ fn decode_terrain(
 }
 
 /// The block in `.cdata` file `bytes` with its heights decoded when first
-/// read, when `cache` holds its height range under `key`; `None` (the
-/// block then decoded now) when it does not, or the entry is damaged or
-/// the file is not one whose decoding can wait.
+/// read, its height `range` known; `None` (the block then decoded now) for
+/// a file whose decoding cannot wait.
 fn deferred_terrain(
-    cache: &Cache,
-    key: &Key,
+    range: HeightRange,
     bytes: &[u8],
     entry: &str,
     origin: DVec3,
     chunk_size: f64,
 ) -> Option<TerrainBlock> {
-    let range = match cache.fetch(Kind::Terrain, key) {
-        Fetched::Value(value) => match terrain_cache::decode(&value) {
-            Some(range) => range,
-            None => {
-                cache.reject(Kind::Terrain, key);
-                return None;
-            }
-        },
-        _ => return None,
-    };
     let data = terrain_format::read_terrain_deferred(bytes, entry).ok()??;
     TerrainBlock::deferred(data, range, origin, chunk_size).ok()
 }
