@@ -44,7 +44,6 @@ use super::chunk::{
 use super::{packed_xml, xml, Section};
 use crate::digest::{Digest, Digester};
 use crate::error::FormatError;
-use std::fmt::Write as _;
 use std::ops::Range;
 
 /// Tag of the element the bake owns inside instances and terrain.
@@ -519,19 +518,18 @@ impl ShadowSites {
         let mut edits: Vec<Edit> = Vec::new();
         for (target, site, masks) in &written {
             let at = checked_span(original, site)?;
-            let shadow = shadow_text(*masks, depth + 1, eol);
             let new = Written {
                 target: *target,
-                at: 0..shadow.len(),
+                at: 0..0,
                 held: masks.bits(),
             };
             edits.push(site_edit(
                 original,
                 at,
                 site.place,
-                depth,
-                eol,
-                (new, shadow),
+                (depth, eol),
+                new,
+                *masks,
             ));
             for (_, extra) in self.extras.iter().filter(|(t, _)| t == target) {
                 let range = extra.start as usize..extra.end as usize;
@@ -758,19 +756,22 @@ fn not_the_bytes(at: usize) -> FormatError {
     )
 }
 
-/// The edit that puts `shadow` (its text) at `span` of `original` as
-/// `place` says; elements sit `depth` tabs deep.
+/// The edit that puts the `<shadow>` of `masks` at `span` of `original`
+/// as `place` says; elements sit `depth` tabs deep. Written straight into
+/// the edit's bytes: a big world's output makes millions of them.
 fn site_edit(
     original: &[u8],
     span: Range<usize>,
     place: Place,
-    depth: usize,
-    eol: &str,
-    (mut written, shadow): (Written, String),
+    (depth, eol): (usize, &str),
+    mut written: Written,
+    masks: Masks,
 ) -> Edit {
-    let indent = "\t".repeat(depth + 1);
-    let (before, after) = match place {
-        Place::Replace => (Vec::new(), String::new()),
+    let mut text = Vec::with_capacity(64);
+    let mut after: &[u8] = &[];
+    let mut name: &[u8] = &[];
+    match place {
+        Place::Replace => {}
         Place::Expand => {
             // The start tag's bytes are kept as they are (attributes need
             // not be UTF-8); only `/>` becomes `>`.
@@ -780,27 +781,63 @@ fn site_edit(
                 .iter()
                 .position(|&b| b.is_ascii_whitespace() || b == b'>')
                 .map_or(head.len(), |i| i + 1);
-            let mut before = head.to_vec();
-            before.extend_from_slice(format!(">{eol}{indent}").as_bytes());
-            let name = String::from_utf8_lossy(&head[1..name_end]);
-            (before, format!("{eol}{}</{name}>", "\t".repeat(depth)))
+            text.extend_from_slice(head);
+            text.push(b'>');
+            text.extend_from_slice(eol.as_bytes());
+            push_tabs(&mut text, depth + 1);
+            name = &head[1..name_end];
         }
-        Place::OwnLine => (indent.into_bytes(), eol.to_string()),
-        Place::BeforeClose => (
-            format!("{eol}{indent}").into_bytes(),
-            format!("{eol}{}", "\t".repeat(depth)),
-        ),
-    };
-    let mut text = before;
+        Place::OwnLine => {
+            push_tabs(&mut text, depth + 1);
+            after = eol.as_bytes();
+        }
+        Place::BeforeClose => {
+            text.extend_from_slice(eol.as_bytes());
+            push_tabs(&mut text, depth + 1);
+        }
+    }
     let at = text.len();
-    text.extend_from_slice(shadow.as_bytes());
-    text.extend_from_slice(after.as_bytes());
-    written.at = at..at + shadow.len();
+    shadow_text(&mut text, masks, depth + 1, eol);
+    written.at = at..text.len();
+    match place {
+        Place::Expand => {
+            text.extend_from_slice(eol.as_bytes());
+            push_tabs(&mut text, depth);
+            text.extend_from_slice(b"</");
+            text.extend_from_slice(name);
+            text.push(b'>');
+        }
+        Place::BeforeClose => {
+            text.extend_from_slice(eol.as_bytes());
+            push_tabs(&mut text, depth);
+        }
+        Place::Replace | Place::OwnLine => text.extend_from_slice(after),
+    }
     Edit {
         range: span,
         text,
         shadow: Some(written),
     }
+}
+
+/// `n` tabs.
+fn push_tabs(out: &mut Vec<u8>, n: usize) {
+    out.resize(out.len() + n, b'\t');
+}
+
+/// `v` in decimal, as `{v}` formats it.
+fn push_decimal(out: &mut Vec<u8>, mut v: u32) {
+    let mut digits = [0u8; 10];
+    let mut at = digits.len();
+    loop {
+        at -= 1;
+        digits[at] = b'0' + (v % 10) as u8;
+        v /= 10;
+        if v == 0 {
+            break;
+        }
+    }
+    out.extend_from_slice(&digits[at..]);
 }
 
 /// `original` with `edits` (sorted, never overlapping) made; each edit's
@@ -906,45 +943,80 @@ fn line_ending(text: &[u8]) -> &'static str {
     }
 }
 
-/// The `<shadow>` element's text; `depth` is its own depth (its tag is
-/// preceded by `depth` tabs, written by the caller), inner lines go deeper.
-fn shadow_text(masks: Masks, depth: usize, eol: &str) -> String {
+/// The `<shadow>` element's text, appended to `out`; `depth` is its own
+/// depth (its tag is preceded by `depth` tabs, written by the caller),
+/// inner lines go deeper.
+fn shadow_text(out: &mut Vec<u8>, masks: Masks, depth: usize, eol: &str) {
     let shadow = match masks {
-        Masks::Terrain(mask) => return format!("<{SHADOW_TAG}>\t{mask}\t</{SHADOW_TAG}>"),
+        Masks::Terrain(mask) => return value_element(out, SHADOW_TAG, mask),
+        Masks::Instance(shadow) if shadow.render_sets.is_empty() => {
+            return value_element(out, SHADOW_TAG, shadow.mask)
+        }
         Masks::Instance(shadow) => shadow,
     };
-    if shadow.render_sets.is_empty() {
-        return format!("<{SHADOW_TAG}>\t{}\t</{SHADOW_TAG}>", shadow.mask);
-    }
-    let tabs = |n: usize| "\t".repeat(n);
-    let mut out = format!("<{SHADOW_TAG}>\t{}{eol}", shadow.mask);
+    let eol = eol.as_bytes();
+    let line = |out: &mut Vec<u8>, tabs: usize, tag: Tag| {
+        push_tabs(out, tabs);
+        tag.push(out);
+        out.extend_from_slice(eol);
+    };
+    Tag::Open(SHADOW_TAG).push(out);
+    out.push(b'\t');
+    push_decimal(out, shadow.mask);
+    out.extend_from_slice(eol);
     for render_set in &shadow.render_sets {
-        let ind = tabs(depth + 1);
         if render_set.is_empty() {
-            let _ = write!(out, "{ind}<{RENDER_SET_TAG} />{eol}");
+            line(out, depth + 1, Tag::Empty(RENDER_SET_TAG));
             continue;
         }
-        let _ = write!(out, "{ind}<{RENDER_SET_TAG}>{eol}");
+        line(out, depth + 1, Tag::Open(RENDER_SET_TAG));
         for geometry in render_set {
-            let ind = tabs(depth + 2);
             if geometry.is_empty() {
-                let _ = write!(out, "{ind}<{GEOMETRY_TAG} />{eol}");
+                line(out, depth + 2, Tag::Empty(GEOMETRY_TAG));
                 continue;
             }
-            let _ = write!(out, "{ind}<{GEOMETRY_TAG}>{eol}");
-            for mask in geometry {
-                let _ = write!(
-                    out,
-                    "{}<{GROUP_TAG}>\t{mask}\t</{GROUP_TAG}>{eol}",
-                    tabs(depth + 3)
-                );
+            line(out, depth + 2, Tag::Open(GEOMETRY_TAG));
+            for &mask in geometry {
+                push_tabs(out, depth + 3);
+                value_element(out, GROUP_TAG, mask);
+                out.extend_from_slice(eol);
             }
-            let _ = write!(out, "{ind}</{GEOMETRY_TAG}>{eol}");
+            line(out, depth + 2, Tag::Close(GEOMETRY_TAG));
         }
-        let _ = write!(out, "{ind}</{RENDER_SET_TAG}>{eol}");
+        line(out, depth + 1, Tag::Close(RENDER_SET_TAG));
     }
-    let _ = write!(out, "{}</{SHADOW_TAG}>", tabs(depth));
-    out
+    push_tabs(out, depth);
+    Tag::Close(SHADOW_TAG).push(out);
+}
+
+/// A start, end or empty-element tag.
+#[derive(Clone, Copy)]
+enum Tag<'a> {
+    Open(&'a str),
+    Close(&'a str),
+    Empty(&'a str),
+}
+
+impl Tag<'_> {
+    fn push(self, out: &mut Vec<u8>) {
+        let (head, name, tail): (&[u8], &str, &[u8]) = match self {
+            Tag::Open(name) => (b"<", name, b">"),
+            Tag::Close(name) => (b"</", name, b">"),
+            Tag::Empty(name) => (b"<", name, b" />"),
+        };
+        out.extend_from_slice(head);
+        out.extend_from_slice(name.as_bytes());
+        out.extend_from_slice(tail);
+    }
+}
+
+/// `<name>\tvalue\t</name>`.
+fn value_element(out: &mut Vec<u8>, name: &str, value: u32) {
+    Tag::Open(name).push(out);
+    out.push(b'\t');
+    push_decimal(out, value);
+    out.push(b'\t');
+    Tag::Close(name).push(out);
 }
 
 fn write_packed(original: &[u8], shadows: &ChunkShadows) -> Result<Vec<u8>, FormatError> {
@@ -1043,6 +1115,29 @@ mod tests {
     }
 
     const BASIC: &str = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<terrain>\n\t\t<resource>\tx.cdata/terrain2\t</resource>\n\t</terrain>\n</root>\n";
+
+    #[test]
+    fn decimals_are_what_display_writes() {
+        let mut rng = crate::rng::Rng::new(5);
+        let edges = [
+            0,
+            1,
+            9,
+            10,
+            99,
+            100,
+            65_535,
+            999_999_999,
+            1_000_000_000,
+            u32::MAX,
+        ];
+        let random = (0..2000).map(|_| rng.next_u64() as u32 >> (rng.next_u64() % 32));
+        for v in edges.into_iter().chain(random) {
+            let mut out = b"x".to_vec();
+            push_decimal(&mut out, v);
+            assert_eq!(out, format!("x{v}").into_bytes());
+        }
+    }
 
     #[test]
     fn writes_the_spec_layout() {
