@@ -117,6 +117,14 @@ pub struct HeightRange {
     pub high: f32,
 }
 
+impl HeightRange {
+    /// Whether a block can have it: both finite, the lowest not above the
+    /// highest.
+    pub fn is_sound(&self) -> bool {
+        self.low.is_finite() && self.high.is_finite() && self.low <= self.high
+    }
+}
+
 /// A height grid's visible part: the grid's size less the border.
 #[derive(Debug, Clone, Copy)]
 struct Visible {
@@ -203,7 +211,7 @@ impl TerrainBlock {
     ) -> Result<TerrainBlock, String> {
         check_placement(origin, chunk_size)?;
         let visible = Visible::of(data.width, data.height, data.border)?;
-        if !(range.low.is_finite() && range.high.is_finite() && range.low <= range.high) {
+        if !range.is_sound() {
             return Err(format!("height range {range:?} is not finite"));
         }
         let block = TerrainBlock::laid_out(data.version, visible, origin, chunk_size, range);
@@ -303,9 +311,14 @@ impl TerrainBlock {
 
     /// Whether its samples are in memory (held, or decoded by a reader).
     pub fn is_decoded(&self) -> bool {
+        self.grid().heights.at_hand().is_some()
+    }
+
+    /// The samples, decoded now if no reader has yet.
+    fn heights(&self) -> &[f32] {
         match &self.heights {
-            BlockHeights::Held(_) => true,
-            BlockHeights::Deferred(deferred) => deferred.is_decoded(),
+            BlockHeights::Held(heights) => heights,
+            BlockHeights::Deferred(deferred) => deferred.get(),
         }
     }
 
@@ -337,9 +350,7 @@ impl TerrainBlock {
         if x > self.cells_x {
             return None;
         }
-        self.grid()
-            .heights
-            .get()
+        self.heights()
             .get(z * (self.cells_x + 1) + x)
             .copied()
             .map(f64::from)

@@ -64,8 +64,7 @@ pub fn decode(bytes: &[u8]) -> Option<HeightRanges> {
             low: d.f32().ok()?,
             high: d.f32().ok()?,
         };
-        let sound = range.low.is_finite() && range.high.is_finite() && range.low <= range.high;
-        if !sound {
+        if !range.is_sound() {
             return None;
         }
         ranges.insert(source, range);

@@ -96,11 +96,6 @@ impl DeferredHeights {
             decode.map_or_else(Vec::new, |decode| decode())
         })
     }
-
-    /// Whether a reader has decoded them.
-    pub fn is_decoded(&self) -> bool {
-        self.decoded.get().is_some()
-    }
 }
 
 impl Clone for DeferredHeights {
