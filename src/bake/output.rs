@@ -507,8 +507,7 @@ impl ChunkOutputs<'_> {
     /// found without decoding the entry (one encoding per shadows).
     fn as_baked(&self, index: usize, value: &[u8]) -> bool {
         let result = self.result;
-        let shadows = chunk_shadows_of(self.scene, &result.casters, index, |id| result.masks[id]);
-        encode_shadows(&shadows) == value
+        encode_shadows_of(self.scene, &result.casters, index, |id| result.masks[id]) == value
     }
 
     /// The output of a chunk whose bytes (of content key `content`; read
@@ -647,6 +646,92 @@ fn encode_shadows(shadows: &ChunkShadows) -> Vec<u8> {
         None => e.u8(0),
     };
     e.into_bytes()
+}
+
+/// `encode_shadows(&chunk_shadows_of(..))`, written straight from the
+/// scene: every chunk of a cached bake is compared with its entry this
+/// way, and building each instance's nested mask lists first was most of
+/// that comparison's time.
+fn encode_shadows_of(
+    scene: &Scene,
+    casters: &CasterTable,
+    chunk: usize,
+    mask_of: impl Fn(usize) -> u32,
+) -> Vec<u8> {
+    let chunk = &scene.chunks[chunk];
+    // Which instance fills each element's slot, as `chunk_shadows_of`
+    // fills them (a later one in the same slot wins).
+    let mut instances: Vec<Option<usize>> = vec![None; chunk.instance_elements];
+    let mut speedtrees: Vec<Option<usize>> = vec![None; chunk.speedtree_elements];
+    for index in chunk.instances.clone() {
+        let instance = &scene.instances[index];
+        if casters.first_of_instance[index].is_none() {
+            continue;
+        }
+        let slots = match instance.kind {
+            InstanceKind::SpeedTree => &mut speedtrees,
+            InstanceKind::Model | InstanceKind::Shell => &mut instances,
+        };
+        if let Some(slot) = slots.get_mut(instance.index) {
+            *slot = Some(index);
+        }
+    }
+    let mut e = Encoder::new();
+    for slots in [&instances, &speedtrees] {
+        e.var(slots.len() as u64);
+        for slot in slots {
+            match slot {
+                Some(index) => encode_instance_shadow(&mut e, scene, casters, *index, &mask_of),
+                None => {
+                    e.u8(0);
+                }
+            }
+        }
+    }
+    match chunk.terrain {
+        Some(block) => e
+            .u8(1)
+            .var(u64::from(mask_of(casters.of_block[block] as usize))),
+        None => e.u8(0),
+    };
+    e.into_bytes()
+}
+
+/// One placed instance's `<shadow>` as [`encode_instances`] writes it.
+fn encode_instance_shadow(
+    e: &mut Encoder,
+    scene: &Scene,
+    casters: &CasterTable,
+    index: usize,
+    mask_of: &impl Fn(usize) -> u32,
+) {
+    let instance = &scene.instances[index];
+    let first = casters.first_of_instance[index].map_or(0, |f| f as usize);
+    let layouts = || {
+        instance
+            .parts
+            .iter()
+            .flatten()
+            .flat_map(|&model| scene.models[model].layout.iter())
+    };
+    let groups: usize = layouts().flatten().sum();
+    let mask = if instance.is_unmodelled() {
+        mask_of(first)
+    } else {
+        (first..first + groups).fold(0, |bits, caster| bits | mask_of(caster))
+    };
+    e.u8(1).var(u64::from(mask)).var(layouts().count() as u64);
+    let mut caster = first;
+    for geometries in layouts() {
+        e.var(geometries.len() as u64);
+        for &count in geometries {
+            e.var(count as u64);
+            for id in caster..caster + count {
+                e.var(u64::from(mask_of(id)));
+            }
+            caster += count;
+        }
+    }
 }
 
 fn decode_shadows(bytes: &[u8]) -> Option<ChunkShadows> {
@@ -991,5 +1076,51 @@ mod tests {
         }
         let none = ChunkShadows::default();
         assert_eq!(decode_shadows(&encode_shadows(&none)), Some(none));
+    }
+
+    /// Straight from the scene, the bytes of the masks built first: every
+    /// chunk of the village under seeded masks, one of its instances made
+    /// an unmodelled speedtree and one left out.
+    #[test]
+    fn shadows_encoded_from_the_scene_are_those_of_the_built_masks() {
+        use crate::files::ResPaths;
+        use crate::scene::{load_scene, LoadConfig};
+        use std::sync::Arc;
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
+        let mut scene = load_scene(&LoadConfig {
+            res_paths: ResPaths::new(vec![root]),
+            space: "spaces/village".into(),
+            speedtrees: Default::default(),
+        })
+        .expect("the village fixture loads");
+        let tree = scene.chunks[0].instances.start;
+        scene.instances[tree].kind = InstanceKind::SpeedTree;
+        scene.instances[tree].index = 0;
+        scene.instances[tree].parts = Arc::from([]);
+        scene.chunks[0].speedtree_elements = 2;
+        scene.instances[tree + 1].parts = Arc::from([None]);
+        let casters = CasterTable::new(&scene);
+        assert!(casters.first_of_instance[tree + 1].is_none());
+        let mut rng = crate::rng::Rng::new(0x5ad0);
+        let masks: Vec<u32> = (0..casters.casters.len())
+            .map(|_| rng.next_u64() as u32 >> rng.below(32))
+            .collect();
+        let mask_of = |id: usize| masks[id];
+        let mut render_sets = 0;
+        for chunk in 0..scene.chunks.len() {
+            let built = chunk_shadows_of(&scene, &casters, chunk, mask_of);
+            render_sets += built
+                .instances
+                .iter()
+                .flatten()
+                .map(|s| s.render_sets.len())
+                .sum::<usize>();
+            assert_eq!(
+                encode_shadows_of(&scene, &casters, chunk, mask_of),
+                encode_shadows(&built),
+                "chunk {chunk}"
+            );
+        }
+        assert!(render_sets > scene.chunks.len(), "models with render sets");
     }
 }

@@ -9,6 +9,7 @@ use super::Section;
 use crate::error::FormatError;
 use glam::DMat4;
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 /// What a placed instance element is: a model, an indoor shell, or a
 /// SpeedTree placement (docs/contract.md §2).
@@ -80,16 +81,18 @@ pub struct InstanceElement {
     /// 0-based position among the chunk's `<model>`/`<shell>` elements in
     /// document order (the report's `index`).
     pub index: usize,
-    /// The `<resource>` parts, in order (`.model` resource names).
-    pub resources: Vec<String>,
+    /// The `<resource>` parts, in order (`.model` resource names); shared
+    /// by the elements of a chunk read back from the bake cache that name
+    /// the same models, and by the instances placed from them.
+    pub resources: Arc<[String]>,
     /// Local-to-chunk transform; identity when the element has none, as the
     /// engine reads it.
     pub transform: DMat4,
     /// `<castsShadow>` (14.x), else the legacy `<editorOnly><castsShadow>`,
     /// else true.
     pub casts_shadow: bool,
-    /// Tag path, for messages.
-    pub path: String,
+    /// Tag path, for messages (the same for every element of a kind).
+    pub path: Arc<str>,
 }
 
 /// One `<speedtree>` element: a SpeedTree placement. The `.spt` itself is
@@ -165,7 +168,7 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             resources,
             transform,
             casts_shadow,
-            path: element.path.clone(),
+            path: element.path.as_str().into(),
         });
     }
     let speedtrees = speedtree_elements(root)
@@ -229,7 +232,7 @@ mod tests {
         assert_eq!(shell.transform, DMat4::IDENTITY);
         let model = &chunk.instances[1];
         assert_eq!((model.kind, model.index), (InstanceKind::Model, 1));
-        assert_eq!(model.resources, ["sets/b.model", "sets/c.model"]);
+        assert_eq!(*model.resources, ["sets/b.model", "sets/c.model"]);
         assert!(
             model.casts_shadow,
             "the 14.x direct child wins over editorOnly"

@@ -366,8 +366,8 @@ impl Scan {
                         index: chunk.instances.len(),
                         transform: transform()?,
                         casts_shadow,
-                        path: path(kind.tag()),
-                        resources: target.resources,
+                        path: path(kind.tag()).into(),
+                        resources: target.resources.into(),
                     });
                     sites.instances.push(site);
                 }

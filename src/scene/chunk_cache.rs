@@ -17,6 +17,7 @@ use crate::formats::chunk::{
 use crate::formats::shadow_write::{Place, ShadowSites, Site};
 use glam::DMat4;
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 /// A chunk file as the load uses it.
 #[derive(Debug, Clone, PartialEq)]
@@ -104,8 +105,9 @@ fn decode_checked(bytes: &[u8]) -> Result<ParsedChunk, DecodeError> {
         _ => return Err(DecodeError { at: 0 }),
     };
     let count = d.len(1)?;
+    let mut shared = Shared::new(Table(&table));
     let instances = (0..count)
-        .map(|_| decode_instance(&mut d, &strings))
+        .map(|_| decode_instance(&mut d, &mut shared))
         .collect::<Result<_, _>>()?;
     let count = d.len(1)?;
     let speedtrees = (0..count)
@@ -243,7 +245,7 @@ fn encode_instance(e: &mut Encoder, strings: &mut Strings, instance: &InstanceEl
     });
     e.var(instance.index as u64);
     e.var(instance.resources.len() as u64);
-    for resource in &instance.resources {
+    for resource in instance.resources.iter() {
         e.var(strings.index(resource));
     }
     matrix(e, &instance.transform);
@@ -251,7 +253,7 @@ fn encode_instance(e: &mut Encoder, strings: &mut Strings, instance: &InstanceEl
     e.var(strings.index(&instance.path));
 }
 
-fn decode_instance(d: &mut Decoder, strings: &Table) -> Result<InstanceElement, DecodeError> {
+fn decode_instance(d: &mut Decoder, shared: &mut Shared) -> Result<InstanceElement, DecodeError> {
     let kind = match d.u8()? {
         0 => InstanceKind::Model,
         1 => InstanceKind::Shell,
@@ -260,16 +262,13 @@ fn decode_instance(d: &mut Decoder, strings: &Table) -> Result<InstanceElement, 
     };
     let index = d.var()? as usize;
     let count = d.len(1)?;
-    let resources = (0..count)
-        .map(|_| strings.get(d))
-        .collect::<Result<_, _>>()?;
     Ok(InstanceElement {
         kind,
         index,
-        resources,
+        resources: shared.list(d, count)?,
         transform: read_matrix(d)?,
         casts_shadow: read_bool(d)?,
-        path: strings.get(d)?,
+        path: shared.str(d)?,
     })
 }
 
@@ -366,13 +365,66 @@ impl Strings {
 struct Table<'t>(&'t [String]);
 
 impl Table<'_> {
-    fn get(&self, d: &mut Decoder) -> Result<String, DecodeError> {
-        let i = d.var()?;
-        usize::try_from(i)
+    fn index(&self, d: &mut Decoder) -> Result<usize, DecodeError> {
+        usize::try_from(d.var()?)
             .ok()
-            .and_then(|i| self.0.get(i))
-            .cloned()
+            .filter(|&i| i < self.0.len())
             .ok_or(DecodeError { at: 0 })
+    }
+
+    fn get(&self, d: &mut Decoder) -> Result<String, DecodeError> {
+        Ok(self.0[self.index(d)?].clone())
+    }
+}
+
+/// The values a chunk's elements share, made once per chunk: a chunk
+/// places thousands of instances of a few models, and one allocation per
+/// instance for each resource list and tag path was a large share of
+/// reading a world back.
+struct Shared<'t> {
+    table: Table<'t>,
+    /// Per string of the table, once asked for.
+    strs: Vec<Option<Arc<str>>>,
+    /// Each resource list met, by its string indices.
+    lists: HashMap<Vec<usize>, Arc<[String]>>,
+    /// The list being read (kept to read the next without allocating).
+    reading: Vec<usize>,
+}
+
+impl<'t> Shared<'t> {
+    fn new(table: Table<'t>) -> Shared<'t> {
+        let strs = vec![None; table.0.len()];
+        Shared {
+            table,
+            strs,
+            lists: HashMap::new(),
+            reading: Vec::new(),
+        }
+    }
+
+    fn str(&mut self, d: &mut Decoder) -> Result<Arc<str>, DecodeError> {
+        let i = self.table.index(d)?;
+        let table = &self.table;
+        Ok(self.strs[i]
+            .get_or_insert_with(|| Arc::from(table.0[i].as_str()))
+            .clone())
+    }
+
+    fn list(&mut self, d: &mut Decoder, count: usize) -> Result<Arc<[String]>, DecodeError> {
+        self.reading.clear();
+        for _ in 0..count {
+            self.reading.push(self.table.index(d)?);
+        }
+        if let Some(list) = self.lists.get(self.reading.as_slice()) {
+            return Ok(list.clone());
+        }
+        let list: Arc<[String]> = self
+            .reading
+            .iter()
+            .map(|&i| self.table.0[i].clone())
+            .collect();
+        self.lists.insert(self.reading.clone(), list.clone());
+        Ok(list)
     }
 }
 
@@ -403,6 +455,22 @@ mod tests {
         let tree = &back.chunk.speedtrees[0].transform;
         assert_eq!(tree.w_axis.y.to_bits(), (-0f64).to_bits());
         assert_eq!(tree.w_axis.x, 1e-300);
+    }
+
+    #[test]
+    fn elements_read_back_share_their_lists_and_paths() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<model>\n\t\t<resource>\tb.model\t</resource>\n\t</model>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<shell>\n\t\t<resource>\ta.model\t</resource>\n\t</shell>\n</root>\n";
+        let original = parsed(text);
+        let back = decode(&encode(&original)).expect("decodes");
+        assert_eq!(back, original);
+        let [a, b, again, shell] = &back.chunk.instances[..] else {
+            panic!("four elements");
+        };
+        assert!(Arc::ptr_eq(&a.resources, &again.resources));
+        assert!(Arc::ptr_eq(&a.resources, &shell.resources), "the same list");
+        assert!(!Arc::ptr_eq(&a.resources, &b.resources));
+        assert!(Arc::ptr_eq(&a.path, &b.path));
+        assert_eq!((&*a.path, &*shell.path), ("root/model", "root/shell"));
     }
 
     #[test]

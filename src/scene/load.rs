@@ -28,9 +28,9 @@ use crate::formats::{
 use crate::progress::{Counter, Phase, Progress};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// Where the world is, and the proxies of its speedtrees.
 #[derive(Debug, Clone)]
@@ -532,13 +532,17 @@ impl Loader<'_> {
             let first = || ModelSource::Resource {
                 referenced_by: path.clone(),
             };
-            // Counted per chunk first: a large world places millions of
-            // parts but names few models in a chunk.
-            let mut resources: BTreeMap<String, usize> = BTreeMap::new();
+            // Counted per chunk first, as written: a large world places
+            // millions of parts but names few models in a chunk.
+            let mut written: HashMap<&str, usize> = HashMap::new();
             for instance in &file.instances {
-                for resource in &instance.resources {
-                    *resources.entry(files::normalise(resource)).or_default() += 1;
+                for resource in instance.resources.iter() {
+                    *written.entry(resource).or_default() += 1;
                 }
+            }
+            let mut resources: BTreeMap<String, usize> = BTreeMap::new();
+            for (resource, placements) in written {
+                *resources.entry(files::normalise(resource)).or_default() += placements;
             }
             for (name, placements) in resources {
                 need(name, placements, first(), chunk);
@@ -664,6 +668,10 @@ struct Placing<'a> {
     chunk_size: f64,
 }
 
+/// The models of each resource list of a chunk's elements, by the list's
+/// address (alive while the chunk is placed).
+type PartsOf = HashMap<usize, Arc<[Option<usize>]>>;
+
 /// One chunk's place and instances, and the problems placing it found.
 struct PlacedChunk {
     grid: Option<(i32, i32)>,
@@ -679,8 +687,16 @@ impl Placing<'_> {
         let grid = space_settings::parse_outdoor_chunk_name(name);
         let transform = chunk_transform(path, file, grid, self.chunk_size, &mut problems);
         let mut instances = Vec::with_capacity(file.instances.len() + file.speedtrees.len());
+        let mut parts = PartsOf::default();
         for element in &file.instances {
-            instances.extend(self.instance(path, index, transform, element, &mut problems));
+            instances.extend(self.instance(
+                path,
+                index,
+                transform,
+                element,
+                &mut parts,
+                &mut problems,
+            ));
         }
         for element in &file.speedtrees {
             instances.extend(self.speedtree(path, index, transform, element, &mut problems));
@@ -701,6 +717,7 @@ impl Placing<'_> {
         chunk_index: usize,
         chunk_transform: DMat4,
         element: &chunk::InstanceElement,
+        parts_of: &mut PartsOf,
         problems: &mut Vec<Problem>,
     ) -> Option<Instance> {
         let what = || format!("{} <{}>", chunk_path.display(), element.path);
@@ -713,18 +730,22 @@ impl Placing<'_> {
             });
             return None;
         }
-        let parts: Vec<Option<usize>> = element
-            .resources
-            .iter()
-            .map(|r| self.model_names.get(&*files::normalised(r)).copied())
-            .collect();
+        // Keyed by the list's address: the elements read back from the
+        // cache that name the same resources share one list.
+        let parts = parts_of
+            .entry(element.resources.as_ptr() as usize)
+            .or_insert_with(|| {
+                element
+                    .resources
+                    .iter()
+                    .map(|r| self.model_names.get(&*files::normalised(r)).copied())
+                    .collect()
+            })
+            .clone();
         Some(Instance {
             chunk: chunk_index,
             index: element.index,
             kind: element.kind,
-            // Copied, not moved: the copies lie together in the placing
-            // thread's memory, where the parsed strings lie among the
-            // parse's freed values and would hold their pages.
             resources: element.resources.clone(),
             parts,
             world,
@@ -756,14 +777,14 @@ impl Placing<'_> {
             return None;
         }
         let parts = match proxy_model(self.speedtrees, &spt) {
-            Some((name, _)) => vec![self.model_names.get(&name).copied()],
-            None => Vec::new(),
+            Some((name, _)) => Arc::from([self.model_names.get(&name).copied()]),
+            None => Arc::from([]),
         };
         Some(Instance {
             chunk: chunk_index,
             index: element.index,
             kind: InstanceKind::SpeedTree,
-            resources: vec![element.spt.trim().to_string()],
+            resources: Arc::from([element.spt.trim().to_string()]),
             parts,
             world,
             mirrored: determinant < 0.0,

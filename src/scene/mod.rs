@@ -20,6 +20,7 @@ use glam::{DMat4, DVec3, Vec3};
 use rayon::prelude::*;
 use std::ops::Range;
 use std::path::PathBuf;
+use std::sync::Arc;
 
 pub use items::{ItemCount, ItemEntry, Treatment, UnproxiedTrees};
 pub use keys::SceneKeys;
@@ -204,12 +205,13 @@ pub struct Instance {
     pub index: usize,
     pub kind: InstanceKind,
     /// The `<resource>`s, or a speedtree's `<spt>` alone.
-    pub resources: Vec<String>,
+    pub resources: Arc<[String]>,
     /// One entry per `<resource>`: the loaded model, or `None` when that
     /// resource could not be loaded (see `Scene::problems`). A speedtree's
     /// one entry is its proxy model; it has none when no proxy matches
-    /// its `.spt` ([`Instance::is_unmodelled`]).
-    pub parts: Vec<Option<usize>>,
+    /// its `.spt` ([`Instance::is_unmodelled`]). Shared by the instances
+    /// of a chunk that name the same resources.
+    pub parts: Arc<[Option<usize>]>,
     /// Model to world, kept in f64 so worlds far from the origin stay exact.
     pub world: DMat4,
     /// Negative determinant: the engine flips the cull mode, so the bake
