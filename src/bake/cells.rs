@@ -111,7 +111,7 @@ impl Cells {
     }
 
     /// The cells of `face` whose texels grown by `margin` meet `image`.
-    fn meeting(&self, face: usize, image: BoxImage, margin: f64) -> Vec<u64> {
+    fn meeting(&self, face: usize, image: BoxImage, margin: f64) -> impl Iterator<Item = u64> {
         let side = f64::from(CELL_TILES * TILE);
         let span = |lo: f64, hi: f64, cells: u64| -> std::ops::Range<u64> {
             // NaN compares false: no cell.
@@ -124,21 +124,22 @@ impl Cells {
             }
         };
         let (xs, ys) = match image {
-            BoxImage::Nowhere => return Vec::new(),
+            BoxImage::Nowhere => (0..0, 0..0),
             BoxImage::WholeFace => (0..self.cells_x, 0..self.cells_y),
             BoxImage::Rect(x0, y0, x1, y1) => {
                 let (w, h) = (f64::from(self.width), f64::from(self.height));
                 // The cells' texels end at the face's edges.
                 let inside = x1 + margin >= 0.0 && y1 + margin >= 0.0;
-                if !(inside && x0 - margin <= w && y0 - margin <= h) {
-                    return Vec::new();
+                if inside && x0 - margin <= w && y0 - margin <= h {
+                    (span(x0, x1, self.cells_x), span(y0, y1, self.cells_y))
+                } else {
+                    (0..0, 0..0)
                 }
-                (span(x0, x1, self.cells_x), span(y0, y1, self.cells_y))
             }
         };
+        let cells_x = self.cells_x;
         let first = face as u64 * self.cells_x * self.cells_y;
-        ys.flat_map(|cy| xs.clone().map(move |cx| first + cy * self.cells_x + cx))
-            .collect()
+        ys.flat_map(move |cy| xs.clone().map(move |cx| first + cy * cells_x + cx))
     }
 }
 
@@ -282,13 +283,14 @@ impl CellReach {
         let grid = &setup.grid;
         let margin = halo + 1.0 + grid.image_rounding(reach_magnitude(setup));
         let count = cells.count() as usize;
-        let cells_of = |min: DVec3, max: DVec3| -> Vec<u64> {
+        let cells_of = move |min: DVec3, max: DVec3| {
             (0..grid.faces())
-                .flat_map(|face| cells.meeting(face, grid.box_image(face, min, max), margin))
-                .collect()
+                .flat_map(move |face| cells.meeting(face, grid.box_image(face, min, max), margin))
         };
         let parts = bin(count, &setup.reach.parts, |&p| {
-            part_box(world, &world.parts[p as usize]).map_or_else(Vec::new, |(a, b)| cells_of(a, b))
+            part_box(world, &world.parts[p as usize])
+                .into_iter()
+                .flat_map(|(a, b)| cells_of(a, b))
         });
         let blocks = bin(count, &setup.reach.blocks, |&b| {
             let (min, max) = world.scene.terrain[b as usize].bounds();
@@ -321,14 +323,23 @@ impl CellReach {
 }
 
 /// Each of `items` (ascending) into the cells `cells_of` it names: per
-/// cell, its items, ascending.
-fn bin(count: usize, items: &[u32], cells_of: impl Fn(&u32) -> Vec<u64> + Sync) -> Vec<Vec<u32>> {
-    let mut pairs: Vec<(u64, u32)> = items
+/// cell, its items, ascending. The pairs are collected in the items'
+/// order, so each cell's list fills ascending without a sort, into a list
+/// of its exact size.
+fn bin<Named: Iterator<Item = u64>>(
+    count: usize,
+    items: &[u32],
+    cells_of: impl Fn(&u32) -> Named + Sync,
+) -> Vec<Vec<u32>> {
+    let pairs: Vec<(u64, u32)> = items
         .par_iter()
-        .flat_map_iter(|item| cells_of(item).into_iter().map(move |c| (c, *item)))
+        .flat_map_iter(|item| cells_of(item).map(move |c| (c, *item)))
         .collect();
-    pairs.par_sort_unstable();
-    let mut binned = vec![Vec::new(); count];
+    let mut sizes = vec![0usize; count];
+    for &(cell, _) in &pairs {
+        sizes[cell as usize] += 1;
+    }
+    let mut binned: Vec<Vec<u32>> = sizes.into_iter().map(Vec::with_capacity).collect();
     for (cell, item) in pairs {
         binned[cell as usize].push(item);
     }
@@ -367,6 +378,34 @@ fn tiles_cover(cells: &Cells, grid: &TexelGrid, cell: u64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Binned in order, each cell's items are those a sort of the pairs
+    /// gives: every item that names it, ascending, repeats kept.
+    #[test]
+    fn binning_keeps_each_cells_items_ascending() {
+        let mut rng = crate::rng::Rng::new(0xb1);
+        let count = 37;
+        let items: Vec<u32> = (0..5_000u32).filter(|_| rng.chance(0.7)).collect();
+        let named: Vec<Vec<u64>> = items
+            .iter()
+            .map(|_| (0..rng.below(4)).map(|_| rng.below(count) as u64).collect())
+            .collect();
+        let position = |item: &u32| items.binary_search(item).unwrap();
+        let binned = bin(count, &items, |item| {
+            named[position(item)].clone().into_iter()
+        });
+        let mut pairs: Vec<(u64, u32)> = items
+            .iter()
+            .flat_map(|item| named[position(item)].iter().map(move |&c| (c, *item)))
+            .collect();
+        pairs.sort_unstable();
+        let mut expected = vec![Vec::new(); count];
+        for (cell, item) in pairs {
+            expected[cell as usize].push(item);
+        }
+        assert_eq!(binned, expected);
+        assert!(expected.iter().all(|items| items.len() > 10));
+    }
     use crate::formats::bake_settings::{LightKind, LightSettings};
 
     #[test]
