@@ -182,24 +182,45 @@ impl CasterTable {
             .instances
             .iter()
             .enumerate()
-            .filter_map(|(index, instance)| Some((index, instance, self.first_of_instance[index]?)))
-            .flat_map(move |(index, instance, first)| {
-                let mut next = first;
-                instance
-                    .parts
-                    .iter()
-                    .flatten()
-                    .enumerate()
-                    .map(move |(part, &model)| {
-                        let first_caster = next;
-                        next += scene.models[model].groups.len() as u32;
-                        PartCasters {
-                            instance: index,
-                            part,
-                            model,
-                            first_caster,
-                        }
-                    })
+            .flat_map(move |(index, instance)| self.instance_parts(scene, index, instance))
+    }
+
+    /// [`CasterTable::parts`] in parallel (collected, still in id order):
+    /// millions of instances on a large world.
+    pub fn par_parts<'s>(
+        &'s self,
+        scene: &'s Scene,
+    ) -> impl ParallelIterator<Item = PartCasters> + 's {
+        scene
+            .instances
+            .par_iter()
+            .enumerate()
+            .flat_map_iter(move |(index, instance)| self.instance_parts(scene, index, instance))
+    }
+
+    /// The parts of instance `index`, in id order.
+    fn instance_parts<'s>(
+        &'s self,
+        scene: &'s Scene,
+        index: usize,
+        instance: &'s Instance,
+    ) -> impl Iterator<Item = PartCasters> + 's {
+        let first = self.first_of_instance[index];
+        let mut next = first.unwrap_or(0);
+        let models = first.map(|_| instance.parts.iter().flatten());
+        models
+            .into_iter()
+            .flatten()
+            .enumerate()
+            .map(move |(part, &model)| {
+                let first_caster = next;
+                next += scene.models[model].groups.len() as u32;
+                PartCasters {
+                    instance: index,
+                    part,
+                    model,
+                    first_caster,
+                }
             })
     }
 
@@ -296,6 +317,8 @@ mod tests {
             table.of_block.first().copied().unwrap_or(expected)
         );
         assert!(expected > 100);
+        let in_parallel: Vec<PartCasters> = table.par_parts(&scene).collect();
+        assert_eq!(in_parallel, table.parts(&scene).collect::<Vec<_>>());
     }
 
     #[test]

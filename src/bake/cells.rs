@@ -23,6 +23,7 @@ use crate::trace::transform_box;
 use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;
+use std::ops::RangeInclusive;
 
 /// Tiles per cell side: a cell is 512 × 512 texels.
 pub const CELL_TILES: u32 = 16;
@@ -161,14 +162,7 @@ pub struct GroundNear {
 impl GroundNear {
     pub fn of(world: &BakeWorld) -> GroundNear {
         let scene = world.scene;
-        let cells: HashMap<(i64, i64), u32> = scene
-            .chunks
-            .iter()
-            .filter_map(|c| {
-                let (x, z) = c.grid?;
-                Some(((i64::from(x), i64::from(z)), c.terrain? as u32))
-            })
-            .collect();
+        let cells = BlockCells::of(scene);
         let mut near = GroundNear {
             starts: vec![0],
             blocks: Vec::new(),
@@ -216,13 +210,7 @@ const GROUND_NEAR_RUN: usize = 8192;
 
 /// Appends to `blocks` the blocks in the chunk cells the box `min..max` may
 /// read (see [`GroundNear`]), ascending.
-fn blocks_near(
-    scene: &Scene,
-    cells: &HashMap<(i64, i64), u32>,
-    min: DVec3,
-    max: DVec3,
-    blocks: &mut Vec<u32>,
-) {
+fn blocks_near(scene: &Scene, cells: &BlockCells, min: DVec3, max: DVec3, blocks: &mut Vec<u32>) {
     let size = scene.settings.chunk_size;
     let grow = 1.0 + 1e-5 * min.abs().max(max.abs()).max_element();
     let range = |lo: f64, hi: f64| {
@@ -235,18 +223,114 @@ fn blocks_near(
         return;
     };
     let start = blocks.len();
-    if (x1 - x0 + 1).saturating_mul(z1 - z0 + 1) > cells.len() as i64 {
-        blocks.extend(cells.iter().filter_map(|(&(x, z), &b)| {
-            ((x0..=x1).contains(&x) && (z0..=z1).contains(&z)).then_some(b)
-        }));
-    } else {
-        for z in z0..=z1 {
-            for x in x0..=x1 {
-                blocks.extend(cells.get(&(x, z)));
+    cells.extend_in(x0..=x1, z0..=z1, blocks);
+    blocks[start..].sort_unstable();
+}
+
+/// The terrain block of each outdoor chunk cell: a grid over the cells'
+/// rectangle where that is compact (an outdoor space's chunks fill
+/// theirs), else a map. Every placed part looks up four or more cells,
+/// and hashing each lookup was most of finding the blocks near a part.
+enum BlockCells {
+    Grid {
+        x0: i64,
+        z0: i64,
+        width: i64,
+        /// Row by row from `(x0, z0)`; `NO_BLOCK` where a cell has none.
+        blocks: Vec<u32>,
+        count: usize,
+    },
+    Map(HashMap<(i64, i64), u32>),
+}
+
+const NO_BLOCK: u32 = u32::MAX;
+
+impl BlockCells {
+    fn of(scene: &Scene) -> BlockCells {
+        let cells: HashMap<(i64, i64), u32> = scene
+            .chunks
+            .iter()
+            .filter_map(|c| {
+                let (x, z) = c.grid?;
+                Some(((i64::from(x), i64::from(z)), c.terrain? as u32))
+            })
+            .collect();
+        BlockCells::from_map(cells)
+    }
+
+    /// A grid of `cells` where compact, else the map.
+    fn from_map(cells: HashMap<(i64, i64), u32>) -> BlockCells {
+        let (Some(x0), Some(x1)) = (
+            cells.keys().map(|k| k.0).min(),
+            cells.keys().map(|k| k.0).max(),
+        ) else {
+            return BlockCells::Map(cells);
+        };
+        let (z0, z1) = (
+            cells.keys().map(|k| k.1).min(),
+            cells.keys().map(|k| k.1).max(),
+        );
+        let (Some(z0), Some(z1)) = (z0, z1) else {
+            return BlockCells::Map(cells);
+        };
+        let (width, height) = (x1 - x0 + 1, z1 - z0 + 1);
+        if width.saturating_mul(height) > 4 * cells.len() as i64 + 1024 {
+            return BlockCells::Map(cells);
+        }
+        let mut blocks = vec![NO_BLOCK; (width * height) as usize];
+        for (&(x, z), &block) in &cells {
+            blocks[((z - z0) * width + (x - x0)) as usize] = block;
+        }
+        BlockCells::Grid {
+            x0,
+            z0,
+            width,
+            blocks,
+            count: cells.len(),
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        match self {
+            BlockCells::Grid { count, .. } => *count == 0,
+            BlockCells::Map(cells) => cells.is_empty(),
+        }
+    }
+
+    /// Appends the blocks of the cells `xs × zs`, in no particular order.
+    fn extend_in(&self, xs: RangeInclusive<i64>, zs: RangeInclusive<i64>, out: &mut Vec<u32>) {
+        match self {
+            BlockCells::Grid {
+                x0,
+                z0,
+                width,
+                blocks,
+                ..
+            } => {
+                let height = blocks.len() as i64 / width;
+                let columns = (*xs.start()).max(*x0)..=(*xs.end()).min(x0 + width - 1);
+                for z in (*zs.start()).max(*z0)..=(*zs.end()).min(z0 + height - 1) {
+                    let row = (z - z0) * width - x0;
+                    let cells = columns.clone().map(|x| blocks[(row + x) as usize]);
+                    out.extend(cells.filter(|&b| b != NO_BLOCK));
+                }
+            }
+            BlockCells::Map(cells) => {
+                let area = (xs.end() - xs.start() + 1).saturating_mul(zs.end() - zs.start() + 1);
+                if area > cells.len() as i64 {
+                    out.extend(cells.iter().filter_map(|(&(x, z), &b)| {
+                        (xs.contains(&x) && zs.contains(&z)).then_some(b)
+                    }));
+                } else {
+                    for z in zs {
+                        for x in xs.clone() {
+                            out.extend(cells.get(&(x, z)));
+                        }
+                    }
+                }
             }
         }
     }
-    blocks[start..].sort_unstable();
 }
 
 /// A placed part's world box (its model's bottom level's), or `None` when
@@ -378,6 +462,39 @@ fn tiles_cover(cells: &Cells, grid: &TexelGrid, cell: u64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The grid finds what the map finds: seeded cells (holes, a ragged
+    /// edge, negative coordinates) and ranges inside, across and beyond
+    /// them.
+    #[test]
+    fn block_cells_grid_and_map_agree() {
+        let mut rng = crate::rng::Rng::new(0xce11);
+        let mut cells = HashMap::new();
+        for z in -7i64..9 {
+            for x in -3i64..(5 + z.rem_euclid(4)) {
+                if rng.chance(0.85) {
+                    cells.insert((x, z), cells.len() as u32);
+                }
+            }
+        }
+        let grid = BlockCells::from_map(cells.clone());
+        assert!(matches!(grid, BlockCells::Grid { .. }));
+        let map = BlockCells::Map(cells);
+        for _ in 0..2_000 {
+            let a = rng.below(40) as i64 - 20;
+            let b = a + rng.below(12) as i64 - 1;
+            let c = rng.below(40) as i64 - 20;
+            let d = c + rng.below(12) as i64 - 1;
+            let (mut from_grid, mut from_map) = (Vec::new(), Vec::new());
+            grid.extend_in(a..=b, c..=d, &mut from_grid);
+            map.extend_in(a..=b, c..=d, &mut from_map);
+            from_grid.sort_unstable();
+            from_map.sort_unstable();
+            assert_eq!(from_grid, from_map, "{a}..={b} × {c}..={d}");
+        }
+        let far = HashMap::from([((0, 0), 0), ((1 << 30, 0), 1)]);
+        assert!(matches!(BlockCells::from_map(far), BlockCells::Map(_)));
+    }
 
     /// Binned in order, each cell's items are those a sort of the pairs
     /// gives: every item that names it, ascending, repeats kept.

@@ -180,9 +180,13 @@ pub fn try_zeroed<T: Clone + Default>(
 /// Checks every light's grid against the world's bounds before anything
 /// is built or traced: a settings mistake in the last light must not cost
 /// the time of the first. Lights with nothing to cover are not errors.
-pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeError> {
+/// `bounds` are the world's (`geometry::world_bounds`).
+pub fn validate_lights(
+    bounds: Option<(glam::DVec3, glam::DVec3)>,
+    config: &BakeConfig,
+) -> Result<(), BakeError> {
     check_light_count(config)?;
-    let Some(bounds) = geometry::world_bounds(scene) else {
+    let Some(bounds) = bounds else {
         return Ok(());
     };
     let errors: Vec<crate::light::GridError> = config
@@ -200,6 +204,19 @@ pub fn validate_lights(scene: &Scene, config: &BakeConfig) -> Result<(), BakeErr
     } else {
         Err(BakeError::Grids(errors))
     }
+}
+
+/// The world `config`'s lights are baked over, each light's grid checked
+/// first ([`validate_lights`]): the world's bounds found once for both (a
+/// pass over every placed part).
+pub fn checked_world<'a>(
+    scene: &'a Scene,
+    config: &BakeConfig,
+    progress: &dyn Progress,
+) -> Result<BakeWorld<'a>, BakeError> {
+    let bounds = geometry::world_bounds(scene);
+    validate_lights(bounds, config)?;
+    Ok(BakeWorld::within(scene, bounds, progress))
 }
 
 /// Where a light's grid answer comes from: traced here ([`TraceGrid`]), or
@@ -266,14 +283,12 @@ pub fn bake(
     config: &BakeConfig,
     progress: &dyn Progress,
 ) -> Result<BakeResult, BakeError> {
-    validate_lights(scene, config)?;
-    let world = BakeWorld::build(scene, progress);
+    let world = checked_world(scene, config, progress)?;
     bake_world(&world, config, progress)
 }
 
 /// Bakes `config`'s lights over a world whose bottom levels are built
-/// (`plan` and `bake` share one [`BakeWorld`]). Call [`validate_lights`]
-/// first.
+/// (`plan` and `bake` share one [`BakeWorld`], made by [`checked_world`]).
 pub fn bake_world(
     world: &BakeWorld,
     config: &BakeConfig,

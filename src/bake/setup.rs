@@ -48,6 +48,16 @@ impl<'a> BakeWorld<'a> {
 
     /// [`BakeWorld::new`], telling `progress`.
     pub fn build(scene: &'a Scene, progress: &dyn crate::progress::Progress) -> BakeWorld<'a> {
+        BakeWorld::within(scene, geometry::world_bounds(scene), progress)
+    }
+
+    /// [`BakeWorld::build`] of a scene whose bounds
+    /// (`geometry::world_bounds`) are `bounds`.
+    pub fn within(
+        scene: &'a Scene,
+        bounds: Option<(DVec3, DVec3)>,
+        progress: &dyn crate::progress::Progress,
+    ) -> BakeWorld<'a> {
         let counter = crate::progress::Counter::begin(
             progress,
             crate::progress::Phase::BottomLevels,
@@ -56,7 +66,7 @@ impl<'a> BakeWorld<'a> {
         );
         let started = Instant::now();
         let casters = CasterTable::new(scene);
-        let parts = casters.parts(scene).collect();
+        let parts = casters.par_parts(scene).collect();
         let bottom = BottomLevels::build(
             scene.models.len(),
             |m| model_space_triangles(scene, m),
@@ -70,7 +80,7 @@ impl<'a> BakeWorld<'a> {
             parts,
             bottom,
             ground: Ground::new(scene),
-            bounds: geometry::world_bounds(scene),
+            bounds,
             bottom_seconds: started.elapsed().as_secs_f64(),
         }
     }

@@ -12,7 +12,6 @@ use super::progress::Reporter;
 use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::{Context, Result};
 use shadowcull::bake::cached::BakeCache;
-use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::world_record::{self, Baked, Checked};
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::cache::KnownFiles;
@@ -79,8 +78,8 @@ fn bake_with(args: &BakeArgs, config: &BakeConfig, settings: &BakeSettings) -> R
     }
     let scene = load_scene_told(settings, &args.options, &reporter, cache.as_ref(), &known)?;
     warn_locked_chunks(&scene, &args.output, &args.options);
-    bake::validate_lights(&scene, config).with_context(|| file.display().to_string())?;
-    let world = BakeWorld::build(&scene, &reporter);
+    let world = bake::checked_world(&scene, config, &reporter)
+        .with_context(|| file.display().to_string())?;
     let result = match &cache {
         None => {
             let plan = super::plan::make_plan(&scene, &world, config, started, &reporter, None)?;

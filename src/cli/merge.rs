@@ -12,7 +12,6 @@ use super::progress::{GridAnswers, Reporter};
 use super::{load_settings_with, SettingsArgs, UnknownElements};
 use anyhow::Result;
 use shadowcull::bake::cached::BakeCache;
-use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::{self, shard};
 use shadowcull::files::{self, ResPaths};
 use shadowcull::formats::{self, Section};
@@ -67,8 +66,7 @@ pub fn run(args: MergeArgs) -> Result<()> {
             &shadowcull::cache::KnownFiles::default(),
         )?;
         warn_locked_chunks(&scene, &args.output, &args.options);
-        bake::validate_lights(&scene, &config)?;
-        let world = BakeWorld::build(&scene, &reporter);
+        let world = bake::checked_world(&scene, &config, &reporter)?;
         let own = shard::fingerprint(&scene, &config, &ResPaths::new(settings.res_paths.clone()));
         let command = format!("shadowcull bake {}", args.settings.settings.display());
         let locate = setting_locator(&args.settings.settings);

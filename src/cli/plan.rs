@@ -69,8 +69,7 @@ pub fn run(args: PlanArgs) -> Result<()> {
         for problem in &scene.problems {
             messages::problem(&problem.what, &problem.why, ProblemOutcome::Fails);
         }
-        bake::validate_lights(&scene, &config).with_context(|| file.display().to_string())?;
-        let world = BakeWorld::build(&scene, &reporter);
+        let world = bake::checked_world(&scene, &config, &reporter).with_context(|| file.display().to_string())?;
         let bake_cache = cache
             .as_ref()
             .map(|cache| BakeCache::new(cache, &world, SceneKeys::of(&scene), None));

@@ -7,7 +7,6 @@ use super::messages;
 use super::progress::Reporter;
 use anyhow::{Context, Result};
 use shadowcull::bake::cached::BakeCache;
-use shadowcull::bake::setup::BakeWorld;
 use shadowcull::bake::shard::{self, Plan, ShardIndex};
 use shadowcull::bake::{self, BakeConfig};
 use shadowcull::files::{self, ResPaths};
@@ -92,8 +91,7 @@ pub fn run(
         cache.as_ref(),
         &shadowcull::cache::KnownFiles::default(),
     )?;
-    bake::validate_lights(&scene, config)?;
-    let world = BakeWorld::build(&scene, &reporter);
+    let world = bake::checked_world(&scene, config, &reporter)?;
     let plan = Plan::new(&world, config, shard.count)?;
     let mean = plan.costs.iter().sum::<u64>() as f64 / shard.count as f64;
     let own = plan.units[shard.index as usize].len();

@@ -216,7 +216,7 @@ fn many_casters_are_counted_one_by_one() {
     let mut worst = 0u64;
     let scene = &world.scene;
     let cubes: Vec<usize> = (0..scene.instances.len())
-        .filter(|&i| scene.instances[i].parts == [Some(block)])
+        .filter(|&i| *scene.instances[i].parts == [Some(block)])
         .collect();
     assert_eq!(cubes.len(), 1600);
     for &instance in &cubes {
@@ -230,7 +230,7 @@ fn many_casters_are_counted_one_by_one() {
         assert!(result.masks[id] & 1 != 0 && rays.any[0][id] > 0);
     }
     let ground_at = (0..scene.instances.len())
-        .find(|&i| scene.instances[i].parts == [Some(ground)])
+        .find(|&i| *scene.instances[i].parts == [Some(ground)])
         .unwrap();
     let ground_id = result.casters.first_of_instance[ground_at].unwrap() as usize;
     assert_eq!(
