@@ -8,7 +8,7 @@
 use super::Section;
 use crate::error::FormatError;
 use glam::DMat4;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 /// What a placed instance element is: a model, an indoor shell, or a
@@ -143,11 +143,14 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
         .map(Section::as_matrix)
         .transpose()?;
     let mut instances = Vec::new();
+    let mut shared = SharedValues::default();
     for (kind, element) in instance_elements(root) {
-        let resources = element
-            .children_named("resource")
-            .map(|r| r.value.clone())
-            .collect();
+        let resources = shared.list(
+            element
+                .children_named("resource")
+                .map(|r| r.value.clone())
+                .collect(),
+        );
         let transform = match element.child("transform") {
             Some(t) => t.as_matrix()?,
             None => DMat4::IDENTITY,
@@ -168,7 +171,7 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
             resources,
             transform,
             casts_shadow,
-            path: element.path.as_str().into(),
+            path: shared.path(&element.path),
         });
     }
     let speedtrees = speedtree_elements(root)
@@ -196,6 +199,36 @@ pub fn parse(root: &Section) -> Result<ChunkFile, FormatError> {
     })
 }
 
+/// The values a chunk's elements share, made once per chunk: a chunk
+/// places many instances of a few models, and each instance's copy of
+/// its resource list and tag path would be held by the scene for the
+/// whole bake.
+#[derive(Default)]
+pub(crate) struct SharedValues {
+    lists: HashMap<Vec<String>, Arc<[String]>>,
+    paths: HashMap<String, Arc<str>>,
+}
+
+impl SharedValues {
+    /// The chunk's one list equal to `resources`.
+    pub(crate) fn list(&mut self, resources: Vec<String>) -> Arc<[String]> {
+        self.lists
+            .entry(resources)
+            .or_insert_with_key(|list| Arc::from(list.as_slice()))
+            .clone()
+    }
+
+    /// The chunk's one tag path equal to `path`.
+    pub(crate) fn path(&mut self, path: &str) -> Arc<str> {
+        if let Some(shared) = self.paths.get(path) {
+            return shared.clone();
+        }
+        let shared: Arc<str> = Arc::from(path);
+        self.paths.insert(path.to_string(), shared.clone());
+        shared
+    }
+}
+
 /// One `<speedtree>` element; a value that does not read (a transform
 /// that is not 12 numbers, a seed that is no integer) is an error naming
 /// it, as for a model.
@@ -221,6 +254,19 @@ mod tests {
     use glam::DVec3;
 
     const CHUNK: &str = "<root>\n\t<shell>\n\t\t<resource>\tsets/a/shell.model\t</resource>\n\t\t<editorOnly>\n\t\t\t<castsShadow>\tfalse\t</castsShadow>\n\t\t</editorOnly>\n\t</shell>\n\t<entity>\n\t\t<type>\tInfo\t</type>\n\t</entity>\n\t<model>\n\t\t<editorOnly>\n\t\t\t<castsShadow>\tfalse\t</castsShadow>\n\t\t</editorOnly>\n\t\t<resource>\tsets/b.model\t</resource>\n\t\t<resource>\tsets/c.model\t</resource>\n\t\t<transform>\n\t\t\t<row0>\t-1 0 0\t</row0>\n\t\t\t<row1>\t0 1 0\t</row1>\n\t\t\t<row2>\t0 0 1\t</row2>\n\t\t\t<row3>\t5 6 7\t</row3>\n\t\t</transform>\n\t\t<castsShadow>\ttrue\t</castsShadow>\n\t</model>\n\t<terrain>\n\t\t<resource>\t00000000o.cdata/terrain2\t</resource>\n\t</terrain>\n</root>\n";
+
+    #[test]
+    fn elements_naming_the_same_resources_share_them() {
+        let text = "<root>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n\t<model>\n\t\t<resource>\tb.model\t</resource>\n\t</model>\n\t<model>\n\t\t<resource>\ta.model\t</resource>\n\t</model>\n</root>\n";
+        let chunk = parse(&xml::parse(text.as_bytes()).unwrap()).unwrap();
+        let [a, b, again] = &chunk.instances[..] else {
+            panic!("three elements");
+        };
+        assert!(Arc::ptr_eq(&a.resources, &again.resources));
+        assert!(!Arc::ptr_eq(&a.resources, &b.resources));
+        assert_eq!(*b.resources, ["b.model"]);
+        assert!(Arc::ptr_eq(&a.path, &b.path));
+    }
 
     #[test]
     fn instances_in_document_order_with_flags() {

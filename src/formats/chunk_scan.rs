@@ -300,6 +300,7 @@ impl Scan {
         let root_name = self.root_name?;
         let depth = u8::try_from(1 + root_name.matches('/').count()).ok()?;
         let path = |tag: &str| format!("{root_name}/{tag}");
+        let mut shared = super::chunk::SharedValues::default();
         let count =
             |of: fn(TargetKind) -> bool| self.targets.iter().filter(|t| of(t.kind)).count() as u32;
         let models = count(|k| matches!(k, TargetKind::Instance(i) if i.names_models()));
@@ -366,8 +367,8 @@ impl Scan {
                         index: chunk.instances.len(),
                         transform: transform()?,
                         casts_shadow,
-                        path: path(kind.tag()).into(),
-                        resources: target.resources.into(),
+                        path: shared.path(&path(kind.tag())),
+                        resources: shared.list(target.resources),
                     });
                     sites.instances.push(site);
                 }

@@ -143,7 +143,7 @@ fn running_out_of_memory_names_the_phase_and_exits_1() {
     // must say which and exit 1, not abort (134) with Rust's bare
     // "memory allocation of N bytes failed".
     let dir = tempfile::tempdir().unwrap();
-    generate_each(GenSize::BenchChunks(4), 1, |path, bytes| {
+    generate_each(GenSize::BenchChunks(16), 1, |path, bytes| {
         write_tree(dir.path(), &[(path.to_string(), bytes)])
     })
     .unwrap();
