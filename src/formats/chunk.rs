@@ -81,9 +81,9 @@ pub struct InstanceElement {
     /// 0-based position among the chunk's `<model>`/`<shell>` elements in
     /// document order (the report's `index`).
     pub index: usize,
-    /// The `<resource>` parts, in order (`.model` resource names); shared
-    /// by the elements of a chunk read back from the bake cache that name
-    /// the same models, and by the instances placed from them.
+    /// The `<resource>` parts, in order (`.model` resource names); one
+    /// list shared by a chunk's elements that name the same models, and by
+    /// the instances placed from them.
     pub resources: Arc<[String]>,
     /// Local-to-chunk transform; identity when the element has none, as the
     /// engine reads it.
