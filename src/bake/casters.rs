@@ -85,6 +85,9 @@ pub struct CasterTable {
     /// start of every grid pass (they are never useful), copied rather than
     /// found caster by caster for each of a cached bake's cells.
     pub receiver_only: Vec<u64>,
+    /// The unmodelled casters ([`Owner::Unmodelled`]) as bits of their ids:
+    /// kept for every light, set word by word in each light's verdicts.
+    pub unmodelled_bits: Vec<u64>,
 }
 
 impl CasterTable {
@@ -135,6 +138,7 @@ impl CasterTable {
         CasterTable {
             double_sided: bits(|c| c.double_sided),
             receiver_only: bits(|c| c.receiver_only),
+            unmodelled_bits: bits(Caster::is_unmodelled),
             casters,
             first_of_instance,
             of_block,
@@ -168,11 +172,7 @@ impl CasterTable {
 
     /// The ids of the casters the bake cannot model, kept for every light.
     pub fn unmodelled(&self) -> impl Iterator<Item = u32> + '_ {
-        self.casters
-            .iter()
-            .enumerate()
-            .filter(|(_, c)| c.is_unmodelled())
-            .map(|(id, _)| id as u32)
+        set_bits(&self.unmodelled_bits)
     }
 
     /// Every model part of every instance in the bake, in id order, with the
@@ -230,8 +230,23 @@ impl CasterTable {
 
     /// Casters that can be useful (everything but receiver-only groups).
     pub fn real_casters(&self) -> usize {
-        self.casters.iter().filter(|c| !c.receiver_only).count()
+        let receivers: u32 = self.receiver_only.iter().map(|w| w.count_ones()).sum();
+        self.casters.len() - receivers as usize
     }
+}
+
+/// The positions of the set bits of `words` (64 a word), ascending.
+fn set_bits(words: &[u64]) -> impl Iterator<Item = u32> + '_ {
+    words.iter().enumerate().flat_map(|(w, &word)| {
+        let mut rest = word;
+        std::iter::from_fn(move || {
+            (rest != 0).then(|| {
+                let bit = rest.trailing_zeros();
+                rest &= rest - 1;
+                w as u32 * 64 + bit
+            })
+        })
+    })
 }
 
 /// How many ids `instance` takes: none when left out of the bake, one for
@@ -322,6 +337,21 @@ mod tests {
     }
 
     #[test]
+    fn real_casters_are_those_not_receiver_only() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
+        let scene = load_scene(&LoadConfig {
+            res_paths: ResPaths::new(vec![root]),
+            space: "spaces/village".into(),
+            speedtrees: Default::default(),
+        })
+        .expect("the village fixture loads");
+        let table = CasterTable::new(&scene);
+        let receivers = table.casters.iter().filter(|c| c.receiver_only).count();
+        assert!(receivers > 0, "the village has castsShadow false instances");
+        assert_eq!(table.real_casters(), table.len() - receivers);
+    }
+
+    #[test]
     fn speedtrees_take_ids_after_their_chunks_models_whatever_the_file_order() {
         let dir = tempfile::tempdir().unwrap();
         let world = crate::gen::generate(crate::gen::Preset::Forest, 3);
@@ -395,7 +425,11 @@ mod tests {
         let table = CasterTable::new(&scene);
         let trees = scene.instances.iter().filter(|i| i.is_unmodelled()).count();
         assert_eq!(trees, scene.stats().speedtrees);
-        assert_eq!(table.unmodelled().count(), trees);
+        let unmodelled: Vec<u32> = (0..table.len() as u32)
+            .filter(|&id| table.casters[id as usize].is_unmodelled())
+            .collect();
+        assert_eq!(unmodelled.len(), trees);
+        assert_eq!(table.unmodelled().collect::<Vec<_>>(), unmodelled);
         for (index, instance) in scene.instances.iter().enumerate() {
             let ids = table.of_instance(&scene, index);
             if instance.is_unmodelled() {

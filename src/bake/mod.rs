@@ -33,7 +33,9 @@ use crate::scene::items::plural;
 use crate::scene::{Scene, Treatment};
 use casters::CasterTable;
 pub use config::{BakeConfig, GridMode};
+use rayon::prelude::*;
 use setup::{BakeWorld, LightSetup, NoSetup};
+use std::sync::Arc;
 use std::time::Instant;
 use trace_light::{CasterSet, LightRays, RayCounter};
 
@@ -132,7 +134,7 @@ pub struct BakeResult {
     pub bottom_level_seconds: f64,
     /// Heap bytes of the bottom levels.
     pub bottom_level_bytes: usize,
-    pub casters: CasterTable,
+    pub casters: Arc<CasterTable>,
     /// Per caster id: bit `config.bit(i)` set = useful for light i.
     pub masks: Vec<u32>,
     /// The bits this bake decided ([`BakeConfig::baked_bits`]); the others
@@ -361,11 +363,17 @@ pub fn bake_with(
         let (useful, report) =
             bake_light_from(world, &setup, config, progress, &mut skipped, source, cache);
         let bit = 1u32.wrapping_shl(config.bit(index));
-        for (id, mask) in masks.iter_mut().enumerate() {
-            if useful.contains(id as u32) {
-                *mask |= bit;
-            }
-        }
+        // Word by word: a large world has millions of ids, few of them set.
+        masks
+            .par_chunks_mut(64)
+            .zip(useful.words().par_iter())
+            .for_each(|(masks, &word)| {
+                let mut rest = word;
+                while rest != 0 {
+                    masks[rest.trailing_zeros() as usize] |= bit;
+                    rest &= rest - 1;
+                }
+            });
         lights.push(report);
     }
     // Kept for every light the bake decides, traced or not.
@@ -376,7 +384,7 @@ pub fn bake_with(
     Ok(BakeResult {
         bottom_level_seconds: world.bottom_seconds,
         bottom_level_bytes: world.bottom.heap_bytes(),
-        casters: world.casters.clone(),
+        casters: Arc::clone(&world.casters),
         masks,
         baked_bits: config.baked_bits(),
         lights,
@@ -637,13 +645,13 @@ fn trace_grid_and_refine(
 /// The casters of `useful` that count: receiver-only groups never do;
 /// casters the bake cannot model always do (kept for every light).
 fn without_receivers(world: &BakeWorld, useful: &CasterSet) -> CasterSet {
-    let mut kept = CasterSet::new(world.casters.len());
-    for (id, caster) in world.casters.casters.iter().enumerate() {
-        if caster.is_unmodelled() || (!caster.receiver_only && useful.contains(id as u32)) {
-            kept.insert(id as u32);
-        }
-    }
-    kept
+    let casters = &world.casters;
+    let words = (useful.words().par_iter())
+        .zip(casters.receiver_only.par_iter())
+        .zip(casters.unmodelled_bits.par_iter())
+        .map(|((useful, receiver_only), unmodelled)| (useful & !receiver_only) | unmodelled)
+        .collect();
+    CasterSet::from_words(casters.len(), words).expect("one word per 64 ids, as `useful`'s")
 }
 
 impl trace_light::RayCounter for Counter<'_> {

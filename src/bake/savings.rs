@@ -10,6 +10,7 @@ use super::casters::CasterTable;
 use super::setup::{BakeWorld, Reach};
 use super::trace_light::CasterSet;
 use crate::scene::TerrainBlock;
+use rayon::prelude::*;
 
 /// One count before and after culling.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
@@ -23,6 +24,13 @@ impl BeforeAfter {
         self.before += amount;
         if kept {
             self.after += amount;
+        }
+    }
+
+    fn plus(self, other: BeforeAfter) -> BeforeAfter {
+        BeforeAfter {
+            before: self.before + other.before,
+            after: self.after + other.after,
         }
     }
 }
@@ -40,39 +48,32 @@ pub struct Savings {
     pub triangles_removed: f64,
 }
 
+impl Savings {
+    /// The counts of both (the share removed is found from the sum).
+    fn plus(self, other: Savings) -> Savings {
+        Savings {
+            instances: self.instances.plus(other.instances),
+            draw_calls: self.draw_calls.plus(other.draw_calls),
+            triangles: self.triangles.plus(other.triangles),
+            triangles_removed: 0.0,
+        }
+    }
+}
+
 /// The savings of a light whose reach is `reach` and whose kept casters
 /// are `useful`.
 pub fn of_light(world: &BakeWorld, reach: &Reach, useful: &CasterSet) -> Savings {
-    let scene = world.scene;
-    let mut savings = Savings::default();
-    // Parts come in caster id order, an instance's parts together.
-    let mut current: Option<(usize, bool)> = None;
-    for &index in &reach.parts {
-        let part = &world.parts[index as usize];
-        let instance = &scene.instances[part.instance];
-        if !instance.casts_shadow {
-            continue;
-        }
-        let mut kept_any = false;
-        for (g, group) in scene.models[part.model].groups.iter().enumerate() {
-            let kept = useful.contains(part.first_caster + g as u32);
-            savings.draw_calls.add(1, kept);
-            savings.triangles.add(group.triangles.len() as u64, kept);
-            kept_any |= kept;
-        }
-        current = match current {
-            Some((at, kept)) if at == part.instance => Some((at, kept || kept_any)),
-            previous => {
-                count_instance(&mut savings, previous);
-                Some((part.instance, kept_any))
-            }
-        };
-    }
-    count_instance(&mut savings, current);
+    // Parts come in caster id order, an instance's parts together: counted
+    // instance by instance, in parallel (a world's millions of parts).
+    let same_instance =
+        |a: &u32, b: &u32| world.parts[*a as usize].instance == world.parts[*b as usize].instance;
+    let mut savings = (reach.parts.par_chunk_by(same_instance))
+        .map(|parts| of_instance(world, parts, useful))
+        .reduce(Savings::default, Savings::plus);
     add_blocks(
         &mut savings,
         &world.casters,
-        &scene.terrain,
+        &world.scene.terrain,
         &reach.blocks,
         useful,
     );
@@ -83,10 +84,29 @@ pub fn of_light(world: &BakeWorld, reach: &Reach, useful: &CasterSet) -> Savings
     savings
 }
 
-fn count_instance(savings: &mut Savings, instance: Option<(usize, bool)>) {
-    if let Some((_, kept)) = instance {
-        savings.instances.add(1, kept);
+/// The savings of one instance's `parts` in reach (indices into
+/// [`BakeWorld::parts`]): nothing for an instance that casts no shadow.
+fn of_instance(world: &BakeWorld, parts: &[u32], useful: &CasterSet) -> Savings {
+    let mut savings = Savings::default();
+    let Some(&first) = parts.first() else {
+        return savings;
+    };
+    let scene = world.scene;
+    if !scene.instances[world.parts[first as usize].instance].casts_shadow {
+        return savings;
     }
+    let mut kept_any = false;
+    for &index in parts {
+        let part = &world.parts[index as usize];
+        for (g, group) in scene.models[part.model].groups.iter().enumerate() {
+            let kept = useful.contains(part.first_caster + g as u32);
+            savings.draw_calls.add(1, kept);
+            savings.triangles.add(group.triangles.len() as u64, kept);
+            kept_any |= kept;
+        }
+    }
+    savings.instances.add(1, kept_any);
+    savings
 }
 
 fn add_blocks(

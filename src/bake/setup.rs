@@ -24,12 +24,13 @@ use crate::trace::{
 };
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// What every light of a bake shares.
 pub struct BakeWorld<'a> {
     pub scene: &'a Scene,
-    pub casters: CasterTable,
+    pub casters: Arc<CasterTable>,
     /// Every placed part, in caster id order.
     pub parts: Vec<PartCasters>,
     pub bottom: BottomLevels<'a>,
@@ -65,7 +66,7 @@ impl<'a> BakeWorld<'a> {
             (scene.models.len() + scene.terrain.len()) as u64,
         );
         let started = Instant::now();
-        let casters = CasterTable::new(scene);
+        let casters = Arc::new(CasterTable::new(scene));
         let parts = casters.par_parts(scene).collect();
         let bottom = BottomLevels::build(
             scene.models.len(),

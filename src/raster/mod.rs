@@ -63,6 +63,7 @@ use context::GlContext;
 use glam::{DMat4, DVec3, DVec4};
 use glow::HasContext;
 use ground_atlas::GroundAtlas;
+use std::sync::Arc;
 
 /// Largest tile side (pixels); smaller values force tiling (tests).
 pub const DEFAULT_MAX_TILE: u32 = 2048;
@@ -129,7 +130,7 @@ impl RasterOptions {
 
 #[derive(Debug, Clone)]
 pub struct RasterResult {
-    pub casters: CasterTable,
+    pub casters: Arc<CasterTable>,
     /// Per caster id: bit i set = useful for light i (receiver-only: 0).
     pub masks: Vec<u32>,
     /// Per light, per caster: samples (one per texel) that passed pass 2
@@ -544,7 +545,7 @@ unsafe fn raster_in(
     let zeros = vec![0u8; casters.len().max(1) * 4];
     gl.buffer_data_u8_slice(glow::SHADER_STORAGE_BUFFER, &zeros, glow::DYNAMIC_READ);
     let mut out = RasterResult {
-        casters: casters.clone(),
+        casters: Arc::clone(casters),
         masks: vec![0u32; casters.len()],
         texels: Vec::new(),
         texels_opaque: Vec::new(),
