@@ -95,16 +95,21 @@ impl CasterTable {
         // An instance's first id is the sum of the counts before it: counted
         // and filled in parallel (millions of instances on a large world),
         // summed in order.
-        let counts: Vec<u32> = scene
+        // `None`: an instance left out of the bake.
+        let counts: Vec<Option<u32>> = scene
             .instances
             .par_iter()
-            .map(|instance| caster_count(scene, instance))
+            .map(|instance| {
+                instance
+                    .is_complete()
+                    .then(|| caster_count(scene, instance))
+            })
             .collect();
         let mut first_of_instance = Vec::with_capacity(counts.len());
         let mut next = 0u32;
-        for (instance, &count) in scene.instances.iter().zip(&counts) {
-            first_of_instance.push(instance.is_complete().then_some(next));
-            next += count;
+        for count in counts {
+            first_of_instance.push(count.map(|_| next));
+            next += count.unwrap_or(0);
         }
         // Exact sizes: the table is held for the whole bake, and growing
         // by doubling left up to half of it unused.

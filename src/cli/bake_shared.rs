@@ -9,6 +9,7 @@ use super::messages;
 use super::pipeline::{self, count, PipelineArgs};
 use super::progress::{ProgressArgs, Reporter};
 use anyhow::{Context, Result};
+use rayon::prelude::*;
 use shadowcull::bake::cached::{CacheReport, PhaseCounts};
 use shadowcull::bake::world_record::LightLine;
 use shadowcull::bake::{output, BakeConfig, BakeResult, GridMode};
@@ -244,7 +245,7 @@ fn say_loaded(scene: &Scene, started: Instant, keep_going: bool, reporter: &Repo
 pub fn placed_parts(scene: &Scene) -> usize {
     scene
         .instances
-        .iter()
+        .par_iter()
         .filter(|i| i.is_complete() && i.kind.names_models())
         .map(|i| i.parts.len())
         .sum()

@@ -213,6 +213,28 @@ impl Usage {
     }
 }
 
+/// How many of a chunk's instances place each resource (normalised
+/// names). Elements naming the same resources share one list: counted by
+/// list, then each distinct name normalised once.
+fn resource_placements(file: &ChunkFile) -> BTreeMap<String, usize> {
+    let mut lists: HashMap<usize, (&[String], usize)> = HashMap::new();
+    for instance in &file.instances {
+        let list = &*instance.resources;
+        lists.entry(list.as_ptr() as usize).or_insert((list, 0)).1 += 1;
+    }
+    let mut written: HashMap<&str, usize> = HashMap::new();
+    for (list, placements) in lists.into_values() {
+        for resource in list {
+            *written.entry(resource).or_default() += placements;
+        }
+    }
+    let mut resources = BTreeMap::new();
+    for (resource, placements) in written {
+        *resources.entry(files::normalise(resource)).or_default() += placements;
+    }
+    resources
+}
+
 /// The model name of a speedtree's proxy (the `.model` resource, or the
 /// parametric shape's name) and, for a parametric proxy, its shape;
 /// `None` when no rule matches its `.spt`.
@@ -528,26 +550,14 @@ impl Loader<'_> {
             used.chunks.insert(chunk.to_string());
             sources.entry(name).or_insert(source);
         };
-        for (chunk, (path, ReadChunk { file, .. })) in by_name {
+        for (chunk, (path, read)) in by_name {
             let first = || ModelSource::Resource {
                 referenced_by: path.clone(),
             };
-            // Counted per chunk first, as written: a large world places
-            // millions of parts but names few models in a chunk.
-            let mut written: HashMap<&str, usize> = HashMap::new();
-            for instance in &file.instances {
-                for resource in instance.resources.iter() {
-                    *written.entry(resource).or_default() += 1;
-                }
+            for (name, &placements) in &read.placements {
+                need(name.clone(), placements, first(), chunk);
             }
-            let mut resources: BTreeMap<String, usize> = BTreeMap::new();
-            for (resource, placements) in written {
-                *resources.entry(files::normalise(resource)).or_default() += placements;
-            }
-            for (name, placements) in resources {
-                need(name, placements, first(), chunk);
-            }
-            for tree in &file.speedtrees {
+            for tree in &read.file.speedtrees {
                 let spt = files::normalise(&tree.spt);
                 let proxy = proxies
                     .entry(spt)
@@ -601,7 +611,9 @@ impl Loader<'_> {
                 })
                 .collect();
             for ((name, (path, read)), placed) in batch.into_iter().zip(placed) {
-                let ReadChunk { file, key, sites } = read;
+                let ReadChunk {
+                    file, key, sites, ..
+                } = read;
                 count_items(&mut items, &file);
                 self.problems.extend(placed.problems);
                 let first_instance = instances.len();
@@ -874,11 +886,16 @@ struct ReadChunk {
     file: ChunkFile,
     key: Key,
     sites: Option<ShadowSites>,
+    /// How many of its instances place each resource
+    /// ([`resource_placements`]): counted as the chunk is read, while its
+    /// items are still in the processor's cache.
+    placements: BTreeMap<String, usize>,
 }
 
 impl ReadChunk {
     fn of(parsed: ParsedChunk, key: Key) -> ReadChunk {
         ReadChunk {
+            placements: resource_placements(&parsed.chunk),
             file: parsed.chunk,
             key,
             sites: parsed.sites,
@@ -1045,25 +1062,9 @@ fn instance_box(instance: &Instance, model_bounds: &[Option<(DVec3, DVec3)>]) ->
         .iter()
         .flatten()
         .filter_map(|&m| model_bounds[m])
-        .map(|(min, max)| world_box(world, min, max))
+        .map(|(min, max)| crate::trace::transform_box(world, min, max))
         .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
         .unwrap_or((world.w_axis.truncate(), world.w_axis.truncate()))
-}
-
-/// The box around a model-space box placed by `m`.
-fn world_box(m: &DMat4, min: DVec3, max: DVec3) -> (DVec3, DVec3) {
-    (0..8)
-        .map(|corner| {
-            m.transform_point3(DVec3::new(
-                if corner & 1 == 0 { min.x } else { max.x },
-                if corner & 2 == 0 { min.y } else { max.y },
-                if corner & 4 == 0 { min.z } else { max.z },
-            ))
-        })
-        .fold(
-            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-            |(lo, hi), p| (lo.min(p), hi.max(p)),
-        )
 }
 
 /// The resource name of the folder a chunk lies in: the space's, or a
@@ -1376,4 +1377,41 @@ fn add_geometry(
         });
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn placements_are_counted_per_normalised_name_whether_lists_are_shared_or_not() {
+        let element = |resources: &[&str]| {
+            let list: String = resources
+                .iter()
+                .map(|r| format!("<resource>{r}</resource>"))
+                .collect();
+            format!("<model>{list}</model>")
+        };
+        let elements = [
+            element(&["sets/a.model"]),
+            element(&["sets/b.model", "sets/a.model"]),
+            element(&["sets\\a.model"]),
+            element(&["sets/a.model"]),
+            element(&["/sets/b.model", "sets/a.model"]),
+            element(&[]),
+        ];
+        let text = format!("<root>{}</root>", elements.concat());
+        let section = formats::parse_data_section(text.as_bytes()).unwrap();
+        let file = chunk::parse(&section).unwrap();
+        assert!(
+            Arc::ptr_eq(&file.instances[0].resources, &file.instances[3].resources),
+            "the same names share one list"
+        );
+        let counted = resource_placements(&file);
+        let expected = BTreeMap::from([
+            ("sets/a.model".to_string(), 5),
+            ("sets/b.model".to_string(), 2),
+        ]);
+        assert_eq!(counted, expected);
+    }
 }
