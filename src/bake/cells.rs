@@ -407,27 +407,39 @@ impl CellReach {
 }
 
 /// Each of `items` (ascending) into the cells `cells_of` it names: per
-/// cell, its items, ascending. The pairs are collected in the items'
-/// order, so each cell's list fills ascending without a sort, into a list
-/// of its exact size.
+/// cell, its items, ascending. Each thread bins a run of consecutive
+/// items on its own; a cell's list is then its runs' lists in item order,
+/// already ascending, joined at its exact size.
 fn bin<Named: Iterator<Item = u64>>(
     count: usize,
     items: &[u32],
     cells_of: impl Fn(&u32) -> Named + Sync,
 ) -> Vec<Vec<u32>> {
-    let pairs: Vec<(u64, u32)> = items
-        .par_iter()
-        .flat_map_iter(|item| cells_of(item).map(move |c| (c, *item)))
+    let runs = (rayon::current_num_threads() * 2).clamp(1, items.len().div_ceil(4096).max(1));
+    let run_length = items.len().div_ceil(runs).max(1);
+    let binned_runs: Vec<Vec<Vec<u32>>> = items
+        .par_chunks(run_length)
+        .map(|run| {
+            let mut binned = vec![Vec::new(); count];
+            for item in run {
+                for cell in cells_of(item) {
+                    binned[cell as usize].push(*item);
+                }
+            }
+            binned
+        })
         .collect();
-    let mut sizes = vec![0usize; count];
-    for &(cell, _) in &pairs {
-        sizes[cell as usize] += 1;
-    }
-    let mut binned: Vec<Vec<u32>> = sizes.into_iter().map(Vec::with_capacity).collect();
-    for (cell, item) in pairs {
-        binned[cell as usize].push(item);
-    }
-    binned
+    (0..count)
+        .into_par_iter()
+        .map(|cell| {
+            let size = binned_runs.iter().map(|run| run[cell].len()).sum();
+            let mut joined = Vec::with_capacity(size);
+            for run in &binned_runs {
+                joined.extend_from_slice(&run[cell]);
+            }
+            joined
+        })
+        .collect()
 }
 
 /// The largest light-relative coordinate of what the light's top level
@@ -502,7 +514,8 @@ mod tests {
     fn binning_keeps_each_cells_items_ascending() {
         let mut rng = crate::rng::Rng::new(0xb1);
         let count = 37;
-        let items: Vec<u32> = (0..5_000u32).filter(|_| rng.chance(0.7)).collect();
+        // Enough items for several runs (4 096 or more each).
+        let items: Vec<u32> = (0..40_000u32).filter(|_| rng.chance(0.7)).collect();
         let named: Vec<Vec<u64>> = items
             .iter()
             .map(|_| (0..rng.below(4)).map(|_| rng.below(count) as u64).collect())
