@@ -306,15 +306,20 @@ mod tests {
     use crate::formats::chunk::InstanceKind;
     use crate::scene::{load_scene, LoadConfig};
 
-    #[test]
-    fn parts_walk_the_ids_in_table_order() {
+    /// The committed `village` fixture, speedtrees without proxies.
+    fn village() -> Scene {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
-        let scene = load_scene(&LoadConfig {
+        load_scene(&LoadConfig {
             res_paths: ResPaths::new(vec![root]),
             space: "spaces/village".into(),
             speedtrees: Default::default(),
         })
-        .expect("the village fixture loads");
+        .expect("the village fixture loads")
+    }
+
+    #[test]
+    fn parts_walk_the_ids_in_table_order() {
+        let scene = village();
         let table = CasterTable::new(&scene);
         let mut expected = 0u32;
         for part in table.parts(&scene) {
@@ -343,13 +348,7 @@ mod tests {
 
     #[test]
     fn real_casters_are_those_not_receiver_only() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/worlds/village");
-        let scene = load_scene(&LoadConfig {
-            res_paths: ResPaths::new(vec![root]),
-            space: "spaces/village".into(),
-            speedtrees: Default::default(),
-        })
-        .expect("the village fixture loads");
+        let scene = village();
         let table = CasterTable::new(&scene);
         let receivers = table.casters.iter().filter(|c| c.receiver_only).count();
         assert!(receivers > 0, "the village has castsShadow false instances");
