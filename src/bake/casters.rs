@@ -95,15 +95,10 @@ impl CasterTable {
         // An instance's first id is the sum of the counts before it: counted
         // and filled in parallel (millions of instances on a large world),
         // summed in order.
-        // `None`: an instance left out of the bake.
         let counts: Vec<Option<u32>> = scene
             .instances
             .par_iter()
-            .map(|instance| {
-                instance
-                    .is_complete()
-                    .then(|| caster_count(scene, instance))
-            })
+            .map(|instance| caster_count(scene, instance))
             .collect();
         let mut first_of_instance = Vec::with_capacity(counts.len());
         let mut next = 0u32;
@@ -254,15 +249,15 @@ fn set_bits(words: &[u64]) -> impl Iterator<Item = u32> + '_ {
     })
 }
 
-/// How many ids `instance` takes: none when left out of the bake, one for
-/// an unmodelled speedtree, else one per group of each part.
-fn caster_count(scene: &Scene, instance: &Instance) -> u32 {
+/// How many ids `instance` takes: `None` when it is left out of the bake,
+/// one for an unmodelled speedtree, else one per group of each part.
+fn caster_count(scene: &Scene, instance: &Instance) -> Option<u32> {
     if !instance.is_complete() {
-        return 0;
+        return None;
     }
     let groups = instance.parts.iter().flatten();
     let groups: usize = groups.map(|&m| scene.models[m].groups.len()).sum();
-    (groups + usize::from(instance.is_unmodelled())) as u32
+    Some((groups + usize::from(instance.is_unmodelled())) as u32)
 }
 
 /// The casters of instance `index`, in id order.

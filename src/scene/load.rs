@@ -215,22 +215,24 @@ impl Usage {
 
 /// How many of a chunk's instances place each resource (normalised
 /// names). Elements naming the same resources share one list: counted by
-/// list, then each distinct name normalised once.
+/// list, then each list's names added once.
 fn resource_placements(file: &ChunkFile) -> BTreeMap<String, usize> {
     let mut lists: HashMap<usize, (&[String], usize)> = HashMap::new();
     for instance in &file.instances {
         let list = &*instance.resources;
         lists.entry(list.as_ptr() as usize).or_insert((list, 0)).1 += 1;
     }
-    let mut written: HashMap<&str, usize> = HashMap::new();
+    let mut resources: BTreeMap<String, usize> = BTreeMap::new();
     for (list, placements) in lists.into_values() {
         for resource in list {
-            *written.entry(resource).or_default() += placements;
+            let name = files::normalised(resource);
+            match resources.get_mut(&*name) {
+                Some(count) => *count += placements,
+                None => {
+                    resources.insert(name.into_owned(), placements);
+                }
+            }
         }
-    }
-    let mut resources = BTreeMap::new();
-    for (resource, placements) in written {
-        *resources.entry(files::normalise(resource)).or_default() += placements;
     }
     resources
 }
