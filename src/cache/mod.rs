@@ -12,11 +12,14 @@
 
 pub mod codec;
 mod known;
+mod size_ledger;
 
 pub use known::{trusted, KnownFiles};
 
 use crate::files::{self, CacheFile};
+use size_ledger::SizeLedger;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, SystemTime};
 
@@ -315,6 +318,8 @@ pub struct Cache {
     build: Key,
     counts: Mutex<Vec<KindCounts>>,
     warnings: Mutex<Vec<String>>,
+    /// Bytes of the entries this bake wrote, for the folder's size ledger.
+    written_bytes: AtomicU64,
 }
 
 impl Cache {
@@ -328,6 +333,7 @@ impl Cache {
             build,
             counts: Mutex::new(vec![KindCounts::default(); Kind::ALL.len()]),
             warnings: Mutex::new(Vec::new()),
+            written_bytes: AtomicU64::new(0),
         }
     }
 
@@ -425,8 +431,13 @@ impl Cache {
     /// is warned about, never an error of the bake.
     pub fn put(&self, kind: Kind, key: &Key, value: &[u8]) {
         let path = self.path(kind, key);
-        match files::write_cache_entry(&path, &entry_bytes(kind, key, value)) {
-            Ok(()) => self.count(kind, |c| c.written += 1),
+        let bytes = entry_bytes(kind, key, value);
+        match files::write_cache_entry(&path, &bytes) {
+            Ok(()) => {
+                self.count(kind, |c| c.written += 1);
+                self.written_bytes
+                    .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+            }
             Err(err) => self.warn(format!("cannot store a cache entry: {err}")),
         }
     }
@@ -466,12 +477,39 @@ impl Cache {
             .unwrap_or_default()
     }
 
-    /// Keeps the folder under its limit: removes stale temporaries, then
-    /// the least recently used entries until the rest fit. Returns how
-    /// many entries it removed.
+    /// Keeps the folder under its limit. When its size ledger is recent
+    /// and, with what this bake wrote, within the limit, only the ledger
+    /// is updated; otherwise the folder is listed: stale temporaries
+    /// removed, then the least recently used entries until the rest fit,
+    /// and the ledger set to what is left. Returns how many entries it
+    /// removed.
     pub fn evict(&self) -> crate::Result<usize> {
-        let files = files::list_cache_files(&self.dir)?;
         let now = SystemTime::now();
+        let written = self.written_bytes.swap(0, Ordering::Relaxed);
+        if let Some(ledger) = SizeLedger::read(&self.dir).filter(|l| l.trusted_at(now)) {
+            let bytes = ledger.bytes.saturating_add(written);
+            if bytes <= self.max_bytes {
+                if written > 0 {
+                    // Only a hint: a ledger not written means a listing next time.
+                    let _ = SizeLedger { bytes, ..ledger }.write(&self.dir);
+                }
+                return Ok(0);
+            }
+        }
+        let (removed, left) = self.evict_listed(now)?;
+        if let Some(bytes) = left {
+            let _ = SizeLedger::listed_now(bytes, now).write(&self.dir);
+        }
+        Ok(removed)
+    }
+
+    /// [`Self::evict`] by listing the folder: how many entries it removed
+    /// and the bytes left (`None` when the folder holds nothing).
+    fn evict_listed(&self, now: SystemTime) -> crate::Result<(usize, Option<u64>)> {
+        let files = listed(&self.dir)?;
+        if files.is_empty() {
+            return Ok((0, None));
+        }
         let (temporaries, mut entries): (Vec<CacheFile>, Vec<CacheFile>) =
             files.into_iter().partition(|f| f.temporary);
         for temp in temporaries {
@@ -496,8 +534,15 @@ impl Cache {
         if removed > 0 {
             files::remove_empty_cache_folders(&self.dir);
         }
-        Ok(removed)
+        Ok((removed, Some(total)))
     }
+}
+
+/// The entries and temporaries of cache folder `dir` (not its ledger).
+fn listed(dir: &Path) -> crate::Result<Vec<CacheFile>> {
+    let mut files = files::list_cache_files(dir)?;
+    files.retain(|f| !size_ledger::is_ledger(dir, &f.path));
+    Ok(files)
 }
 
 /// An entry: header, payload, checksum of both.
@@ -561,7 +606,7 @@ pub fn folder_stats(dir: &Path) -> crate::Result<FolderStats> {
             .collect(),
         ..FolderStats::default()
     };
-    for file in files::list_cache_files(dir)? {
+    for file in listed(dir)? {
         if file.temporary {
             stats.temporaries += 1;
             continue;
@@ -582,15 +627,18 @@ pub fn folder_stats(dir: &Path) -> crate::Result<FolderStats> {
     Ok(stats)
 }
 
-/// Removes every entry and temporary of the cache folder `dir` (the folder
-/// itself stays). Returns how many files it removed.
+/// Removes every entry and temporary of the cache folder `dir`, and its
+/// size ledger (the folder itself stays). Returns how many entries and
+/// temporaries it removed.
 pub fn clear_folder(dir: &Path) -> crate::Result<usize> {
     let files = files::list_cache_files(dir)?;
+    let mut removed = 0;
     for file in &files {
         files::remove_cache_file(&file.path)?;
+        removed += usize::from(!size_ledger::is_ledger(dir, &file.path));
     }
     files::remove_empty_cache_folders(dir);
-    Ok(files.len())
+    Ok(removed)
 }
 
 #[cfg(test)]
@@ -728,5 +776,63 @@ mod tests {
         assert!(cache.get(Kind::Cell, &keys[0]).is_none(), "the oldest goes");
         assert_eq!(clear_folder(dir.path()).unwrap(), stats.entries as usize);
         assert_eq!(folder_stats(dir.path()).unwrap().entries, 0);
+        assert_eq!(
+            SizeLedger::read(dir.path()),
+            None,
+            "clear removes the ledger"
+        );
+    }
+
+    /// Puts an entry of `payload` bytes (285 bytes on disk for 200).
+    fn put_sized(cache: &Cache, n: u64, payload: usize) {
+        cache.put(Kind::Cell, &key(cache, n), &vec![n as u8; payload]);
+    }
+
+    /// An entry another bake wrote, which this cache's ledger does not
+    /// know of.
+    fn foreign_entry(dir: &Path, name: &str, bytes: usize) {
+        let path = dir.join("cell/ff").join(name);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, vec![0u8; bytes]).unwrap();
+    }
+
+    #[test]
+    fn eviction_lists_the_folder_only_when_its_ledger_is_old_or_the_limit_near() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = cache(dir.path(), 1000);
+        put_sized(&cache, 1, 200);
+        put_sized(&cache, 2, 200);
+        assert_eq!(cache.evict().unwrap(), 0);
+        let ledger = SizeLedger::read(dir.path()).expect("a listing writes the ledger");
+        assert_eq!(ledger.bytes, 570);
+        assert_eq!(folder_stats(dir.path()).unwrap().bytes, 570, "not an entry");
+
+        // A recent ledger within the limit: no listing, so an entry it
+        // does not know of stays although the folder is over its limit.
+        foreign_entry(dir.path(), "one", 900);
+        put_sized(&cache, 3, 200);
+        assert_eq!(cache.evict().unwrap(), 0);
+        assert_eq!(SizeLedger::read(dir.path()).unwrap().bytes, 855);
+        assert_eq!(folder_stats(dir.path()).unwrap().bytes, 1755);
+
+        // What this bake wrote takes the count past the limit: it lists.
+        put_sized(&cache, 4, 200);
+        assert!(cache.evict().unwrap() > 0);
+        let stats = folder_stats(dir.path()).unwrap();
+        assert!(stats.bytes <= 1000, "{stats:?}");
+        assert_eq!(SizeLedger::read(dir.path()).unwrap().bytes, stats.bytes);
+
+        // An hour-old count is listed again whatever it says.
+        foreign_entry(dir.path(), "two", 900);
+        let old = SystemTime::now() - size_ledger::TRUSTED_FOR - Duration::from_secs(5);
+        SizeLedger::listed_now(0, old).write(dir.path()).unwrap();
+        assert!(cache.evict().unwrap() > 0);
+        assert!(folder_stats(dir.path()).unwrap().bytes <= 1000);
+
+        // A damaged ledger is listed again too.
+        foreign_entry(dir.path(), "three", 900);
+        std::fs::write(dir.path().join(size_ledger::FILE_NAME), b"garbage").unwrap();
+        assert!(cache.evict().unwrap() > 0);
+        assert!(folder_stats(dir.path()).unwrap().bytes <= 1000);
     }
 }
