@@ -138,9 +138,14 @@ impl WorldKeys {
             out.extend_from_slice(&self.scene.models[part.model].0);
         }
         if self.keeps(KeyInput::PartTransform) {
-            for v in instance.world.to_cols_array() {
-                out.extend_from_slice(&v.to_bits().to_le_bytes());
+            let mut bytes = [0u8; 128];
+            for (to, v) in bytes
+                .chunks_exact_mut(8)
+                .zip(instance.world.to_cols_array())
+            {
+                to.copy_from_slice(&v.to_bits().to_le_bytes());
             }
+            out.extend_from_slice(&bytes);
         }
         if self.keeps(KeyInput::PartCastsShadow) {
             out.push(u8::from(instance.casts_shadow));
@@ -232,12 +237,15 @@ impl LightKey {
 }
 
 /// The key of cell `cell` of a light whose key is `light`.
+/// `scratch` holds the parts' bytes (a megabyte or more for a big
+/// world's cell): one buffer per thread, not one allocation per cell.
 pub fn cell_key(
     light: &LightKey,
     cell: u64,
     reach: &CellReach,
     world: &BakeWorld,
     keys: &WorldKeys,
+    scratch: &mut Vec<u8>,
 ) -> Key {
     let c = cell as usize;
     let mut h = KeyHasher::content("cell");
@@ -246,11 +254,11 @@ pub fn cell_key(
         h.u64(cell);
     }
     h.u64(reach.parts[c].len() as u64);
-    let mut parts = Vec::new();
+    scratch.clear();
     for &p in &reach.parts[c] {
-        keys.part_content(world, p, &mut parts);
+        keys.part_content(world, p, scratch);
     }
-    h.bytes(&parts);
+    h.bytes(scratch);
     h.u64(reach.blocks[c].len() as u64);
     for &b in &reach.blocks[c] {
         h.key(&keys.blocks[b as usize]);

@@ -268,8 +268,9 @@ impl<'c> BakeCache<'c> {
         let reach = CellReach::of(world, setup, &cells, halo, &self.keys.ground);
         let keys = (0..cells.count())
             .into_par_iter()
-            .map(|cell| {
-                (!reach.is_empty(cell)).then(|| cell_key(&key, cell, &reach, world, &self.keys))
+            .map_init(Vec::new, |scratch, cell| {
+                let key_of = |scratch| cell_key(&key, cell, &reach, world, &self.keys, scratch);
+                (!reach.is_empty(cell)).then(|| key_of(scratch))
             })
             .collect();
         LightCells {
