@@ -1316,4 +1316,55 @@ mod tests {
         }
         assert!(checked > 10_000, "{checked} hits");
     }
+
+    /// A cell's ground is the blocks near any of its parts, ascending and
+    /// each once; a light's reach counts its parts' triangles part by
+    /// part and every part is in reach or out of it.
+    #[test]
+    fn a_cells_ground_and_a_lights_totals_are_those_of_its_parts() {
+        let (mut settings, scene) = fixture("small", 96);
+        for light in &mut settings.lights {
+            // Many cells: the sun's grid thousands of texels across.
+            if let LightKind::Directional { texel_size, .. } = &mut light.kind {
+                *texel_size = 0.05;
+            }
+        }
+        let world = BakeWorld::new(&scene);
+        let config = BakeConfig::from_settings(&settings);
+        let ground = super::super::cells::GroundNear::of(&world);
+        let (mut grounds, mut cells_met) = (0, 0);
+        for index in 0..config.lights.len() {
+            let setup = LightSetup::new(&world, &config, index).unwrap();
+            let reach = &setup.reach;
+            assert_eq!(
+                reach.parts.len() + reach.parts_out_of_reach,
+                world.parts.len()
+            );
+            assert!(reach.parts.windows(2).all(|w| w[0] < w[1]));
+            let models = reach.parts.iter().map(|&p| world.parts[p as usize].model);
+            let (triangles, left_out) = models.fold((0, 0), |(t, l), m| {
+                let t = t + world.bottom.model_triangles(m) as u64;
+                (t, l + world.bottom.model_left_out(m) as u64)
+            });
+            let blocks = reach.blocks.iter();
+            let terrain: u64 = blocks
+                .map(|&b| scene.terrain[b as usize].visible_triangles() as u64)
+                .sum();
+            assert_eq!(reach.triangles, triangles + terrain, "light {index}");
+            assert_eq!(reach.left_out_triangles, left_out, "light {index}");
+            let cells = Cells::of(&setup.grid);
+            let cell_reach = CellReach::of(&world, &setup, &cells, 0.0, &ground);
+            for (parts, near) in cell_reach.parts.iter().zip(&cell_reach.ground) {
+                let expected: std::collections::BTreeSet<u32> = parts
+                    .iter()
+                    .flat_map(|&p| ground.of_part(p).iter().copied())
+                    .collect();
+                assert_eq!(near, &expected.into_iter().collect::<Vec<_>>());
+                grounds += near.len();
+                cells_met += usize::from(!parts.is_empty());
+            }
+        }
+        assert!(grounds > 0, "some cell has ground near its parts");
+        assert!(cells_met > 4, "{cells_met} cells meet parts");
+    }
 }

@@ -236,7 +236,7 @@ impl CasterTable {
 }
 
 /// The positions of the set bits of `words` (64 a word), ascending.
-fn set_bits(words: &[u64]) -> impl Iterator<Item = u32> + '_ {
+pub(crate) fn set_bits(words: &[u64]) -> impl Iterator<Item = u32> + '_ {
     words.iter().enumerate().flat_map(|(w, &word)| {
         let mut rest = word;
         std::iter::from_fn(move || {

@@ -15,6 +15,7 @@
 //! id order, blocks by index), so a cell's reach reads the same in every
 //! bake of the same world.
 
+use super::casters::set_bits;
 use super::setup::{BakeWorld, LightSetup};
 use super::trace_light::TILE;
 use crate::light::{BoxImage, TexelGrid};
@@ -380,17 +381,22 @@ impl CellReach {
             let (min, max) = world.scene.terrain[b as usize].bounds();
             cells_of(min, max)
         });
+        // Each cell's blocks as bits over the world's blocks: a cell's
+        // parts name tens of thousands of blocks, mostly the same few.
+        let words = world.scene.terrain.len().div_ceil(64);
         let ground = parts
             .par_iter()
-            .map(|parts| {
-                let mut near: Vec<u32> = parts
-                    .iter()
-                    .flat_map(|&p| ground.of_part(p).iter().copied())
-                    .collect();
-                near.sort_unstable();
-                near.dedup();
-                near
-            })
+            .map_init(
+                || vec![0u64; words],
+                |seen, parts| {
+                    for &b in parts.iter().flat_map(|&p| ground.of_part(p)) {
+                        seen[b as usize / 64] |= 1 << (b % 64);
+                    }
+                    let near = set_bits(seen).collect();
+                    seen.fill(0);
+                    near
+                },
+            )
             .collect();
         CellReach {
             parts,

@@ -359,10 +359,10 @@ impl LightSetup {
 /// The parts and blocks some of whose box the light's grid reaches.
 fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
     let scene = world.scene;
-    let in_reach: Vec<bool> = world
-        .parts
-        .par_iter()
-        .map(|part| {
+    let parts: Vec<u32> = (0..world.parts.len() as u32)
+        .into_par_iter()
+        .filter(|&index| {
+            let part = &world.parts[index as usize];
             world.bottom.models[part.model]
                 .bounds()
                 .is_some_and(|(min, max)| {
@@ -372,17 +372,31 @@ fn reach(world: &BakeWorld, grid: &TexelGrid) -> Reach {
                 })
         })
         .collect();
-    let mut reach = Reach::default();
-    for (index, part) in world.parts.iter().enumerate() {
-        if !in_reach[index] {
-            reach.parts_out_of_reach += 1;
-            continue;
-        }
-        reach.parts.push(index as u32);
-        let model = &scene.models[part.model];
-        reach.triangles += world.bottom.model_triangles(part.model) as u64;
-        reach.left_out_triangles += world.bottom.model_left_out(part.model) as u64;
-        reach.reaches_alpha_tested |= model
+    // Totals per model, not per part: the sun reaches millions of parts
+    // of a few thousand models.
+    let per_model = parts
+        .par_iter()
+        .fold(
+            || vec![0u64; scene.models.len()],
+            |mut counts, &p| {
+                counts[world.parts[p as usize].model] += 1;
+                counts
+            },
+        )
+        .reduce_with(|mut a, b| {
+            a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+            a
+        })
+        .unwrap_or_default();
+    let mut reach = Reach {
+        parts_out_of_reach: world.parts.len() - parts.len(),
+        parts,
+        ..Reach::default()
+    };
+    for (model, &count) in per_model.iter().enumerate().filter(|(_, &c)| c > 0) {
+        reach.triangles += count * world.bottom.model_triangles(model) as u64;
+        reach.left_out_triangles += count * world.bottom.model_left_out(model) as u64;
+        reach.reaches_alpha_tested |= scene.models[model]
             .groups
             .iter()
             .any(|g| g.alpha_tested && !g.triangles.is_empty());
