@@ -592,7 +592,7 @@ pub struct FolderStats {
     pub kinds: Vec<(String, u64, u64)>,
     pub entries: u64,
     pub bytes: u64,
-    /// Temporaries left by killed writers (removed by the next eviction
+    /// Temporaries left by killed writers (removed by the next listing
     /// once an hour old).
     pub temporaries: u64,
 }
