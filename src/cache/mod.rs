@@ -388,11 +388,16 @@ impl Cache {
                 return Fetched::Damaged;
             }
         };
-        match check_entry(&bytes, kind, key) {
-            Ok(payload) => {
+        match check_entry(&bytes, kind, key).map(|payload| payload.len()) {
+            Ok(length) => {
                 self.count(kind, |c| c.reused += 1);
                 files::touch_cache_entry(&path);
-                Fetched::Value(payload.to_vec())
+                // The payload kept in the bytes read, not copied out: a
+                // world's chunk entries are hundreds of megabytes.
+                let mut payload = bytes;
+                payload.truncate(HEADER_BYTES + length);
+                payload.drain(..HEADER_BYTES);
+                Fetched::Value(payload)
             }
             Err(why) => {
                 self.damaged(kind, &path, why);
