@@ -269,8 +269,8 @@ impl<'c> BakeCache<'c> {
         let keys = (0..cells.count())
             .into_par_iter()
             .map_init(Vec::new, |scratch, cell| {
-                let key_of = |scratch| cell_key(&key, cell, &reach, world, &self.keys, scratch);
-                (!reach.is_empty(cell)).then(|| key_of(scratch))
+                let parts = &self.keys;
+                (!reach.is_empty(cell)).then(|| cell_key(&key, cell, &reach, world, parts, scratch))
             })
             .collect();
         LightCells {

@@ -18,6 +18,7 @@ pub use known::{trusted, KnownFiles};
 
 use crate::files::{self, CacheFile};
 use size_ledger::SizeLedger;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -388,16 +389,16 @@ impl Cache {
                 return Fetched::Damaged;
             }
         };
-        match check_entry(&bytes, kind, key).map(|payload| payload.len()) {
-            Ok(length) => {
+        match check_entry(&bytes, kind, key) {
+            Ok(payload) => {
                 self.count(kind, |c| c.reused += 1);
                 files::touch_cache_entry(&path);
                 // The payload kept in the bytes read, not copied out: a
                 // world's chunk entries are hundreds of megabytes.
-                let mut payload = bytes;
-                payload.truncate(HEADER_BYTES + length);
-                payload.drain(..HEADER_BYTES);
-                Fetched::Value(payload)
+                let mut bytes = bytes;
+                bytes.truncate(payload.end);
+                bytes.drain(..payload.start);
+                Fetched::Value(bytes)
             }
             Err(why) => {
                 self.damaged(kind, &path, why);
@@ -564,9 +565,9 @@ fn entry_bytes(kind: Kind, key: &Key, payload: &[u8]) -> Vec<u8> {
     bytes
 }
 
-/// The payload of an entry read for (`kind`, `key`), or why it cannot be
-/// trusted.
-fn check_entry<'b>(bytes: &'b [u8], kind: Kind, key: &Key) -> Result<&'b [u8], &'static str> {
+/// Where the payload lies in an entry read for (`kind`, `key`), or why
+/// the entry cannot be trusted.
+fn check_entry(bytes: &[u8], kind: Kind, key: &Key) -> Result<Range<usize>, &'static str> {
     if bytes.len() < HEADER_BYTES + CHECKSUM_BYTES {
         return Err("is truncated");
     }
@@ -587,7 +588,7 @@ fn check_entry<'b>(bytes: &'b [u8], kind: Kind, key: &Key) -> Result<&'b [u8], &
     if length != (body.len() - HEADER_BYTES) as u64 {
         return Err("has a wrong length");
     }
-    Ok(&body[HEADER_BYTES..])
+    Ok(HEADER_BYTES..body.len())
 }
 
 /// What a cache folder holds, for `shadowcull cache DIR stats`.
@@ -636,14 +637,13 @@ pub fn folder_stats(dir: &Path) -> crate::Result<FolderStats> {
 /// size ledger (the folder itself stays). Returns how many entries and
 /// temporaries it removed.
 pub fn clear_folder(dir: &Path) -> crate::Result<usize> {
-    let files = files::list_cache_files(dir)?;
-    let mut removed = 0;
+    let files = listed(dir)?;
     for file in &files {
         files::remove_cache_file(&file.path)?;
-        removed += usize::from(!size_ledger::is_ledger(dir, &file.path));
     }
+    SizeLedger::remove(dir)?;
     files::remove_empty_cache_folders(dir);
-    Ok(removed)
+    Ok(files.len())
 }
 
 #[cfg(test)]

@@ -59,6 +59,11 @@ impl SizeLedger {
         files::write_cache_entry(&path(dir), text.as_bytes())
     }
 
+    /// Removes the ledger of cache folder `dir`, if any.
+    pub fn remove(dir: &Path) -> crate::Result<()> {
+        files::remove_cache_file(&path(dir))
+    }
+
     /// Whether the count is recent enough at `now` to skip a listing (a
     /// count from the future, another machine's clock, is not).
     pub fn trusted_at(&self, now: SystemTime) -> bool {
